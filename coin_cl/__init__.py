@@ -1,0 +1,33 @@
+"""coin-cl: CoIn 3D scene inpainting on a portable OpenCL Gaussian-splatting engine.
+
+Public engine API (differentiable torch ops, OpenCL underneath):
+    rasterize, project, rasterize_to_pixels
+Scenes and evaluation:
+    load_scene, metrics
+"""
+
+import os
+
+# torch and PoCL share the cores; torch's OpenMP threads spin-wait by default and then starve
+# the OpenCL worker threads (10-100x slowdowns measured). Must be set before torch is imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "rasterize": "coin_cl.rendering",
+    "project": "coin_cl.rendering",
+    "rasterize_to_pixels": "coin_cl.rendering",
+    "get_runtime": "coin_cl.runtime",
+    "PairOverflowError": "coin_cl.reference",
+    "load_scene": "coin_cl.scene",
+}
+
+
+def __getattr__(name: str):
+    # Lazy so that `import coin_cl` stays cheap and OpenCL is only touched when used.
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'coin_cl' has no attribute {name!r}")

@@ -1,0 +1,59 @@
+"""The `coin-cl` command line. Each subcommand lives in the module that owns its work.
+
+A module joins the CLI by defining `add_commands(subparsers)`; the list below names them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+# Modules that register subcommands. A module that is missing is skipped with a log line, so a
+# partial checkout still gives a working CLI for what is there.
+COMMAND_MODULES = [
+    "coin_cl.cli_engine",  # demo, doctor
+    "coin_cl.cli_scene",  # make-scene, eval
+    "coin_cl.cli_train",  # train, render
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="coin-cl", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in COMMAND_MODULES:
+        try:
+            mod = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name != name:
+                raise
+            logging.getLogger(__name__).debug("CLI module %s not present", name)
+            continue
+        mod.add_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+        # User-facing failures carry a message naming the file or value; no traceback needed.
+        if args.verbose:
+            raise
+        print(f"coin-cl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

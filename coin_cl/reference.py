@@ -1,0 +1,221 @@
+"""Pure-torch float64 twins of every kernel op, with the same signatures as `coin_cl.ops`.
+
+They follow the kernels' semantics exactly (tile binning by 3-sigma radius, front-to-back
+compositing with the alpha clamp, the 1/255 skip and the transmittance stop), written the plainest
+way torch allows, so that autograd gives the reference gradients. They are for tests, benchmarks'
+error columns and small scenes; they are slow and memory-hungry on large ones.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from coin_cl import constants as cst
+
+
+class PairOverflowError(RuntimeError):
+    """More (tile, Gaussian) pairs than the cap allows: raised before anything is allocated."""
+
+    def __init__(self, n_pairs: int, max_pairs: int):
+        super().__init__(
+            f"{n_pairs} (tile, Gaussian) pairs exceed max_pairs={max_pairs}: splats this large "
+            "cover the screen many times over; shrink huge scales, cull them, or raise max_pairs"
+        )
+        self.n_pairs, self.max_pairs = n_pairs, max_pairs
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices from quaternions.
+
+    Args:
+        quats: [N, 4] (w, x, y, z), any non-zero norm (normalised here).
+    Returns:
+        [N, 3, 3]
+    """
+    q = quats / quats.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
+
+
+def finite_rows(*tensors: Tensor) -> Tensor:
+    """[N] bool: rows where every given [N, ...] tensor is finite."""
+    ok = torch.ones(tensors[0].shape[0], dtype=torch.bool, device=tensors[0].device)
+    for t in tensors:
+        t = t[:, None] if t.dim() == 1 else t.flatten(1)
+        ok = ok & torch.isfinite(t).all(dim=1)
+    return ok
+
+
+def project(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    near: float = cst.NEAR_PLANE,
+    far: float = cst.FAR_PLANE,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """EWA projection of 3D Gaussians to screen space.
+
+    Args:
+        means: [N, 3] world positions. quats: [N, 4] (w, x, y, z). scales: [N, 3] (activated).
+        viewmat: [4, 4] world-to-camera (OpenCV axes). K: [3, 3] pinhole intrinsics, pixel
+            (x, y) centred at (x + 0.5, y + 0.5).
+    Returns:
+        means2d [N, 2] pixels, conics [N, 3] (a, b, c) of the inverse 2D covariance,
+        depths [N] camera z, radii [N] int32 3-sigma radius in pixels; every output is 0 for a
+        culled Gaussian (behind/near/far, non-finite input, zero quaternion, off screen).
+    """
+    dt = means.dtype
+    ok = finite_rows(means, quats, scales) & (quats.norm(dim=-1) > 0)
+    # Sanitise before the arithmetic so that culled rows carry no NaN into the graph's gradients.
+    safe_q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dt, device=means.device)
+    means = torch.where(ok[:, None], means, torch.zeros_like(means))
+    quats = torch.where(ok[:, None], quats, safe_q.expand_as(quats))
+    scales = torch.where(ok[:, None], scales, torch.zeros_like(scales))
+
+    R, t = viewmat[:3, :3].to(dt), viewmat[:3, 3].to(dt)
+    fx, fy, cx, cy = K[0, 0].item(), K[1, 1].item(), K[0, 2].item(), K[1, 2].item()
+    pc = means @ R.T + t
+    x, y, z = pc.unbind(-1)
+    ok = ok & ((z >= near) & (z <= far))
+    z = torch.where(ok, z, torch.ones_like(z))
+
+    Rq = quat_to_rotmat(quats)
+    M = Rq * scales[:, None, :]
+    cov_c = R @ (M @ M.transpose(1, 2)) @ R.T
+
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    u = (x / z).clamp(-(cx / fx + cst.FRUSTUM_MARGIN * tan_fovx),
+                      (width - cx) / fx + cst.FRUSTUM_MARGIN * tan_fovx)  # fmt: skip
+    v = (y / z).clamp(-(cy / fy + cst.FRUSTUM_MARGIN * tan_fovy),
+                      (height - cy) / fy + cst.FRUSTUM_MARGIN * tan_fovy)  # fmt: skip
+    zero = torch.zeros_like(z)
+    J = torch.stack([fx / z, zero, -fx * u / z, zero, fy / z, -fy * v / z], dim=-1).reshape(-1, 2, 3)
+    cov2d = J @ cov_c @ J.transpose(1, 2)
+    a = cov2d[:, 0, 0] + cst.EPS2D
+    b = cov2d[:, 0, 1]
+    c = cov2d[:, 1, 1] + cst.EPS2D
+    det = a * c - b * b
+    ok = ok & (torch.isfinite(det) & (det > 0))
+    det = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+
+    mid = 0.5 * (a + c)
+    lam = mid + torch.sqrt((mid * mid - det).clamp_min(cst.EIGEN_FLOOR))
+    radius = torch.ceil(cst.SIGMA_RADIUS * torch.sqrt(lam.detach()))
+    radius = torch.nan_to_num(radius, nan=0.0, posinf=cst.MAX_RADIUS_PX).clamp(0, cst.MAX_RADIUS_PX)
+    means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
+    md = means2d.detach()
+    ok = ok & (radius > 0)
+    ok = ok & ((md[:, 0] + radius > 0) & (md[:, 0] - radius < width))
+    ok = ok & ((md[:, 1] + radius > 0) & (md[:, 1] - radius < height))
+
+    okf = ok[:, None]
+    means2d = torch.where(okf, means2d, torch.zeros_like(means2d))
+    conics = torch.where(okf, conics, torch.zeros_like(conics))
+    depths = torch.where(ok, z, torch.zeros_like(z))
+    radii = torch.where(ok, radius, torch.zeros_like(radius)).to(torch.int32)
+    return means2d, conics, depths, radii
+
+
+def tile_rects(means2d: Tensor, radii: Tensor, tiles_x: int, tiles_y: int) -> Tensor:
+    """[N, 4] int64 (x0, y0, x1, y1) half-open tile rectangle each splat is binned to (gsplat's rule)."""
+    r = radii.to(means2d.dtype)
+    ts = cst.TILE_SIZE
+    x0 = torch.floor((means2d[:, 0] - r) / ts).clamp(0, tiles_x)
+    x1 = torch.ceil((means2d[:, 0] + r) / ts).clamp(0, tiles_x)
+    y0 = torch.floor((means2d[:, 1] - r) / ts).clamp(0, tiles_y)
+    y1 = torch.ceil((means2d[:, 1] + r) / ts).clamp(0, tiles_y)
+    rect = torch.stack([x0, y0, x1, y1], dim=-1).to(torch.int64)
+    return torch.where((radii > 0)[:, None], rect, torch.zeros_like(rect))
+
+
+def rasterize_to_pixels(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    max_pairs: int = cst.MAX_PAIRS_DEFAULT,
+    stats: dict | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Front-to-back alpha compositing of projected splats, tile by tile.
+
+    Args:
+        means2d [N, 2], conics [N, 3], opacities [N], features [N, C], depths [N] (sort key),
+        radii [N] (0 = culled), background [C] or None (zeros).
+        max_pairs: cap on (tile, splat) pairs; over it a `PairOverflowError` is raised.
+        stats: if given, filled with 'n_pairs'.
+    Returns:
+        image [H, W, C] (sum_i w_i f_i + T_final * background), alpha [H, W] (1 - T_final).
+    """
+    dt = features.dtype
+    C = features.shape[1]
+    ts = cst.TILE_SIZE
+    tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+    bg = torch.zeros(C, dtype=dt) if background is None else background.to(dt)
+
+    vis = (radii > 0) & torch.isfinite(opacities) & (opacities > 0)
+    order = torch.argsort(depths.detach(), stable=True)
+    order = order[vis[order]]
+    rect = tile_rects(means2d.detach()[order], radii[order], tiles_x, tiles_y)
+    m2, con, op, feat = means2d[order], conics[order], opacities[order], features[order]
+    n_pairs = int(((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])).sum())
+    if n_pairs > max_pairs:
+        raise PairOverflowError(n_pairs, max_pairs)
+    if stats is not None:
+        stats["n_pairs"] = n_pairs
+
+    py, px = torch.meshgrid(torch.arange(ts, dtype=dt), torch.arange(ts, dtype=dt), indexing="ij")
+    img = torch.zeros(tiles_y * ts, tiles_x * ts, C, dtype=dt)
+    alp = torch.zeros(tiles_y * ts, tiles_x * ts, dtype=dt)
+    rows_img, rows_alp = [], []
+    for ty in range(tiles_y):
+        tiles_img, tiles_alp = [], []
+        for tx in range(tiles_x):
+            sel = (rect[:, 0] <= tx) & (tx < rect[:, 2]) & (rect[:, 1] <= ty) & (ty < rect[:, 3])
+            idx = sel.nonzero().squeeze(1)
+            gx = (px + tx * ts + 0.5).reshape(-1, 1)
+            gy = (py + ty * ts + 0.5).reshape(-1, 1)
+            if idx.numel() == 0:
+                tiles_img.append(bg.expand(ts * ts, C))
+                tiles_alp.append(torch.zeros(ts * ts, dtype=dt))
+                continue
+            dx = gx - m2[idx, 0]
+            dy = gy - m2[idx, 1]
+            A, B, Cc = con[idx, 0], con[idx, 1], con[idx, 2]
+            sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+            alpha = (op[idx] * torch.exp(-sigma)).clamp(max=cst.MAX_ALPHA)
+            keep = (sigma >= 0) & (alpha >= cst.ALPHA_THRESHOLD)
+            alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+            incl = torch.cumprod(1 - alpha, dim=1)
+            # T is non-increasing, so "stop before T <= T_min" keeps exactly a prefix.
+            contrib = incl > cst.TRANSMITTANCE_MIN
+            excl = torch.cat([torch.ones_like(incl[:, :1]), incl[:, :-1]], dim=1)
+            w = alpha * excl * contrib
+            t_final = torch.where(contrib, 1 - alpha, torch.ones_like(alpha)).prod(dim=1)
+            tiles_img.append(w @ feat[idx] + t_final[:, None] * bg)
+            tiles_alp.append(1 - t_final)
+        rows_img.append(torch.stack(tiles_img, 0).reshape(tiles_x, ts, ts, C))
+        rows_alp.append(torch.stack(tiles_alp, 0).reshape(tiles_x, ts, ts))
+    # [tiles_y, tiles_x, ts, ts, C] -> [tiles_y*ts, tiles_x*ts, C]
+    img = torch.stack(rows_img, 0).permute(0, 2, 1, 3, 4).reshape(tiles_y * ts, tiles_x * ts, C)
+    alp = torch.stack(rows_alp, 0).permute(0, 2, 1, 3).reshape(tiles_y * ts, tiles_x * ts)
+    return img[:height, :width], alp[:height, :width]

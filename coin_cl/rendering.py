@@ -1,0 +1,161 @@
+"""Public rendering API: `rasterize` = `project` + `rasterize_to_pixels`, all differentiable.
+
+Conventions: `viewmat` is world-to-camera [4, 4] in OpenCV axes (x right, y down, z forward);
+`K` is [3, 3] pinhole in pixels with pixel (x, y) centred at (x + 0.5, y + 0.5); quaternions are
+(w, x, y, z) and need not be normalised; scales and opacities are activated (not log / logit).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from coin_cl import constants as cst
+from coin_cl import reference
+
+
+def _backend(name: str):
+    if name == "opencl":
+        from coin_cl import ops
+
+        return ops
+    if name == "torch":
+        return reference
+    raise ValueError(f"unknown backend {name!r}: use 'opencl' or 'torch'")
+
+
+def project(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    near: float = cst.NEAR_PLANE,
+    far: float = cst.FAR_PLANE,
+    backend: str = "opencl",
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Project Gaussians to screen space; see `coin_cl.reference.project` for the outputs."""
+    return _backend(backend).project(means, quats, scales, viewmat, K, width, height, near, far)
+
+
+def rasterize_to_pixels(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    backend: str = "opencl",
+    **kwargs: Any,
+) -> tuple[Tensor, Tensor]:
+    """Composite projected splats; see `coin_cl.reference.rasterize_to_pixels`."""
+    return _backend(backend).rasterize_to_pixels(
+        means2d, conics, opacities, features, depths, radii, width, height, background, **kwargs
+    )
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background):
+    n = means.shape[0]
+    shapes = {
+        "means": (means, (n, 3)),
+        "quats": (quats, (n, 4)),
+        "scales": (scales, (n, 3)),
+        "opacities": (opacities, (n,)),
+        "viewmat": (viewmat, (4, 4)),
+        "K": (K, (3, 3)),
+    }
+    for name, (t, shape) in shapes.items():
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {shape}")
+    if colors.dim() != 2 or colors.shape[0] != n or not 1 <= colors.shape[1] <= cst.MAX_CHANNELS - 1:
+        raise ValueError(
+            f"colors has shape {tuple(colors.shape)}, expected [{n}, C] with 1 <= C < {cst.MAX_CHANNELS}"
+        )
+    if background is not None and tuple(background.shape) != (colors.shape[1],):
+        raise ValueError(f"background has shape {tuple(background.shape)}, expected ({colors.shape[1]},)")
+    if int(width) < 1 or int(height) < 1:
+        raise ValueError(f"image size {width}x{height} must be at least 1x1")
+    for name, t in (("viewmat", viewmat), ("K", K)):
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{name} has non-finite entries: the camera must be finite")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"K has non-positive focal lengths fx={K[0, 0]}, fy={K[1, 1]}")
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    background: Tensor | None = None,
+    near: float = cst.NEAR_PLANE,
+    far: float = cst.FAR_PLANE,
+    return_depth: bool = False,
+    max_pairs: int = cst.MAX_PAIRS_DEFAULT,
+    backend: str = "opencl",
+) -> tuple[Tensor, Tensor, Tensor | None, dict[str, Any]]:
+    """Render N 3D Gaussians into one camera, differentiably.
+
+    Args:
+        means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3], opacities [N] in [0, 1],
+        colors [N, C] (any C from 1 to 127: RGB, features, ...), viewmat [4, 4], K [3, 3].
+        background: [C] colour behind the splats (default zeros).
+        near, far: camera-z clip planes. return_depth: also render accumulated depth.
+        max_pairs: cap on (tile, Gaussian) pairs; exceeding it raises `PairOverflowError`
+            (OpenCL backend) rather than failing an allocation.
+        backend: 'opencl' (the kernels) or 'torch' (the float64-capable twin, slow).
+    Returns:
+        image [H, W, C]; alpha [H, W] (1 - final transmittance); depth [H, W] or None, the
+        alpha-weighted camera z sum_i w_i z_i (divide by alpha for the expected depth); meta with
+        'means2d' [N, 2] (in the graph: call .retain_grad() for densification), 'radii' [N],
+        'visible' [N] bool, 'n_nonfinite' (Gaussians culled for NaN/Inf input), 'n_pairs'.
+    Gradients flow to means, quats, scales, opacities, colors (and background).
+    """
+    _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+    be = _backend(backend)
+    means2d, conics, depths, radii = be.project(
+        means, quats, scales, viewmat, K, int(width), int(height), near, far
+    )
+    # Projection culls NaN/Inf geometry; NaN/Inf in opacity or colour would poison every pixel the
+    # splat covers, so those Gaussians are culled here and counted.
+    finite_geo = reference.finite_rows(means, quats, scales)
+    finite_all = finite_geo & reference.finite_rows(opacities[:, None], colors)
+    radii = radii.masked_fill(~finite_all, 0)
+
+    feats = torch.cat([colors, depths[:, None].to(colors.dtype)], 1) if return_depth else colors
+    bg = background
+    if return_depth and background is not None:
+        bg = torch.cat([background, background.new_zeros(1)])
+    stats: dict[str, Any] = {}
+    image, alpha = be.rasterize_to_pixels(
+        means2d, conics, opacities, feats, depths, radii, int(width), int(height), bg,
+        max_pairs=max_pairs, stats=stats,
+    )  # fmt: skip
+    depth = None
+    if return_depth:
+        image, depth = image[..., :-1], image[..., -1]
+    meta = {
+        "means2d": means2d,
+        "conics": conics,
+        "depths": depths,
+        "radii": radii,
+        "visible": radii > 0,
+        "n_nonfinite": int((~finite_all).sum()),
+        "tiles": (math.ceil(width / cst.TILE_SIZE), math.ceil(height / cst.TILE_SIZE)),
+        **stats,
+    }
+    return image, alpha, depth, meta

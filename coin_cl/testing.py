@@ -1,0 +1,89 @@
+"""Seeded scenes for tests and benchmarks: random Gaussians and simple pinhole cameras."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Gaussians:
+    """One set of renderer inputs: means [N,3], quats [N,4], scales [N,3], opacities [N], colors [N,C]."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+
+    def tensors(self) -> list[Tensor]:
+        return [self.means, self.quats, self.scales, self.opacities, self.colors]
+
+    def to(self, dtype: torch.dtype) -> Gaussians:
+        return Gaussians(*(t.to(dtype) for t in self.tensors()))
+
+    def requires_grad_(self) -> Gaussians:
+        for t in self.tensors():
+            t.requires_grad_(True)
+        return self
+
+
+def look_at_camera(
+    width: int,
+    height: int,
+    fov_deg: float = 60.0,
+    eye=(0.0, 0.0, 0.0),
+    cx=None,
+    cy=None,
+    dtype: torch.dtype = torch.float64,
+) -> tuple[Tensor, Tensor]:
+    """viewmat [4,4] (camera at `eye`, looking down +z) and K [3,3] for a width x height image."""
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    K = torch.tensor(
+        [[f, 0, width / 2 if cx is None else cx], [0, f, height / 2 if cy is None else cy], [0, 0, 1]],
+        dtype=dtype,
+    )
+    viewmat = torch.eye(4, dtype=dtype)
+    viewmat[:3, 3] = -torch.tensor(eye, dtype=dtype)
+    return viewmat, K
+
+
+def random_gaussians(
+    n: int,
+    seed: int = 0,
+    channels: int = 3,
+    depth: float = 4.0,
+    spread: float = 1.0,
+    scale_range: tuple[float, float] = (0.02, 0.15),
+    dtype: torch.dtype = torch.float64,
+) -> Gaussians:
+    """N Gaussians in front of a camera at the origin looking down +z (fresh seeded randoms)."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * spread
+    means[:, 2] = depth + means[:, 2].abs() * 0.5
+    lo, hi = scale_range
+    return Gaussians(
+        means=means,
+        quats=torch.randn(n, 4, generator=g, dtype=dtype),
+        scales=lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=dtype),
+        opacities=torch.rand(n, generator=g, dtype=dtype),
+        colors=torch.rand(n, channels, generator=g, dtype=dtype),
+    )
+
+
+def garden_like(points: Tensor, n: int, seed: int = 0, jitter: float = 0.5, channels: int = 3) -> Gaussians:
+    """gsplat-test-style Gaussians on a real point cloud: points replicated with jitter, scales
+    U[1e-4, 0.02], random rotations, opacities U[0, 1] (float32)."""
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randint(0, points.shape[0], (n,), generator=g)
+    means = points[idx].to(torch.float32) + torch.randn(n, 3, generator=g) * jitter
+    return Gaussians(
+        means=means,
+        quats=torch.randn(n, 4, generator=g),
+        scales=torch.rand(n, 3, generator=g) * (0.02 - 1e-4) + 1e-4,
+        opacities=torch.rand(n, generator=g),
+        colors=torch.rand(n, channels, generator=g),
+    )

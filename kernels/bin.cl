@@ -1,0 +1,58 @@
+/* Binning of splats to tiles without sorting pairs.
+ *
+ * The splats arrive already depth-sorted (`order`). They are cut into contiguous chunks; pass 1
+ * counts, per chunk, how many of its splats land in each tile; an exclusive scan over
+ * (tile, chunk) gives every chunk its own write position in every tile; pass 2 writes the ids.
+ * Each tile's list is therefore in depth order (chunk by chunk, each chunk in order) and the
+ * result is deterministic: no atomics, no sort of the pairs. */
+#include "common.h"
+
+/* Per sorted splat: its tile rectangle, from the opacity-aware extent capped by the radius. */
+__kernel void bin_rects(const int n_vis, __global const int *order, __global const float *means2d,
+                        __global const float *conics, __global const float *opac,
+                        __global const int *radii, const int tiles_x, const int tiles_y,
+                        __global int4 *rects)
+{
+    const int s = get_global_id(0);
+    if (s >= n_vis)
+        return;
+    const int g = order[s];
+    float ex, ey;
+    float3 con = (float3)(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2]);
+    int4 r = (int4)(0, 0, 0, 0);
+    if (splat_extent(con, opac[g], radii[g], &ex, &ey))
+        r = tile_rect((float2)(means2d[2 * g], means2d[2 * g + 1]), ex, ey, tiles_x, tiles_y);
+    rects[s] = r;
+}
+
+__kernel void bin_count(const int n_vis, const int chunk, const int n_tiles, const int tiles_x,
+                        __global const int4 *rects, __global int *hist /* [chunks, n_tiles] */)
+{
+    const int c = get_global_id(0);
+    const int s0 = c * chunk, s1 = min(n_vis, s0 + chunk);
+    __global int *h = hist + (long)c * n_tiles;
+    for (int s = s0; s < s1; ++s) {
+        int4 r = rects[s];
+        for (int ty = r.y; ty < r.w; ++ty)
+            for (int tx = r.x; tx < r.z; ++tx)
+                h[ty * tiles_x + tx] += 1;
+    }
+}
+
+__kernel void bin_scatter(const int n_vis, const int chunk, const int n_chunks, const int tiles_x,
+                          __global const int4 *rects, __global const int *order,
+                          __global int *offsets /* [n_tiles, chunks], exclusive scan */,
+                          __global int *ids)
+{
+    const int c = get_global_id(0);
+    const int s0 = c * chunk, s1 = min(n_vis, s0 + chunk);
+    for (int s = s0; s < s1; ++s) {
+        int4 r = rects[s];
+        int g = order[s];
+        for (int ty = r.y; ty < r.w; ++ty)
+            for (int tx = r.x; tx < r.z; ++tx) {
+                long slot = (long)(ty * tiles_x + tx) * n_chunks + c;
+                ids[offsets[slot]++] = g;
+            }
+    }
+}

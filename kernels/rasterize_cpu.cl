@@ -1,0 +1,212 @@
+/* Tile rasterizer for CPUs: one work-group of one work-item per 16x16 tile; the work-item walks
+ * the tile's depth-ordered splat list and vectorises over pixels, a tile row being two float8.
+ * Only the rows and 8-pixel chunks inside a splat's opacity-aware box are evaluated. Reductions
+ * of per-splat gradients happen in registers over the whole tile, then one compare-and-swap add
+ * per splat per tile.
+ *
+ * Layouts: images are channel-major and padded to whole tiles, img[c][y][x] with row stride
+ * `stride` (= tiles_x * 16) and channel plane `plane` (= stride * tiles_y * 16).
+ * NUM_CHANNELS (the feature count) is a build-time define: one program per count in use. */
+#include "common.h"
+
+#define NCHUNK (TILE_SIZE / 8)
+#define NVEC (TILE_SIZE * NCHUNK)
+
+#ifdef ACC_DOUBLE
+typedef double8 acc8;
+#define ACC(x) convert_double8(x)
+#define ACC_SUM(v) ((float)((v).s0 + (v).s1 + (v).s2 + (v).s3 + (v).s4 + (v).s5 + (v).s6 + (v).s7))
+#else
+typedef float8 acc8;
+#define ACC(x) (x)
+#define ACC_SUM(v) (((v).s0 + (v).s4) + ((v).s1 + (v).s5) + ((v).s2 + (v).s6) + ((v).s3 + (v).s7))
+#endif
+
+#define LANES ((float8)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
+
+/* Rows [*r0, *r1] and chunks [*c0, *c1] of the tile inside the splat's box; 0 if none. */
+inline int box_in_tile(float mx, float my, float ex, float ey, int px0, int py0,
+                       int *r0, int *r1, int *c0, int *c1)
+{
+    *r0 = max(0, (int)ceil(my - ey - 0.5f - (float)py0));
+    *r1 = min(TILE_SIZE - 1, (int)floor(my + ey - 0.5f - (float)py0));
+    *c0 = max(0, (int)floor((mx - ex - 0.5f - (float)px0) / 8.0f));
+    *c1 = min(NCHUNK - 1, (int)floor((mx + ex - 0.5f - (float)px0) / 8.0f));
+    return *r0 <= *r1 && *c0 <= *c1;
+}
+
+__kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane,
+                            __global const int *tile_start, __global const int *tile_end,
+                            __global const int *ids, __global const float *means2d,
+                            __global const float *conics, __global const float *opac,
+                            __global const float *feats, __global const float *bg,
+                            __global float *out_img, __global float *out_T, __global int *out_last)
+{
+    const int tile = get_global_id(0);
+    const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
+    const int base = py0 * stride + px0;
+    float8 T[NVEC];
+    int8 last[NVEC], done[NVEC];
+    for (int v = 0; v < NVEC; ++v) {
+        T[v] = (float8)(1.0f);
+        last[v] = (int8)(0);
+        done[v] = (int8)(0);
+        int o = base + (v / NCHUNK) * stride + (v % NCHUNK) * 8;
+        for (int ch = 0; ch < NUM_CHANNELS; ++ch)
+            vstore8((float8)(0.0f), 0, out_img + ch * plane + o);
+    }
+    const int start = tile_start[tile], end = tile_end[tile];
+    int n_done = 0;
+    for (int k = start; k < end && n_done < TILE_SIZE * TILE_SIZE; ++k) {
+        const int g = ids[k];
+        const float mx = means2d[2 * g], my = means2d[2 * g + 1];
+        const float A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2];
+        const float o = opac[g];
+        float ex, ey;
+        int r0, r1, c0, c1;
+        if (!splat_extent((float3)(A, B, C), o, TILE_SIZE * 1024, &ex, &ey) ||
+            !box_in_tile(mx, my, ex, ey, px0, py0, &r0, &r1, &c0, &c1))
+            continue;
+        const int8 idx8 = (int8)(k - start + 1);
+        for (int r = r0; r <= r1; ++r) {
+            const float dy = (float)(py0 + r) + 0.5f - my;
+            const float hc = 0.5f * C * dy * dy, bdy = B * dy;
+            for (int c = c0; c <= c1; ++c) {
+                const int v = r * NCHUNK + c;
+                const float8 dx = LANES + (float)(px0 + 8 * c) - mx;
+                const float8 sigma = 0.5f * A * dx * dx + bdy * dx + hc;
+                const float8 alpha = fmin((float8)(MAX_ALPHA), o * exp(-sigma));
+                const int8 valid = (sigma >= 0.0f) & (alpha >= ALPHA_THRESHOLD) & ~done[v];
+                if (!any(valid))
+                    continue;
+                const float8 nT = T[v] * (1.0f - alpha);
+                const int8 stop = valid & (nT <= TRANSMITTANCE_MIN);
+                const int8 use = valid & ~stop;
+                const float8 w = select((float8)(0.0f), alpha * T[v], use);
+                __global float *dst = out_img + base + r * stride + 8 * c;
+                for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
+                    float8 acc = vload8(0, dst + ch * plane);
+                    vstore8(acc + w * feats[g * NUM_CHANNELS + ch], 0, dst + ch * plane);
+                }
+                T[v] = select(T[v], nT, use);
+                last[v] = select(last[v], idx8, use);
+                if (any(stop)) {
+                    done[v] |= stop;
+                    int8 cnt = -stop;
+                    n_done += cnt.s0 + cnt.s1 + cnt.s2 + cnt.s3 + cnt.s4 + cnt.s5 + cnt.s6 + cnt.s7;
+                }
+            }
+        }
+    }
+    for (int v = 0; v < NVEC; ++v) {
+        int o = base + (v / NCHUNK) * stride + (v % NCHUNK) * 8;
+        for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
+            float8 acc = vload8(0, out_img + ch * plane + o);
+            vstore8(acc + T[v] * bg[ch], 0, out_img + ch * plane + o);
+        }
+        vstore8(T[v], 0, out_T + o);
+        vstore8(last[v], 0, out_last + o);
+    }
+}
+
+__kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane,
+                            __global const int *tile_start, __global const int *tile_end,
+                            __global const int *ids, __global const float *means2d,
+                            __global const float *conics, __global const float *opac,
+                            __global const float *feats, __global const float *bg,
+                            __global const float *out_T, __global const int *out_last,
+                            __global const float *v_img, __global const float *v_alpha_img,
+                            __global float *scratch,
+                            __global float *v_means2d, __global float *v_conics,
+                            __global float *v_opac, __global float *v_feats)
+{
+    const int tile = get_global_id(0);
+    const int px0 = (tile % tiles_x) * TILE_SIZE, py0 = (tile / tiles_x) * TILE_SIZE;
+    const int base = py0 * stride + px0;
+    float8 T[NVEC], bgterm[NVEC];
+    int8 last[NVEC];
+    int max_last = 0;
+    for (int v = 0; v < NVEC; ++v) {
+        int o = base + (v / NCHUNK) * stride + (v % NCHUNK) * 8;
+        T[v] = vload8(0, out_T + o);
+        last[v] = vload8(0, out_last + o);
+        /* d(T_final)/d(alpha_i) = -T_final / (1 - alpha_i): the background and alpha outputs. */
+        float8 gb = vload8(0, v_alpha_img + o);
+        for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
+            gb -= bg[ch] * vload8(0, v_img + ch * plane + o);
+            vstore8((float8)(0.0f), 0, scratch + ch * plane + o);
+        }
+        bgterm[v] = T[v] * gb;
+        int8 l = last[v];
+        max_last = max(max_last, max(max(max(l.s0, l.s1), max(l.s2, l.s3)), max(max(l.s4, l.s5), max(l.s6, l.s7))));
+    }
+    const int start = tile_start[tile];
+    for (int k = start + max_last - 1; k >= start; --k) {
+        const int g = ids[k];
+        const float mx = means2d[2 * g], my = means2d[2 * g + 1];
+        const float A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2];
+        const float o = opac[g];
+        float ex, ey;
+        int r0, r1, c0, c1;
+        if (!splat_extent((float3)(A, B, C), o, TILE_SIZE * 1024, &ex, &ey) ||
+            !box_in_tile(mx, my, ex, ey, px0, py0, &r0, &r1, &c0, &c1))
+            continue;
+        const int8 kk = (int8)(k - start);
+        float f[NUM_CHANNELS];
+        acc8 vf[NUM_CHANNELS];
+        for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
+            f[ch] = feats[g * NUM_CHANNELS + ch];
+            vf[ch] = (acc8)(0);
+        }
+        acc8 vA = (acc8)(0), vB = (acc8)(0), vC = (acc8)(0);
+        acc8 vmx = (acc8)(0), vmy = (acc8)(0), vo = (acc8)(0);
+        int touched = 0;
+        for (int r = r0; r <= r1; ++r) {
+            const float dy = (float)(py0 + r) + 0.5f - my;
+            const float hc = 0.5f * C * dy * dy, bdy = B * dy;
+            for (int c = c0; c <= c1; ++c) {
+                const int v = r * NCHUNK + c;
+                const float8 dx = LANES + (float)(px0 + 8 * c) - mx;
+                const float8 sigma = 0.5f * A * dx * dx + bdy * dx + hc;
+                const float8 G = exp(-sigma);
+                const float8 araw = o * G;
+                const float8 alpha = fmin((float8)(MAX_ALPHA), araw);
+                const int8 valid = (kk < last[v]) & (sigma >= 0.0f) & (alpha >= ALPHA_THRESHOLD);
+                if (!any(valid))
+                    continue;
+                touched = 1;
+                const float8 ra = 1.0f / fmax(1.0f - alpha, ONE_MINUS_ALPHA_MIN);
+                const float8 Ti = select(T[v], T[v] * ra, valid);
+                T[v] = Ti;
+                const float8 w = select((float8)(0.0f), alpha * Ti, valid);
+                const int o8 = base + r * stride + 8 * c;
+                float8 va = bgterm[v] * ra;
+                for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
+                    const float8 gch = vload8(0, v_img + ch * plane + o8);
+                    float8 S = vload8(0, scratch + ch * plane + o8);
+                    vf[ch] += ACC(w * gch);
+                    va += (f[ch] * Ti - S * ra) * gch;
+                    vstore8(S + w * f[ch], 0, scratch + ch * plane + o8);
+                }
+                va = select((float8)(0.0f), va, valid & (araw <= MAX_ALPHA));
+                vo += ACC(va * G);
+                const float8 vs = -araw * va; /* dL/dsigma */
+                vA += ACC(0.5f * vs * dx * dx);
+                vB += ACC(vs * dx * dy);
+                vC += ACC(0.5f * vs * dy * dy);
+                vmx -= ACC(vs * (A * dx + bdy));
+                vmy -= ACC(vs * (B * dx + C * dy));
+            }
+        }
+        if (!touched)
+            continue;
+        atomic_add_float(v_means2d + 2 * g, ACC_SUM(vmx));
+        atomic_add_float(v_means2d + 2 * g + 1, ACC_SUM(vmy));
+        atomic_add_float(v_conics + 3 * g, ACC_SUM(vA));
+        atomic_add_float(v_conics + 3 * g + 1, ACC_SUM(vB));
+        atomic_add_float(v_conics + 3 * g + 2, ACC_SUM(vC));
+        atomic_add_float(v_opac + g, ACC_SUM(vo));
+        for (int ch = 0; ch < NUM_CHANNELS; ++ch)
+            atomic_add_float(v_feats + g * NUM_CHANNELS + ch, ACC_SUM(vf[ch]));
+    }
+}

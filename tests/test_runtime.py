@@ -1,0 +1,47 @@
+"""Device choice, the per-variant program cache, and shared buffers."""
+
+import pytest
+import torch
+
+from coin_cl import ops
+from coin_cl.runtime import NoDeviceError, Runtime, get_runtime, list_devices
+from coin_cl.testing import look_at_camera, random_gaussians
+
+
+def test_default_device_is_listed():
+    rt = get_runtime()
+    assert any(rt.device.name == d for _, d, _ in list_devices())
+
+
+def test_unknown_device_names_what_is_visible():
+    with pytest.raises(NoDeviceError, match="no OpenCL device matches 'no-such-gpu'.*visible"):
+        get_runtime("no-such-gpu")
+
+
+def test_only_variants_in_use_are_compiled():
+    rt = Runtime(get_runtime().device)
+    gs = random_gaussians(20, seed=0, channels=5)
+    viewmat, K = look_at_camera(32, 32)
+    m2, con, dep, rad = ops.project(gs.means, gs.quats, gs.scales, viewmat, K, 32, 32, runtime=rt)
+    for _ in range(2):
+        ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 32, 32, runtime=rt)
+    built = sorted((name, dict(defs).get("NUM_CHANNELS")) for name, defs in rt.programs)
+    assert built == [("bin.cl", None), ("project.cl", None), ("rasterize_cpu.cl", 5)]
+
+
+def test_zero_copy_and_explicit_transfer_agree():
+    """On unified memory nothing crosses; the copying path (as on a discrete GPU) counts bytes."""
+    gs = random_gaussians(100, seed=1)
+    viewmat, K = look_at_camera(48, 40)
+    outs = []
+    for unified in (True, False):
+        rt = Runtime(get_runtime().device)
+        rt.unified = unified and rt.unified
+        m2, con, dep, rad = ops.project(gs.means, gs.quats, gs.scales, viewmat, K, 48, 40, runtime=rt)
+        img, _ = ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 48, 40, runtime=rt)
+        outs.append(img)
+        if rt.unified:
+            assert rt.bytes_transferred == 0
+        else:
+            assert rt.bytes_transferred > img.numel() * 4
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)
