@@ -7,6 +7,7 @@ Everything crosses into the kernels as contiguous float32 / int32 tensors wrappe
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -41,9 +42,10 @@ class _Project(torch.autograd.Function):
         radii = rt.empty(n, dtype=torch.int32)
         if n:
             a_in = [rt.array(t) for t in ins]
-            a_out = [rt.array(t, output=True) for t in (means2d, conics, depths, radii)]
-            rt.kernel("project.cl", "project_fwd")(
-                rt.queue,
+            a_out = [rt.array(t, mode="out") for t in (means2d, conics, depths, radii)]
+            rt.launch(
+                "project.cl",
+                "project_fwd",
                 (_groups(n),),
                 (64,),
                 i32(n),
@@ -72,9 +74,10 @@ class _Project(torch.autograd.Function):
                 for g, ref in ((v_means2d, (n, 2)), (v_conics, (n, 3)), (v_depths, (n,)))
             ]
             a_in = [rt.array(t) for t in (means, quats, scales, cam, radii, conics, *grads)]
-            a_out = [rt.array(t, output=True) for t in outs]
-            rt.kernel("project.cl", "project_bwd")(
-                rt.queue,
+            a_out = [rt.array(t, mode="out") for t in outs]
+            rt.launch(
+                "project.cl",
+                "project_bwd",
                 (_groups(n),),
                 (64,),
                 i32(n),
@@ -132,9 +135,10 @@ class TileBins:
             return
         rects = rt.empty(n_vis, 4, dtype=torch.int32)
         a_order, a_m, a_c, a_o, a_r = (rt.array(t) for t in (order, means2d, conics, opacities, radii))
-        a_rects = rt.array(rects, output=True)
-        rt.kernel("bin.cl", "bin_rects")(
-            rt.queue,
+        a_rects = rt.array(rects, mode="out")
+        rt.launch(
+            "bin.cl",
+            "bin_rects",
             (_groups(n_vis),),
             (64,),
             i32(n_vis),
@@ -162,10 +166,10 @@ class TileBins:
         chunk = (n_vis + n_chunks - 1) // n_chunks
         n_chunks = (n_vis + chunk - 1) // chunk
         hist = torch.zeros(n_chunks, n_tiles, dtype=torch.int32)
-        a_hist = rt.array(hist, output=True)
-        a_rects = rt.array(rects)
-        rt.kernel("bin.cl", "bin_count")(
-            rt.queue,
+        a_hist = rt.array(hist, mode="inout")
+        rt.launch(
+            "bin.cl",
+            "bin_count",
             (n_chunks,),
             None,
             i32(n_vis),
@@ -183,9 +187,10 @@ class TileBins:
         self.tile_end = torch.cat([per_tile[1:], torch.tensor([n_pairs], dtype=torch.int32)])
         self.ids = rt.empty(n_pairs, dtype=torch.int32)
         a_off = rt.array(offsets)
-        a_ids = rt.array(self.ids, output=True)
-        rt.kernel("bin.cl", "bin_scatter")(
-            rt.queue,
+        a_ids = rt.array(self.ids, mode="out")
+        rt.launch(
+            "bin.cl",
+            "bin_scatter",
             (n_chunks,),
             None,
             i32(n_vis),
@@ -198,6 +203,19 @@ class TileBins:
             a_ids.buf,
         )
         rt.finish(a_ids)
+
+
+def raster_variant(rt: Runtime) -> tuple[str, int]:
+    """(kernel file, work-items per tile) of the rasterizer for this device.
+
+    CPUs get one work-item per tile that vectorises over pixel rows (rasterize_cpu.cl); GPUs one
+    work-item per pixel with local-memory batches and reductions (rasterize_gpu.cl).
+    COIN_CL_RASTER=cpu|gpu (or `rt.raster`) overrides the choice; both run on any device.
+    """
+    choice = rt.raster or os.environ.get("COIN_CL_RASTER") or ("cpu" if rt.is_cpu else "gpu")
+    if choice not in ("cpu", "gpu"):
+        raise ValueError(f"COIN_CL_RASTER={choice!r}: use 'cpu' or 'gpu'")
+    return (f"rasterize_{choice}.cl", 1 if choice == "cpu" else cst.TILE_SIZE * cst.TILE_SIZE)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -230,17 +248,20 @@ class _Rasterize(torch.autograd.Function):
         img, t_final = rt.empty(C, rows, stride), rt.empty(rows, stride)
         last = rt.empty(rows, stride, dtype=torch.int32)
         variant = {"NUM_CHANNELS": C, **defines}
+        src, local = raster_variant(rt)
         a_in = [rt.array(t) for t in (bins.tile_start, bins.tile_end, bins.ids, m2, con, op, ft, bg)]
-        a_out = [rt.array(t, output=True) for t in (img, t_final, last)]
-        rt.kernel("rasterize_cpu.cl", "rasterize_fwd", variant)(
-            rt.queue,
-            (n_tiles,),
-            (1,),
+        a_out = [rt.array(t, mode="out") for t in (img, t_final, last)]
+        rt.launch(
+            src,
+            "rasterize_fwd",
+            (n_tiles * local,),
+            (local,),
             i32(bins.tiles_x),
             i32(stride),
             i32(plane),
             *[a.buf for a in a_in],
             *[a.buf for a in a_out],
+            defines=variant,
         )
         rt.finish(*a_out)
         if stats is not None:
@@ -268,20 +289,23 @@ class _Rasterize(torch.autograd.Function):
         outs = [torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]
         scratch = rt.empty(C, rows, stride)
         variant = {"NUM_CHANNELS": C, **defines}
+        src, local = raster_variant(rt)
         a_in = [rt.array(t) for t in (tstart, tend, ids, m2, con, op, ft, bg, t_final, last, g_img, g_alpha)]
-        a_scr = rt.array(scratch)
-        a_out = [rt.array(t, output=True) for t in outs]
+        a_scr = rt.array(scratch, mode="scratch")
+        a_out = [rt.array(t, mode="inout") for t in outs]  # accumulated by atomics
         if ids.numel():
-            rt.kernel("rasterize_cpu.cl", "rasterize_bwd", variant)(
-                rt.queue,
-                (tstart.numel(),),
-                (1,),
+            rt.launch(
+                src,
+                "rasterize_bwd",
+                (tstart.numel() * local,),
+                (local,),
                 i32(tiles_x),
                 i32(stride),
                 i32(plane),
                 *[a.buf for a in a_in],
                 a_scr.buf,
                 *[a.buf for a in a_out],
+                defines=variant,
             )
         rt.finish(*a_out)
         v_bg = None

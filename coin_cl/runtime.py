@@ -111,6 +111,7 @@ class Runtime:
     bytes_transferred: int = 0
     programs: dict = field(default_factory=dict)
     kernels: dict = field(default_factory=dict)
+    raster: str | None = None  # force the "cpu" or "gpu" rasterizer variant (see ops.raster_variant)
     poison: bool = False  # tests: fill outputs with NaN / INT32_MIN so unwritten elements show
     extensions: frozenset = frozenset()
 
@@ -118,7 +119,10 @@ class Runtime:
         import pyopencl as cl
 
         self.context = cl.Context([self.device])
-        self.queue = cl.CommandQueue(self.context)
+        self.profile = _env_flag("COIN_CL_PROFILE")
+        props = cl.command_queue_properties.PROFILING_ENABLE if self.profile else 0
+        self.queue = cl.CommandQueue(self.context, properties=props)
+        self.kernel_times: dict[str, list[float]] = {}
         self.unified = bool(self.device.host_unified_memory) and not _env_flag("COIN_CL_NO_ZERO_COPY")
         self.extensions = frozenset(self.device.extensions.split())
         self._lock = threading.Lock()
@@ -166,11 +170,29 @@ class Runtime:
             k = self.kernels[key] = cl.Kernel(self.program(filename, defines), name)
         return k
 
+    def launch(self, filename: str, name: str, global_size, local_size, *args, defines=None) -> None:
+        """Enqueue kernel `name` of kernels/<filename> (variant `defines`) with `args`.
+
+        With COIN_CL_PROFILE=1 each launch waits for its event and records its device time in
+        `kernel_times[name]` (seconds), which is how the benchmark splits a frame by kernel.
+        """
+        ev = self.kernel(filename, name, defines)(self.queue, global_size, local_size, *args)
+        if self.profile:
+            ev.wait()
+            self.kernel_times.setdefault(name, []).append((ev.profile.end - ev.profile.start) * 1e-9)
+
     # -- shared buffers ---------------------------------------------------------------------
-    def array(self, tensor: torch.Tensor, output: bool = False) -> DeviceArray:
-        """Wrap a contiguous CPU tensor as a device buffer (aliased when memory is unified)."""
+    def array(self, tensor: torch.Tensor, mode: str = "in") -> DeviceArray:
+        """Wrap a contiguous CPU tensor as a device buffer (aliased when memory is unified).
+
+        mode says what crosses when memory is not unified: "in" (the kernel reads it), "out" (the
+        kernel writes every element; copied back by `finish`), "inout" (read-modify-write, e.g.
+        accumulators; both ways) or "scratch" (device-only working memory; neither way).
+        """
         import pyopencl as cl
 
+        if mode not in ("in", "out", "inout", "scratch"):
+            raise ValueError(f"unknown buffer mode {mode!r}")
         if not tensor.is_contiguous() or tensor.device.type != "cpu":
             raise ValueError("runtime.array needs a contiguous CPU tensor")
         mf = cl.mem_flags
@@ -182,10 +204,10 @@ class Runtime:
         if self.unified:
             return DeviceArray(tensor, cl.Buffer(self.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host))
         buf = cl.Buffer(self.context, mf.READ_WRITE, nbytes)
-        if not output:
+        if mode in ("in", "inout"):
             cl.enqueue_copy(self.queue, buf, host)
             self.bytes_transferred += nbytes
-        return DeviceArray(tensor, buf, copy_back=output)
+        return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout"))
 
     def empty(self, *shape: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """An output tensor; filled with NaN (floats) or INT32_MIN (ints) when poisoning."""

@@ -22,6 +22,10 @@ typedef float8 acc8;
 #define ACC_SUM(v) (((v).s0 + (v).s4) + ((v).s1 + (v).s5) + ((v).s2 + (v).s6) + ((v).s3 + (v).s7))
 #endif
 
+#ifndef EXPF
+#define EXPF exp
+#endif
+
 #define LANES ((float8)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
 
 /* Rows [*r0, *r1] and chunks [*c0, *c1] of the tile inside the splat's box; 0 if none. */
@@ -75,7 +79,7 @@ __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane
                 const int v = r * NCHUNK + c;
                 const float8 dx = LANES + (float)(px0 + 8 * c) - mx;
                 const float8 sigma = 0.5f * A * dx * dx + bdy * dx + hc;
-                const float8 alpha = fmin((float8)(MAX_ALPHA), o * exp(-sigma));
+                const float8 alpha = fmin((float8)(MAX_ALPHA), o * EXPF(-sigma));
                 const int8 valid = (sigma >= 0.0f) & (alpha >= ALPHA_THRESHOLD) & ~done[v];
                 if (!any(valid))
                     continue;
@@ -168,7 +172,7 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
                 const int v = r * NCHUNK + c;
                 const float8 dx = LANES + (float)(px0 + 8 * c) - mx;
                 const float8 sigma = 0.5f * A * dx * dx + bdy * dx + hc;
-                const float8 G = exp(-sigma);
+                const float8 G = EXPF(-sigma);
                 const float8 araw = o * G;
                 const float8 alpha = fmin((float8)(MAX_ALPHA), araw);
                 const int8 valid = (kk < last[v]) & (sigma >= 0.0f) & (alpha >= ALPHA_THRESHOLD);

@@ -13,12 +13,14 @@ N = 60 if SMALL else 1500
 W, H = (40, 24) if SMALL else (150, 97)  # non-multiples of the tile size on purpose
 
 
-@pytest.fixture
-def rt():
+@pytest.fixture(params=["cpu", "gpu"])
+def rt(request):
+    """The runtime with each rasterizer variant in turn (both run on any OpenCL device)."""
     r = get_runtime()
     r.poison = True  # every output starts as NaN / INT32_MIN: an unwritten element shows
+    r.raster = request.param
     yield r
-    r.poison = False
+    r.poison, r.raster = False, None
 
 
 def _camera(seed):

@@ -1,0 +1,235 @@
+"""Rasterizer benchmark: run time next to error against the float64 torch twin.
+
+    python benchmarks/raster.py [--quick] [--runs 5]
+
+Scenes follow gsplat's garden test data: points of the shared SPIn-NeRF SfM cloud, replicated with
+jitter for larger N, scales U[1e-4, 0.02], random rotations, opacities U[0, 1], seen from the real
+camera of view 0 (focal scaled to the image width). Times are medians of --runs after a warm-up,
+measured in one run. Errors are max |x - x_ref| / max |x_ref| per quantity, stage by stage (each
+stage gets the same float32 inputs as its twin, so the figure is the kernels' arithmetic error, not
+the discontinuity of the integer radius/tile rule).
+
+The last line printed is one JSON object (fwd_s_500k, fwd_bwd_s_500k, fwd_bwd_s_100k_512,
+max_rel_err_fwd, max_rel_err_grad, ...).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from coin_cl import ops, reference  # noqa: E402
+from coin_cl.runtime import Runtime, get_runtime  # noqa: E402
+from coin_cl.scene.conventions import invert_rigid, llff_to_camtoworld  # noqa: E402
+from coin_cl.scene.ply import read_points_ply  # noqa: E402
+from coin_cl.testing import garden_like  # noqa: E402
+
+SCENES = [("10k", 10_000, 256, 256), ("100k", 100_000, 512, 512), ("500k", 500_000, 1008, 567)]
+KNOBS = [
+    ("default", {}),
+    ("alpha_thr=1/128", {"ALPHA_THRESHOLD": "(1.0f/128.0f)"}),
+    ("alpha_thr=1/32", {"ALPHA_THRESHOLD": "(1.0f/32.0f)"}),
+    ("T_min=1e-3", {"TRANSMITTANCE_MIN": "1e-3f"}),
+    ("T_min=1e-2", {"TRANSMITTANCE_MIN": "1e-2f"}),
+    ("acc=double", {"ACC_DOUBLE": 1}),
+]
+
+
+def data_dir() -> Path:
+    env = os.environ.get("COIN_DATA")
+    d = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+    d = d / "spinnerf_scene1"
+    if not d.is_dir():
+        raise FileNotFoundError(f"{d} not found: set COIN_DATA to the folder holding spinnerf_scene1")
+    return d
+
+
+def camera(width: int, height: int):
+    d = data_dir()
+    c2w, hwf, _ = llff_to_camtoworld(np.load(d / "poses_bounds.npy"))
+    viewmat = torch.tensor(invert_rigid(c2w[0]), dtype=torch.float32)
+    f = hwf[0, 2] / 4 * width / 1008  # images_4 focal, scaled to the width
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float32)
+    return viewmat, K
+
+
+def rel_err(a: torch.Tensor, e: torch.Tensor) -> float:
+    return float((a.double() - e).abs().max() / e.abs().max().clamp_min(1e-30))
+
+
+def median_time(fn, runs: int) -> float:
+    fn()  # warm-up (compiles, caches)
+    ts = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)
+
+
+class Case:
+    def __init__(self, n: int, width: int, height: int, points: torch.Tensor):
+        self.n, self.W, self.H = n, width, height
+        self.gs = garden_like(points, n, seed=0)
+        self.viewmat, self.K = camera(width, height)
+        g = torch.Generator().manual_seed(1)
+        self.v_img = torch.randn(height, width, 3, generator=g)
+        self.v_alpha = torch.randn(height, width, generator=g)
+        self.params = [t.clone().requires_grad_(True) for t in self.gs.tensors()]
+
+    def forward(self, defines=None, rt=None):
+        means, quats, scales, opac, colors = self.params
+        m2, con, dep, rad = ops.project(
+            means, quats, scales, self.viewmat, self.K, self.W, self.H, runtime=rt
+        )
+        stats: dict = {}
+        img, alpha = ops.rasterize_to_pixels(
+            m2, con, opac, colors, dep, rad, self.W, self.H, stats=stats, runtime=rt, defines=defines
+        )
+        return img, alpha, stats
+
+    def fwd_bwd(self, defines=None, rt=None):
+        img, alpha, _ = self.forward(defines, rt)
+        return torch.autograd.grad([img, alpha], self.params, [self.v_img, self.v_alpha])
+
+    def stage_inputs(self):
+        """Projected float32 inputs (as the rasterize kernel sees them), for the twin in float64."""
+        with torch.no_grad():
+            m2, con, dep, rad = ops.project(*self.gs.tensors()[:3], self.viewmat, self.K, self.W, self.H)
+        return m2, con, dep, rad
+
+    def reference_stage(self):
+        """Twin outputs and gradients of the rasterize stage, and of the projection stage."""
+        m2, con, dep, rad = self.stage_inputs()
+        xs = [t.double().requires_grad_(True) for t in (m2, con, self.gs.opacities, self.gs.colors)]
+        img, alpha = reference.rasterize_to_pixels(
+            xs[0], xs[1], xs[2], xs[3], dep.double(), rad, self.W, self.H
+        )
+        grads = torch.autograd.grad([img, alpha], xs, [self.v_img.double(), self.v_alpha.double()])
+        return (img.detach(), alpha.detach()), grads
+
+    def kernel_stage(self, defines=None):
+        m2, con, dep, rad = self.stage_inputs()
+        xs = [t.clone().requires_grad_(True) for t in (m2, con, self.gs.opacities, self.gs.colors)]
+        img, alpha = ops.rasterize_to_pixels(
+            xs[0], xs[1], xs[2], xs[3], dep, rad, self.W, self.H, defines=defines
+        )
+        grads = torch.autograd.grad([img, alpha], xs, [self.v_img, self.v_alpha])
+        return (img.detach(), alpha.detach()), grads
+
+    def projection_errors(self) -> tuple[float, float]:
+        """(forward, gradient) error of the projection kernel against its twin on common visibles."""
+        means, quats, scales = (t.double().requires_grad_(True) for t in self.gs.tensors()[:3])
+        out_r = reference.project(
+            means, quats, scales, self.viewmat.double(), self.K.double(), self.W, self.H
+        )
+        f32 = [t.detach().float().requires_grad_(True) for t in (means, quats, scales)]
+        out_k = ops.project(*f32, self.viewmat, self.K, self.W, self.H)
+        both = (out_r[3] > 0) & (out_k[3] > 0)
+        fwd = max(rel_err(k[both], r[both].detach()) for k, r in zip(out_k[:3], out_r[:3]))
+        g = torch.Generator().manual_seed(2)
+        cot = [
+            torch.randn(t.shape, generator=g, dtype=torch.float64) * both.reshape(-1, *[1] * (t.dim() - 1))
+            for t in out_r[:3]
+        ]
+        gr = torch.autograd.grad(out_r[:3], [means, quats, scales], cot)
+        gk = torch.autograd.grad(out_k[:3], f32, [c.float() for c in cot])
+        return fwd, max(rel_err(a, b) for a, b in zip(gk, gr))
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], text=True).strip()
+    except Exception:
+        return "unknown"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="10k and 100k scenes only, no knob table")
+    ap.add_argument("--twin-max-n", type=int, default=100_000, help="largest N checked against the twin")
+    args = ap.parse_args()
+    rt = get_runtime()
+    pts, _ = read_points_ply(data_dir() / "sparse" / "0" / "points3D.ply")
+    points = torch.from_numpy(pts)
+    print(
+        f"# coin-cl rasterizer benchmark: {rt.name}; {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cores; commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}"
+    )
+    print(f"# medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (float64 twin)")
+    print()
+    print(
+        "| scene | size | pairs | visible | fwd s | fwd+bwd s | pairs/s (fwd) | err img | err grad | err proj | err proj grad | bytes copied (non-unified path) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    summary: dict = {"device": rt.name, "commit": git_commit()}
+    err_f, err_g = [], []
+    cases = {}
+    for name, n, W, H in SCENES if not args.quick else SCENES[:2]:
+        case = cases[name] = Case(n, W, H, points)
+        t_f = median_time(lambda: case.forward(), args.runs)
+        t_fb = median_time(lambda: case.fwd_bwd(), args.runs)
+        _, _, stats = case.forward()
+        # What a discrete GPU would move per forward+backward: measured on the copying path.
+        rt_copy = Runtime(rt.device)
+        rt_copy.unified = False
+        case.fwd_bwd(rt=rt_copy)
+        e_img = e_grad = e_p = e_pg = float("nan")
+        if n <= args.twin_max_n:
+            (ri, ra), rg = case.reference_stage()
+            (ki, ka), kg = case.kernel_stage()
+            e_img = max(rel_err(ki, ri), rel_err(ka, ra))
+            e_grad = max(rel_err(a, b) for a, b in zip(kg, rg))
+            e_p, e_pg = case.projection_errors()
+            err_f += [e_img, e_p]
+            err_g += [e_grad, e_pg]
+            case.reference = (ri, ra, rg)
+        print(
+            f"| {name} | {W}x{H} | {stats['n_pairs']} | {stats['n_visible']} | {t_f:.3f} | {t_fb:.3f} | "
+            f"{stats['n_pairs'] / t_f:.3g} | {e_img:.2e} | {e_grad:.2e} | {e_p:.2e} | {e_pg:.2e} | "
+            f"{rt_copy.bytes_transferred / 1e6:.1f} MB |"
+        )
+        summary[f"fwd_s_{name}"] = t_f
+        summary[f"fwd_bwd_s_{name}"] = t_fb
+        summary[f"pairs_{name}"] = stats["n_pairs"]
+    summary["fwd_bwd_s_100k_512"] = summary.get("fwd_bwd_s_100k")
+    summary["max_rel_err_fwd"] = max(err_f)
+    summary["max_rel_err_grad"] = max(err_g)
+
+    if not args.quick:
+        case = cases["100k"]
+        ri, ra, rg = case.reference
+        print()
+        print(
+            "Error against run time, 100k Gaussians at 512x512 (rasterize stage; twin = default semantics):"
+        )
+        print()
+        print("| knob | fwd s | fwd+bwd s | err img | err grad (means2d, conics, opacities, colours) |")
+        print("|---|---|---|---|---|")
+        for label, defines in KNOBS:
+            t_f = median_time(lambda: case.forward(defines), args.runs)
+            t_fb = median_time(lambda: case.fwd_bwd(defines), args.runs)
+            (ki, ka), kg = case.kernel_stage(defines)
+            e_img = max(rel_err(ki, ri), rel_err(ka, ra))
+            e_g = ", ".join(f"{rel_err(a, b):.1e}" for a, b in zip(kg, rg))
+            print(f"| {label} | {t_f:.3f} | {t_fb:.3f} | {e_img:.2e} | {e_g} |")
+            summary[f"knob_{label}"] = {"fwd_s": t_f, "fwd_bwd_s": t_fb, "err_img": e_img}
+    print()
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
