@@ -66,7 +66,8 @@ def camera(width: int, height: int):
 
 
 def rel_err(a: torch.Tensor, e: torch.Tensor) -> float:
-    return float((a.double() - e).abs().max() / e.abs().max().clamp_min(1e-30))
+    a, e = a.detach().double(), e.detach().double()
+    return float((a - e).abs().max() / e.abs().max().clamp_min(1e-30))
 
 
 def median_time(fn, runs: int) -> float:
@@ -171,17 +172,19 @@ def main() -> None:
     )
     print(f"# medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (float64 twin)")
     print()
-    print(
-        "| scene | size | pairs | visible | fwd s | fwd+bwd s | pairs/s (fwd) | err img | err grad | err proj | err proj grad | bytes copied (non-unified path) |"
-    )
+    cols = [
+        "scene", "size", "pairs", "visible", "fwd s", "fwd+bwd s", "pairs/s (fwd)", "err img", "err grad",
+        "err proj", "err proj grad", "bytes copied (non-unified path)",
+    ]  # fmt: skip
+    print("| " + " | ".join(cols) + " |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     summary: dict = {"device": rt.name, "commit": git_commit()}
     err_f, err_g = [], []
     cases = {}
     for name, n, W, H in SCENES if not args.quick else SCENES[:2]:
         case = cases[name] = Case(n, W, H, points)
-        t_f = median_time(lambda: case.forward(), args.runs)
-        t_fb = median_time(lambda: case.fwd_bwd(), args.runs)
+        t_f = median_time(case.forward, args.runs)
+        t_fb = median_time(case.fwd_bwd, args.runs)
         _, _, stats = case.forward()
         # What a discrete GPU would move per forward+backward: measured on the copying path.
         rt_copy = Runtime(rt.device)
@@ -220,8 +223,8 @@ def main() -> None:
         print("| knob | fwd s | fwd+bwd s | err img | err grad (means2d, conics, opacities, colours) |")
         print("|---|---|---|---|---|")
         for label, defines in KNOBS:
-            t_f = median_time(lambda: case.forward(defines), args.runs)
-            t_fb = median_time(lambda: case.fwd_bwd(defines), args.runs)
+            t_f = median_time(lambda d=defines: case.forward(d), args.runs)
+            t_fb = median_time(lambda d=defines: case.fwd_bwd(d), args.runs)
             (ki, ka), kg = case.kernel_stage(defines)
             e_img = max(rel_err(ki, ri), rel_err(ka, ra))
             e_g = ", ".join(f"{rel_err(a, b):.1e}" for a, b in zip(kg, rg))

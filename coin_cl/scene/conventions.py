@@ -1,0 +1,200 @@
+"""Every axis, quaternion and pixel convention the scene code meets, in one module.
+
+The engine's convention (what `Camera` stores):
+- camera axes OpenCV/COLMAP: x right, y down, z forward; `viewmat` is world-to-camera 4x4;
+- pixel (x, y) covers [x, x+1) x [y, y+1), its centre at (x+0.5, y+0.5) (COLMAP), so a centred
+  principal point is cx = W/2 and scaling an image by s scales fx, fy, cx, cy by s exactly;
+- quaternions stored wxyz (COLMAP text files, 3DGS PLY `rot_*`).
+
+What we convert from:
+- pycolmap 4.x `Rotation3d.quat` is xyzw (Eigen order); `cam_from_world()` is a method;
+- LLFF `poses_bounds.npy`: rows of 17 = 3x5 [c2w 3x4 | (H, W, f)] + (near, far), rotation columns
+  ordered [down, right, backwards]; the COLMAP camera-to-world is [col1, col0, -col2 | t];
+- OpenGL/NeRF-synthetic/viewer camera axes: x right, y up, z backwards;
+- OpenCV image functions (undistort, remap) put pixel centres at integer coordinates, so their K has
+  cx, cy half a pixel smaller than ours.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# COLMAP model name -> number of parameters; the ones `colmap_to_pinhole` can undo are marked.
+COLMAP_MODEL_PARAMS: dict[str, int] = {
+    "SIMPLE_PINHOLE": 3,
+    "PINHOLE": 4,
+    "SIMPLE_RADIAL": 4,
+    "RADIAL": 5,
+    "OPENCV": 8,
+    "OPENCV_FISHEYE": 8,
+    "FULL_OPENCV": 12,
+    "FOV": 5,
+    "SIMPLE_RADIAL_FISHEYE": 4,
+    "RADIAL_FISHEYE": 5,
+    "THIN_PRISM_FISHEYE": 12,
+}
+# Model ids as stored in cameras.bin (COLMAP src/colmap/sensor/models.h).
+COLMAP_MODEL_IDS: dict[int, str] = {i: name for i, name in enumerate(COLMAP_MODEL_PARAMS)}
+SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+FISHEYE_MODELS = ("OPENCV_FISHEYE",)
+
+# OpenGL <-> OpenCV camera axes (flip y and z); its own inverse.
+GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def quat_xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
+    """(..., 4) xyzw (pycolmap 4.x, Eigen, scipy) -> (..., 4) wxyz (COLMAP text, 3DGS PLY)."""
+    q = np.asarray(q, dtype=np.float64)
+    return np.concatenate([q[..., 3:4], q[..., 0:3]], axis=-1)
+
+
+def quat_wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz -> (..., 4) xyzw."""
+    q = np.asarray(q, dtype=np.float64)
+    return np.concatenate([q[..., 1:4], q[..., 0:1]], axis=-1)
+
+
+def quat_wxyz_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz quaternion (normalised here) -> (..., 3, 3) rotation matrix."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def rotmat_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (4,) unit quaternion wxyz with w >= 0 (Shepperd's method, stable)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def make_viewmat(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World-to-camera rotation (3, 3) and translation (3,) -> (4, 4) viewmat."""
+    V = np.eye(4)
+    V[:3, :3] = R
+    V[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return V
+
+
+def invert_rigid(M: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform, exact up to rounding (no general inverse)."""
+    R, t = M[:3, :3], M[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def llff_to_camtoworld(poses_bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """LLFF `poses_bounds.npy` (N, 17) -> camtoworld (N, 4, 4) OpenCV axes, hwf (N, 3), bounds (N, 2).
+
+    LLFF's rotation columns are [down, right, backwards]; OpenCV's are [right, down, forwards].
+    """
+    pb = np.asarray(poses_bounds, dtype=np.float64)
+    if pb.ndim != 2 or pb.shape[1] != 17:
+        raise ValueError(f"poses_bounds must have shape (N, 17), got {pb.shape}")
+    poses = pb[:, :15].reshape(-1, 3, 5)
+    c2w = np.tile(np.eye(4), (len(pb), 1, 1))
+    c2w[:, :3, 0] = poses[:, :, 1]
+    c2w[:, :3, 1] = poses[:, :, 0]
+    c2w[:, :3, 2] = -poses[:, :, 2]
+    c2w[:, :3, 3] = poses[:, :, 3]
+    return c2w, poses[:, :, 4].copy(), pb[:, 15:17].copy()
+
+
+def camtoworld_to_llff(c2w: np.ndarray, hwf: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Inverse of `llff_to_camtoworld`: (N, 4, 4), (N, 3), (N, 2) -> poses_bounds (N, 17)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    poses = np.zeros((len(c2w), 3, 5))
+    poses[:, :, 0] = c2w[:, :3, 1]
+    poses[:, :, 1] = c2w[:, :3, 0]
+    poses[:, :, 2] = -c2w[:, :3, 2]
+    poses[:, :, 3] = c2w[:, :3, 3]
+    poses[:, :, 4] = hwf
+    return np.concatenate([poses.reshape(-1, 15), np.asarray(bounds, np.float64)], axis=1)
+
+
+def opencv_to_opengl_camtoworld(c2w: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) camera-to-world with OpenCV axes -> OpenGL axes (and back: it is an involution)."""
+    return np.asarray(c2w, dtype=np.float64) @ GL_FROM_CV
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Pinhole K (3, 3) in the engine's pixel convention (centres at +0.5)."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """K for an image resized by (sx, sy); exact because pixel corners, not centres, sit at 0."""
+    S = np.diag([sx, sy, 1.0])
+    return S @ np.asarray(K, dtype=np.float64)
+
+
+def k_for_opencv(K: np.ndarray) -> np.ndarray:
+    """Our K -> the K OpenCV's image functions expect (pixel centres at integers)."""
+    Kc = np.array(K, dtype=np.float64)
+    Kc[0, 2] -= 0.5
+    Kc[1, 2] -= 0.5
+    return Kc
+
+
+def colmap_to_pinhole(
+    model: str, params: np.ndarray, source: str = "cameras"
+) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """COLMAP camera model + params -> (K (3, 3), OpenCV distortion coefficients or None, fisheye).
+
+    Raises ValueError naming `source` for a model that cannot be converted to pinhole here.
+    """
+    p = np.asarray(params, dtype=np.float64)
+    n = COLMAP_MODEL_PARAMS.get(model)
+    if n is None or (model not in SUPPORTED_MODELS and model not in FISHEYE_MODELS):
+        raise ValueError(
+            f"{source}: camera model {model!r} is not supported (supported: "
+            f"{', '.join(SUPPORTED_MODELS + FISHEYE_MODELS)}); undistort the images with "
+            "`colmap image_undistorter` and load the undistorted folder"
+        )
+    if len(p) != n:
+        raise ValueError(f"{source}: camera model {model} needs {n} parameters, got {len(p)}")
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        K = intrinsics_matrix(p[0], p[0], p[1], p[2])
+    else:
+        K = intrinsics_matrix(p[0], p[1], p[2], p[3])
+    dist: np.ndarray | None
+    if model in ("SIMPLE_PINHOLE", "PINHOLE"):
+        dist = None
+    elif model == "SIMPLE_RADIAL":
+        dist = np.array([p[3], 0.0, 0.0, 0.0])
+    elif model == "RADIAL":
+        dist = np.array([p[3], p[4], 0.0, 0.0])
+    elif model == "OPENCV":
+        dist = p[4:8].copy()  # k1 k2 p1 p2: same order as OpenCV
+    elif model == "FULL_OPENCV":
+        # COLMAP k1 k2 p1 p2 k3 k4 k5 k6 = OpenCV's rational model order.
+        dist = p[4:12].copy()
+    else:  # OPENCV_FISHEYE: k1..k4, OpenCV's fisheye module
+        dist = p[4:8].copy()
+    if dist is not None and not np.any(dist):
+        dist = None
+    return K, dist, model in FISHEYE_MODELS

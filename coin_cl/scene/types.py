@@ -1,0 +1,197 @@
+"""`Camera` and `Scene`: what every loader returns and every stage consumes."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .conventions import invert_rigid, scale_intrinsics
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Camera:
+    """A pinhole camera in the engine's convention (see `conventions`).
+
+    K: (3, 3) float64 intrinsics in pixels of (width, height), pixel centres at +0.5.
+    viewmat: (4, 4) float64 world-to-camera, OpenCV axes (x right, y down, z forward).
+    """
+
+    K: np.ndarray
+    viewmat: np.ndarray
+    width: int
+    height: int
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
+        self.viewmat = np.asarray(self.viewmat, dtype=np.float64).reshape(4, 4)
+        self.width = int(self.width)
+        self.height = int(self.height)
+
+    @property
+    def camtoworld(self) -> np.ndarray:
+        """(4, 4) camera-to-world, OpenCV axes."""
+        return invert_rigid(self.viewmat)
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates."""
+        return self.camtoworld[:3, 3]
+
+    @property
+    def viewmat_t(self):
+        """(4, 4) torch float32 world-to-camera."""
+        import torch
+
+        return torch.as_tensor(self.viewmat, dtype=torch.float32)
+
+    @property
+    def K_t(self):
+        """(3, 3) torch float32 intrinsics."""
+        import torch
+
+        return torch.as_tensor(self.K, dtype=torch.float32)
+
+    @property
+    def camtoworld_t(self):
+        """(4, 4) torch float32 camera-to-world."""
+        import torch
+
+        return torch.as_tensor(self.camtoworld, dtype=torch.float32)
+
+    def torch(self):
+        """(viewmat (4, 4), K (3, 3)) as torch float32 tensors."""
+        return self.viewmat_t, self.K_t
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) -> pixel coordinates (N, 2) in our convention and camera z (N,).
+
+        Points at z <= 0 get NaN coordinates.
+        """
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pc = pts @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (pc[:, :2] / z[:, None]) @ self.K[:2, :2].T + self.K[:2, 2]
+        uv[z <= 0] = np.nan
+        return uv, z
+
+    def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) and camera z (N,) -> world points (N, 3)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        d = np.asarray(depth, dtype=np.float64).reshape(-1)
+        x = (uv[:, 0] - self.K[0, 2]) / self.K[0, 0]
+        y = (uv[:, 1] - self.K[1, 2]) / self.K[1, 1]
+        pc = np.stack([x * d, y * d, d], axis=1)
+        c2w = self.camtoworld
+        return pc @ c2w[:3, :3].T + c2w[:3, 3]
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) pixel coordinates -> (N,) bool, inside [0, W) x [0, H)."""
+        u, v = uv[:, 0], uv[:, 1]
+        with np.errstate(invalid="ignore"):
+            return (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+
+    def resized(self, width: int, height: int) -> Camera:
+        """The same camera for an image resized to (width, height)."""
+        K = scale_intrinsics(self.K, width / self.width, height / self.height)
+        return replace(self, K=K, width=width, height=height)
+
+
+@dataclass
+class Scene:
+    """A posed image collection with object masks.
+
+    images: per view (H, W, 3) float32 in [0, 1]; masks: per view (H, W) bool, True = object /
+    region to inpaint (all False where none was given; for test views the region to score).
+    points: (N, 3) float32 sparse points; colors: (N, 3) float32 in [0, 1] or None when unknown.
+    priors: {"rgb": {view: (H, W, 3) float32}, "depth": {view: (H, W) float32 disparity in [0, 1]}}
+    extras: optional per-view data a source ships ({"depth": {view: (H, W) float32 camera z}, ...}).
+    near, far: (n_views,) float64 depth bounds when known.
+    """
+
+    cameras: list[Camera]
+    images: list[np.ndarray]
+    masks: list[np.ndarray]
+    points: np.ndarray
+    colors: np.ndarray | None = None
+    train_idx: list[int] = field(default_factory=list)
+    test_idx: list[int] = field(default_factory=list)
+    priors: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    extras: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    ref_view: int | None = None
+    near: np.ndarray | None = None
+    far: np.ndarray | None = None
+    path: Path | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def index(self, name: str) -> int:
+        """View index of an image name (with or without extension)."""
+        for i, c in enumerate(self.cameras):
+            if c.name == name or Path(c.name).stem == Path(name).stem:
+                return i
+        raise KeyError(f"no view named {name!r} in scene {self.path}")
+
+    def resized(self, resolution: float) -> Scene:
+        """A copy with images, masks and priors resized by `resolution` (0.5 -> half size).
+
+        Images use area averaging, masks nearest neighbour (a mask stays a set of whole pixels).
+        """
+        if resolution == 1.0:
+            return self
+        if not 0 < resolution <= 1.0:
+            raise ValueError(f"resolution must be in (0, 1], got {resolution}")
+        cams, imgs, masks = [], [], []
+        for cam, img, m in zip(self.cameras, self.images, self.masks, strict=True):
+            w = max(1, round(cam.width * resolution))
+            h = max(1, round(cam.height * resolution))
+            cams.append(cam.resized(w, h))
+            imgs.append(resize_image(img, w, h))
+            masks.append(resize_mask(m, w, h))
+
+        def _resize_dict(d: dict[int, np.ndarray], nearest: bool = False) -> dict[int, np.ndarray]:
+            out = {}
+            for i, a in d.items():
+                w, h = cams[i].width, cams[i].height
+                out[i] = resize_mask(a, w, h) if a.dtype == bool else resize_image(a, w, h)
+            return out
+
+        return replace(
+            self,
+            cameras=cams,
+            images=imgs,
+            masks=masks,
+            priors={k: _resize_dict(v) for k, v in self.priors.items()},
+            extras={k: _resize_dict(v) for k, v in self.extras.items()},
+            meta={**self.meta, "resolution": resolution * self.meta.get("resolution", 1.0)},
+        )
+
+
+def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W[, C]) float image -> (height, width[, C]); INTER_AREA when shrinking."""
+    if img.shape[1] == width and img.shape[0] == height:
+        return img
+    interp = cv2.INTER_AREA if width < img.shape[1] else cv2.INTER_LINEAR
+    return cv2.resize(img, (width, height), interpolation=interp)
+
+
+def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) bool -> (height, width) bool with nearest-neighbour sampling."""
+    if mask.shape[1] == width and mask.shape[0] == height:
+        return mask
+    out = cv2.resize(mask.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST)
+    return out.astype(bool)

@@ -1,0 +1,274 @@
+"""load_scene on the real SPIn-NeRF scene, plain COLMAP folders, our own format, and bad input."""
+
+import logging
+import shutil
+
+import cv2
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from coin_cl.scene import load_scene, save_scene
+from coin_cl.scene.colmap import ColmapCamera, Undistorter, write_model
+from coin_cl.scene.conventions import k_for_opencv
+from coin_cl.scene.geometry import mask_votes, object_points
+from coin_cl.scene.io import write_png
+from coin_cl.scene.synthetic import make_synthetic, write_synthetic
+
+
+@pytest.fixture(scope="module")
+def syn():
+    return make_synthetic(coverage=90, seed=5, n_views=8, width=64, height=48, n_points=800)
+
+
+@pytest.fixture(scope="module")
+def syn_dir(syn, tmp_path_factory):
+    return write_synthetic(tmp_path_factory.mktemp("loader") / "scene", syn)
+
+
+@pytest.fixture
+def scene_copy(syn_dir, tmp_path):
+    d = tmp_path / "copy"
+    shutil.copytree(syn_dir, d)
+    return d
+
+
+def _plain_colmap(syn, root, model="PINHOLE", params=None, masks=True):
+    """A plain COLMAP folder (images/, sparse/0 text model, masks/) from a synthetic scene."""
+    for j, c in enumerate(syn.cameras):
+        write_png(root / "images" / c.name, syn.present[j])
+        if masks:
+            write_png(root / "masks" / c.name, syn.masks[j].astype(np.uint8) * 255)
+    K = syn.cameras[0].K
+    p = params if params is not None else [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    cam = ColmapCamera(model, syn.cameras[0].width, syn.cameras[0].height, np.array(p, float))
+    write_model(
+        root / "sparse" / "0",
+        cam,
+        [c.name for c in syn.cameras],
+        [c.viewmat for c in syn.cameras],
+        syn.points,
+        (syn.colors * 255).astype(np.uint8),
+        text=True,
+    )
+    return root
+
+
+# ---------------------------------------------------------------- the real SPIn-NeRF scene
+
+
+@pytest.fixture(scope="module")
+def real(spinnerf_dir):
+    return load_scene(spinnerf_dir)
+
+
+@pytest.mark.real_data
+def test_real_scene_layout(real):
+    assert len(real) == 39
+    assert real.test_idx == [0, 1, 2, 3, 4] and len(real.train_idx) == 34
+    assert real.names[0] == "20220819_104221.png"
+    cam = real.cameras[0]
+    assert (cam.width, cam.height) == (1008, 567)
+    np.testing.assert_allclose(cam.K[[0, 1, 0, 1], [0, 1, 2, 2]], [767.2934841, 767.2934841, 504, 283.5])
+    assert all(m.shape == (567, 1008) for m in real.masks)  # the 576-row test labels are cropped
+    assert all(real.masks[i].any() for i in range(39))
+    assert real.points.shape == (73437, 3) and real.colors is None  # zero colours = unknown
+    assert set(real.priors) == {"rgb", "depth"} and len(real.priors["rgb"]) == 34
+    assert real.priors["depth"][real.train_idx[0]].shape == (567, 1008)
+    assert real.meta["view_index"][:5] == [0, 10, 20, 29, 39]
+
+
+@pytest.mark.real_data
+def test_real_points_project_within_bounds(real):
+    for i in range(0, len(real), 4):
+        cam = real.cameras[i]
+        uv, z = cam.project(real.points)
+        inside = cam.in_image(uv) & (z > 0)
+        assert inside.mean() > 0.6
+        zin = z[inside]
+        within = (zin >= 0.9 * real.near[i]) & (zin <= 1.1 * real.far[i])
+        assert within.mean() > 0.98
+
+
+@pytest.mark.real_data
+def test_real_train_masks_agree_with_test_masks(real):
+    idx = object_points(real)
+    assert len(idx) > 1000
+    seen, inside = mask_votes(real, real.points[idx], real.test_idx)
+    assert seen.sum() > 1000
+    assert inside.sum() / seen.sum() >= 0.95
+
+
+@pytest.mark.real_data
+def test_real_scene_half_resolution(spinnerf_dir, real):
+    half = load_scene(spinnerf_dir, resolution=0.5, priors=False)
+    cam = half.cameras[3]
+    assert half.images[3].shape == (284, 504, 3) and half.masks[3].shape == (284, 504)
+    assert half.masks[3].dtype == bool
+    np.testing.assert_allclose(cam.K[0, 0], 767.2934841 / 2)
+    np.testing.assert_allclose(cam.K[1, 2], 283.5 * 284 / 567)
+    # the mask shrinks by area, not by shape
+    assert half.masks[3].sum() == pytest.approx(real.masks[3].sum() / 4, rel=0.05)
+
+
+@pytest.mark.real_data
+def test_real_scene_undistort_option(spinnerf_dir):
+    u = load_scene(spinnerf_dir, undistort=True, priors=False)
+    assert u.meta["undistorted"]
+    assert u.images[0].shape == (567, 1008, 3)
+
+
+# ---------------------------------------------------------------- plain COLMAP and our format
+
+
+def test_plain_colmap_folder(syn, tmp_path):
+    root = _plain_colmap(syn, tmp_path / "plain")
+    sc = load_scene(root)
+    assert sc.meta["layout"] == "colmap" and sc.test_idx == [] and len(sc.train_idx) == 8
+    for a, b in zip(sc.cameras, syn.cameras, strict=True):
+        np.testing.assert_allclose(a.viewmat, b.viewmat, atol=1e-6)
+    np.testing.assert_array_equal(sc.masks[2], syn.masks[2])
+    sc2 = load_scene(root, n_test=2)
+    assert sc2.test_idx == [0, 1]
+    np.testing.assert_array_equal(sc2.masks[1], syn.masks[1])  # held-out views keep masks/
+
+
+def test_plain_colmap_distortion_is_undone(syn, tmp_path):
+    K = syn.cameras[0].K
+    k1 = 0.08
+    root = _plain_colmap(syn, tmp_path / "dist", "SIMPLE_RADIAL", [K[0, 0], K[0, 2], K[1, 2], k1])
+    sc = load_scene(root)
+    assert sc.meta["undistorted"]
+    und = Undistorter(K, np.array([k1, 0, 0, 0]), False, 64, 48)
+    np.testing.assert_allclose(sc.images[1], und.image(syn.present[1]), atol=1 / 255)
+    np.testing.assert_array_equal(sc.masks[1], und.mask(syn.masks[1]))
+    raw = load_scene(root, undistort=False)
+    assert not np.allclose(raw.images[1], sc.images[1], atol=2 / 255)
+
+
+def test_undistorter_moves_a_point_to_its_pinhole_position():
+    K = np.array([[100.0, 0, 64], [0, 100.0, 48], [0, 0, 1]])
+    dist = np.array([0.2, -0.05, 0.0, 0.0])
+    und = Undistorter(K, dist, False, 128, 96)
+    x = np.array([[[0.45, 0.3, 1.0]]])  # camera ray
+    pu = (x[0, 0, :2] / x[0, 0, 2]) * 100 + [64, 48]  # pinhole position, our convention
+    pd, _ = cv2.projectPoints(x, np.zeros(3), np.zeros(3), k_for_opencv(K), dist)
+    pd = pd.reshape(2) + 0.5  # back to our pixel convention
+    img = np.zeros((96, 128, 3), np.float32)
+    cv2.circle(
+        img,
+        (int(round(pd[0] * 16 - 8)), int(round(pd[1] * 16 - 8))),
+        24,
+        (1, 1, 1),
+        -1,
+        lineType=cv2.LINE_AA,
+        shift=4,
+    )
+    out = und.image(img)[..., 0]
+    ys, xs = np.mgrid[0:96, 0:128]
+    c = np.array([(out * (xs + 0.5)).sum(), (out * (ys + 0.5)).sum()]) / out.sum()
+    assert np.linalg.norm(pd - pu) > 2  # distortion is visible here
+    assert np.linalg.norm(c - pu) < 0.5
+
+
+def test_project_format_round_trip(syn_dir, tmp_path):
+    a = load_scene(syn_dir)
+    a.ref_view = 4
+    save_scene(a, tmp_path / "own")
+    b = load_scene(tmp_path / "own")
+    assert b.names == a.names and b.test_idx == a.test_idx and b.ref_view == 4
+    for ca, cb in zip(a.cameras, b.cameras, strict=True):
+        np.testing.assert_array_equal(ca.viewmat, cb.viewmat)
+        np.testing.assert_array_equal(ca.K, cb.K)
+    for i in range(len(a)):
+        np.testing.assert_allclose(b.images[i], a.images[i], atol=0.5 / 255 + 1e-6)
+        np.testing.assert_array_equal(b.masks[i], a.masks[i])
+    np.testing.assert_array_equal(b.points, a.points)
+    np.testing.assert_array_equal(b.extras["depth"][5], a.extras["depth"][5])
+    np.testing.assert_allclose(b.near, a.near)
+
+
+def test_resolution_option_scales_k_and_keeps_geometry(syn_dir):
+    full = load_scene(syn_dir)
+    half = load_scene(syn_dir, resolution=0.5)
+    assert half.images[0].shape == (24, 32, 3) and half.masks[0].dtype == bool
+    uv_f, _ = full.cameras[2].project(full.points[:50])
+    uv_h, _ = half.cameras[2].project(full.points[:50])
+    np.testing.assert_allclose(uv_h, uv_f * 0.5, atol=1e-9)
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_missing_train_mask_names_file(scene_copy):
+    (scene_copy / "images_4" / "label" / "view_005.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"label/view_005\.png"):
+        load_scene(scene_copy)
+
+
+def test_missing_test_mask_names_file(scene_copy):
+    (scene_copy / "images_4" / "test_label" / "out_00002.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"out_00002\.png"):
+        load_scene(scene_copy)
+
+
+def test_mask_size_mismatch_names_file(scene_copy):
+    iio.imwrite(scene_copy / "images_4" / "label" / "view_004.png", np.zeros((30, 40), np.uint8))
+    with pytest.raises(ValueError, match=r"view_004\.png.*40x30.*64x48"):
+        load_scene(scene_copy)
+
+
+def test_whole_image_mask_names_file(scene_copy):
+    iio.imwrite(scene_copy / "images_4" / "label" / "view_006.png", np.ones((48, 64), np.uint8))
+    with pytest.raises(ValueError, match=r"view_006\.png.*whole image"):
+        load_scene(scene_copy)
+
+
+def test_empty_mask_warns_and_keeps_view(scene_copy, caplog):
+    iio.imwrite(scene_copy / "images_4" / "label" / "view_007.png", np.zeros((48, 64), np.uint8))
+    with caplog.at_level(logging.WARNING):
+        sc = load_scene(scene_copy)
+    assert len(sc) == 8 and not sc.masks[7].any()
+    assert "view_007.png" in caplog.text and "empty" in caplog.text
+
+
+def test_view_without_pose_names_file(scene_copy):
+    shutil.copy(scene_copy / "images_4" / "view_003.png", scene_copy / "images_4" / "view_999.png")
+    shutil.copy(
+        scene_copy / "images_4" / "label" / "view_003.png", scene_copy / "images_4" / "label" / "view_999.png"
+    )
+    (scene_copy / "views.txt").unlink()
+    with pytest.raises(ValueError, match=r"view_999\.png has no pose"):
+        load_scene(scene_copy)
+
+
+def test_view_without_pose_in_llff_names_file(scene_copy):
+    (scene_copy / "sparse" / "0" / "images.bin").unlink()
+    pb = np.load(scene_copy / "poses_bounds.npy")
+    np.save(scene_copy / "poses_bounds.npy", pb[:6])
+    with pytest.raises(ValueError, match=r"poses_bounds\.npy.*6 rows"):
+        load_scene(scene_copy)
+
+
+def test_unknown_camera_model_names_file(scene_copy):
+    model = scene_copy / "sparse" / "0"
+    (model / "images.bin").unlink()
+    (model / "cameras.bin").unlink()
+    (model / "cameras.txt").write_text("1 WEIRD_LENS 64 48 50 32 24\n")
+    with pytest.raises(ValueError, match=r"cameras\.txt.*WEIRD_LENS"):
+        load_scene(scene_copy)
+
+
+def test_unsupported_camera_model_names_model(syn, tmp_path):
+    root = _plain_colmap(syn, tmp_path / "fov", "FOV", [50, 50, 32, 24, 0.9])
+    with pytest.raises(ValueError, match=r"sparse/0.*FOV.*image_undistorter"):
+        load_scene(root)
+
+
+def test_no_poses_and_no_images(tmp_path):
+    (tmp_path / "images").mkdir()
+    write_png(tmp_path / "images" / "a.png", np.zeros((8, 8, 3)))
+    with pytest.raises(FileNotFoundError, match="no camera poses.*run COLMAP"):
+        load_scene(tmp_path)
+    with pytest.raises(FileNotFoundError, match="not_here"):
+        load_scene(tmp_path / "not_here")
