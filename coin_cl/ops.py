@@ -265,7 +265,9 @@ class _Rasterize(torch.autograd.Function):
         )
         rt.finish(*a_out)
         if stats is not None:
-            stats.update(n_pairs=bins.n_pairs, n_visible=bins.n_visible)
+            # last: per pixel, how many splats of its tile list were composited (1-based index
+            # of the last contributor); the backward pass starts there.
+            stats.update(n_pairs=bins.n_pairs, n_visible=bins.n_visible, last=last[:height, :width])
         ctx.save_for_backward(m2, con, op, ft, bg, bins.tile_start, bins.tile_end, bins.ids, t_final, last)
         ctx.meta = (width, height, rt, defines, bins.tiles_x, features.dtype, background is not None)
         out_img = img[:, :height, :width].permute(1, 2, 0).to(features.dtype)

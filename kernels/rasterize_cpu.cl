@@ -39,6 +39,26 @@ inline int box_in_tile(float mx, float my, float ex, float ey, int px0, int py0,
     return *r0 <= *r1 && *c0 <= *c1;
 }
 
+typedef struct {
+    float mx, my, A, B, C, o; /* mean, conic, opacity */
+    int r0, r1, c0, c1;       /* rows and 8-pixel chunks of the tile inside its box */
+} Splat;
+
+/* Reads splat g; 0 if it cannot reach ALPHA_THRESHOLD anywhere in this tile. */
+inline int load_splat(int g, __global const float *means2d, __global const float *conics,
+                      __global const float *opac, int px0, int py0, Splat *s)
+{
+    float ex, ey;
+    s->mx = means2d[2 * g];
+    s->my = means2d[2 * g + 1];
+    s->A = conics[3 * g];
+    s->B = conics[3 * g + 1];
+    s->C = conics[3 * g + 2];
+    s->o = opac[g];
+    return splat_extent((float3)(s->A, s->B, s->C), s->o, TILE_SIZE * 1024, &ex, &ey) &&
+           box_in_tile(s->mx, s->my, ex, ey, px0, py0, &s->r0, &s->r1, &s->c0, &s->c1);
+}
+
 __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane,
                             __global const int *tile_start, __global const int *tile_end,
                             __global const int *ids, __global const float *means2d,
@@ -63,14 +83,11 @@ __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane
     int n_done = 0;
     for (int k = start; k < end && n_done < TILE_SIZE * TILE_SIZE; ++k) {
         const int g = ids[k];
-        const float mx = means2d[2 * g], my = means2d[2 * g + 1];
-        const float A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2];
-        const float o = opac[g];
-        float ex, ey;
-        int r0, r1, c0, c1;
-        if (!splat_extent((float3)(A, B, C), o, TILE_SIZE * 1024, &ex, &ey) ||
-            !box_in_tile(mx, my, ex, ey, px0, py0, &r0, &r1, &c0, &c1))
+        Splat sp;
+        if (!load_splat(g, means2d, conics, opac, px0, py0, &sp))
             continue;
+        const float mx = sp.mx, my = sp.my, A = sp.A, B = sp.B, C = sp.C, o = sp.o;
+        const int r0 = sp.r0, r1 = sp.r1, c0 = sp.c0, c1 = sp.c1;
         const int8 idx8 = (int8)(k - start + 1);
         for (int r = r0; r <= r1; ++r) {
             const float dy = (float)(py0 + r) + 0.5f - my;
@@ -147,14 +164,11 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
     const int start = tile_start[tile];
     for (int k = start + max_last - 1; k >= start; --k) {
         const int g = ids[k];
-        const float mx = means2d[2 * g], my = means2d[2 * g + 1];
-        const float A = conics[3 * g], B = conics[3 * g + 1], C = conics[3 * g + 2];
-        const float o = opac[g];
-        float ex, ey;
-        int r0, r1, c0, c1;
-        if (!splat_extent((float3)(A, B, C), o, TILE_SIZE * 1024, &ex, &ey) ||
-            !box_in_tile(mx, my, ex, ey, px0, py0, &r0, &r1, &c0, &c1))
+        Splat sp;
+        if (!load_splat(g, means2d, conics, opac, px0, py0, &sp))
             continue;
+        const float mx = sp.mx, my = sp.my, A = sp.A, B = sp.B, C = sp.C, o = sp.o;
+        const int r0 = sp.r0, r1 = sp.r1, c0 = sp.c0, c1 = sp.c1;
         const int8 kk = (int8)(k - start);
         float f[NUM_CHANNELS];
         acc8 vf[NUM_CHANNELS];

@@ -45,3 +45,17 @@ def test_zero_copy_and_explicit_transfer_agree():
         else:
             assert rt.bytes_transferred > img.numel() * 4
     torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)
+
+
+def test_no_opencl_platform_says_what_to_install(monkeypatch):
+    import pyopencl as cl
+
+    from coin_cl import runtime
+
+    def no_platforms():
+        raise cl.LogicError("clGetPlatformIDs failed: PLATFORM_NOT_FOUND_KHR")
+
+    monkeypatch.setattr(cl, "get_platforms", no_platforms)
+    with pytest.raises(NoDeviceError, match="pip install pocl-binary-distribution"):
+        runtime._choose_device(None)
+    assert runtime.list_devices() == []
