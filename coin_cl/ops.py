@@ -130,12 +130,15 @@ class TileBins:
         self.tile_start = torch.zeros(n_tiles, dtype=torch.int32)
         self.tile_end = torch.zeros(n_tiles, dtype=torch.int32)
         self.ids = torch.zeros(0, dtype=torch.int32)
+        # Per-splat half extents (px) of the opacity-aware box; read by the rasterizers.
+        self.extents = rt.empty(means2d.shape[0], 2)
         self.n_pairs = 0
         if n_vis == 0:
             return
         rects = rt.empty(n_vis, 4, dtype=torch.int32)
         a_order, a_m, a_c, a_o, a_r = (rt.array(t) for t in (order, means2d, conics, opacities, radii))
         a_rects = rt.array(rects, mode="out")
+        a_ext = rt.array(self.extents, mode="out")
         rt.launch(
             "bin.cl",
             "bin_rects",
@@ -150,8 +153,9 @@ class TileBins:
             i32(self.tiles_x),
             i32(self.tiles_y),
             a_rects.buf,
+            a_ext.buf,
         )
-        rt.finish(a_rects)
+        rt.finish(a_rects, a_ext)
         area = (rects[:, 2] - rects[:, 0]).to(torch.int64) * (rects[:, 3] - rects[:, 1])
         n_pairs = int(area.sum())
         # Checked before anything pair-sized is allocated: a clear error, never an OOM.
@@ -249,7 +253,9 @@ class _Rasterize(torch.autograd.Function):
         last = rt.empty(rows, stride, dtype=torch.int32)
         variant = {"NUM_CHANNELS": C, **defines}
         src, local = raster_variant(rt)
-        a_in = [rt.array(t) for t in (bins.tile_start, bins.tile_end, bins.ids, m2, con, op, ft, bg)]
+        a_in = [
+            rt.array(t) for t in (bins.tile_start, bins.tile_end, bins.ids, m2, con, op, bins.extents, ft, bg)
+        ]
         a_out = [rt.array(t, mode="out") for t in (img, t_final, last)]
         rt.launch(
             src,
@@ -268,7 +274,9 @@ class _Rasterize(torch.autograd.Function):
             # last: per pixel, how many splats of its tile list were composited (1-based index
             # of the last contributor); the backward pass starts there.
             stats.update(n_pairs=bins.n_pairs, n_visible=bins.n_visible, last=last[:height, :width])
-        ctx.save_for_backward(m2, con, op, ft, bg, bins.tile_start, bins.tile_end, bins.ids, t_final, last)
+        ctx.save_for_backward(
+            m2, con, op, bins.extents, ft, bg, bins.tile_start, bins.tile_end, bins.ids, t_final, last
+        )
         ctx.meta = (width, height, rt, defines, bins.tiles_x, features.dtype, background is not None)
         out_img = img[:, :height, :width].permute(1, 2, 0).to(features.dtype)
         out_alpha = (1.0 - t_final[:height, :width]).to(features.dtype)
@@ -276,7 +284,7 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_img, v_alpha):
-        m2, con, op, ft, bg, tstart, tend, ids, t_final, last = ctx.saved_tensors
+        m2, con, op, ext, ft, bg, tstart, tend, ids, t_final, last = ctx.saved_tensors
         width, height, rt, defines, tiles_x, dtype, has_bg = ctx.meta
         n, C = ft.shape
         rows, stride = t_final.shape
@@ -292,7 +300,9 @@ class _Rasterize(torch.autograd.Function):
         scratch = rt.empty(C, rows, stride)
         variant = {"NUM_CHANNELS": C, **defines}
         src, local = raster_variant(rt)
-        a_in = [rt.array(t) for t in (tstart, tend, ids, m2, con, op, ft, bg, t_final, last, g_img, g_alpha)]
+        a_in = [
+            rt.array(t) for t in (tstart, tend, ids, m2, con, op, ext, ft, bg, t_final, last, g_img, g_alpha)
+        ]
         a_scr = rt.array(scratch, mode="scratch")
         a_out = [rt.array(t, mode="inout") for t in outs]  # accumulated by atomics
         if ids.numel():

@@ -35,7 +35,13 @@ class NoDeviceError(RuntimeError):
 
 
 def kernel_dir() -> Path:
-    """Folder holding the OpenCL C sources (package data when installed, ./kernels in a checkout)."""
+    """Folder holding the OpenCL C sources: $COIN_CL_KERNEL_DIR (for kernel development), else the
+    package data (./kernels in a checkout)."""
+    env = os.environ.get("COIN_CL_KERNEL_DIR")
+    if env:
+        if not (Path(env) / "common.h").is_file():
+            raise FileNotFoundError(f"COIN_CL_KERNEL_DIR={env} holds no common.h")
+        return Path(env)
     try:
         p = Path(str(resources.files("coin_cl.kernels")))
         if (p / "common.h").is_file():

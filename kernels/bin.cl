@@ -7,11 +7,12 @@
  * result is deterministic: no atomics, no sort of the pairs. */
 #include "common.h"
 
-/* Per sorted splat: its tile rectangle, from the opacity-aware extent capped by the radius. */
+/* Per sorted splat: its tile rectangle, from the opacity-aware extent capped by the radius, and
+ * that extent itself (indexed by splat id; only splats that are binned are ever read). */
 __kernel void bin_rects(const int n_vis, __global const int *order, __global const float *means2d,
                         __global const float *conics, __global const float *opac,
                         __global const int *radii, const int tiles_x, const int tiles_y,
-                        __global int4 *rects)
+                        __global int4 *rects, __global float2 *ext)
 {
     const int s = get_global_id(0);
     if (s >= n_vis)
@@ -20,9 +21,16 @@ __kernel void bin_rects(const int n_vis, __global const int *order, __global con
     float ex, ey;
     float3 con = (float3)(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2]);
     int4 r = (int4)(0, 0, 0, 0);
-    if (splat_extent(con, opac[g], radii[g], &ex, &ey))
-        r = tile_rect((float2)(means2d[2 * g], means2d[2 * g + 1]), ex, ey, tiles_x, tiles_y);
+    const int rad = radii[g];
+    /* The box is not capped by the radius: inside a tile it is binned to, a splat is evaluated
+     * on every pixel it can reach. Its tiles are those of the box capped by the radius. */
+    if (splat_extent(con, opac[g], MAX_RADIUS_PX, &ex, &ey) && rad > 0)
+        r = tile_rect((float2)(means2d[2 * g], means2d[2 * g + 1]), fmin(ex, (float)rad),
+                      fmin(ey, (float)rad), tiles_x, tiles_y);
+    else
+        ex = ey = -1.0f;
     rects[s] = r;
+    ext[g] = (float2)(ex, ey); /* the rasterizers' per-pixel box, computed once per splat */
 }
 
 __kernel void bin_count(const int n_vis, const int chunk, const int n_tiles, const int tiles_x,

@@ -22,9 +22,35 @@ typedef float8 acc8;
 #define ACC_SUM(v) (((v).s0 + (v).s4) + ((v).s1 + (v).s5) + ((v).s2 + (v).s6) + ((v).s3 + (v).s7))
 #endif
 
+/* exp for x <= 0 with operators only (no built-in call): 2^t = 2^n * 2^f, n rounded by the
+ * 1.5 * 2^23 trick, 2^f (|f| <= 0.5) by its degree-6 Taylor polynomial. Relative error < 3e-7;
+ * below 2^-126 it returns 2^-126 (alpha is then far under ALPHA_THRESHOLD). */
+inline float8 exp_neg8(float8 x)
+{
+    float8 t = x * 1.44269504f;
+    t = t < -126.0f ? (float8)(-126.0f) : t;
+    const float8 magic = (float8)(12582912.0f);
+    const float8 tm = t + magic;
+    const float8 n = tm - magic;
+    const float8 f = (t - n) * 0.693147181f;
+    float8 p = 1.0f + f * (1.0f + f * (0.5f + f * (0.166666667f + f * (0.0416666667f + f * (0.00833333333f + f * 0.00138888889f)))));
+    const int8 e = (as_int8(tm) - as_int8(magic) + 127) << 23;
+    return p * as_float8(e);
+}
+
 #ifndef EXPF
-#define EXPF exp
+#define EXPF exp_neg8
 #endif
+
+/* PoCL does not inline built-ins such as vload8, select, any or fmin: each becomes a call that
+ * spills the vector registers. The hot loops use plain vector operators instead (aligned float8
+ * accesses are safe: rows start at multiples of 8 floats of 32-byte aligned buffers). */
+#define VLD(p) (*(__global const float8 *)(p))
+#define VST(p, v) (*(__global float8 *)(p) = (v))
+#define SEL(a, b, m) ((m) ? (b) : (a))
+#define ANY(m) ((((m).s0 | (m).s1 | (m).s2 | (m).s3) | ((m).s4 | (m).s5 | (m).s6 | (m).s7)) != 0)
+#define VMIN(x, y) ((x) < (y) ? (x) : (y))
+#define VMAXF(x, c) ((x) > (c) ? (x) : (float8)(c))
 
 #define LANES ((float8)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
 
@@ -46,23 +72,24 @@ typedef struct {
 
 /* Reads splat g; 0 if it cannot reach ALPHA_THRESHOLD anywhere in this tile. */
 inline int load_splat(int g, __global const float *means2d, __global const float *conics,
-                      __global const float *opac, int px0, int py0, Splat *s)
+                      __global const float *opac, __global const float2 *ext, int px0, int py0,
+                      Splat *s)
 {
-    float ex, ey;
+    const float2 e = ext[g];
     s->mx = means2d[2 * g];
     s->my = means2d[2 * g + 1];
     s->A = conics[3 * g];
     s->B = conics[3 * g + 1];
     s->C = conics[3 * g + 2];
     s->o = opac[g];
-    return splat_extent((float3)(s->A, s->B, s->C), s->o, TILE_SIZE * 1024, &ex, &ey) &&
-           box_in_tile(s->mx, s->my, ex, ey, px0, py0, &s->r0, &s->r1, &s->c0, &s->c1);
+    return e.x >= 0.0f && box_in_tile(s->mx, s->my, e.x, e.y, px0, py0, &s->r0, &s->r1, &s->c0, &s->c1);
 }
 
 __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane,
                             __global const int *tile_start, __global const int *tile_end,
                             __global const int *ids, __global const float *means2d,
                             __global const float *conics, __global const float *opac,
+                            __global const float2 *ext,
                             __global const float *feats, __global const float *bg,
                             __global float *out_img, __global float *out_T, __global int *out_last)
 {
@@ -77,14 +104,14 @@ __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane
         done[v] = (int8)(0);
         int o = base + (v / NCHUNK) * stride + (v % NCHUNK) * 8;
         for (int ch = 0; ch < NUM_CHANNELS; ++ch)
-            vstore8((float8)(0.0f), 0, out_img + ch * plane + o);
+            VST(out_img + ch * plane + o, (float8)(0.0f));
     }
     const int start = tile_start[tile], end = tile_end[tile];
     int n_done = 0;
     for (int k = start; k < end && n_done < TILE_SIZE * TILE_SIZE; ++k) {
         const int g = ids[k];
         Splat sp;
-        if (!load_splat(g, means2d, conics, opac, px0, py0, &sp))
+        if (!load_splat(g, means2d, conics, opac, ext, px0, py0, &sp))
             continue;
         const float mx = sp.mx, my = sp.my, A = sp.A, B = sp.B, C = sp.C, o = sp.o;
         const int r0 = sp.r0, r1 = sp.r1, c0 = sp.c0, c1 = sp.c1;
@@ -96,22 +123,22 @@ __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane
                 const int v = r * NCHUNK + c;
                 const float8 dx = LANES + (float)(px0 + 8 * c) - mx;
                 const float8 sigma = 0.5f * A * dx * dx + bdy * dx + hc;
-                const float8 alpha = fmin((float8)(MAX_ALPHA), o * EXPF(-sigma));
+                const float8 alpha = VMIN((float8)(MAX_ALPHA), o * EXPF(-sigma));
                 const int8 valid = (sigma >= 0.0f) & (alpha >= ALPHA_THRESHOLD) & ~done[v];
-                if (!any(valid))
+                if (!ANY(valid))
                     continue;
                 const float8 nT = T[v] * (1.0f - alpha);
                 const int8 stop = valid & (nT <= TRANSMITTANCE_MIN);
                 const int8 use = valid & ~stop;
-                const float8 w = select((float8)(0.0f), alpha * T[v], use);
+                const float8 w = SEL((float8)(0.0f), alpha * T[v], use);
                 __global float *dst = out_img + base + r * stride + 8 * c;
                 for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
-                    float8 acc = vload8(0, dst + ch * plane);
-                    vstore8(acc + w * feats[g * NUM_CHANNELS + ch], 0, dst + ch * plane);
+                    float8 acc = VLD(dst + ch * plane);
+                    VST(dst + ch * plane, acc + w * feats[g * NUM_CHANNELS + ch]);
                 }
-                T[v] = select(T[v], nT, use);
-                last[v] = select(last[v], idx8, use);
-                if (any(stop)) {
+                T[v] = SEL(T[v], nT, use);
+                last[v] = SEL(last[v], idx8, use);
+                if (ANY(stop)) {
                     done[v] |= stop;
                     int8 cnt = -stop;
                     n_done += cnt.s0 + cnt.s1 + cnt.s2 + cnt.s3 + cnt.s4 + cnt.s5 + cnt.s6 + cnt.s7;
@@ -122,11 +149,11 @@ __kernel void rasterize_fwd(const int tiles_x, const int stride, const int plane
     for (int v = 0; v < NVEC; ++v) {
         int o = base + (v / NCHUNK) * stride + (v % NCHUNK) * 8;
         for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
-            float8 acc = vload8(0, out_img + ch * plane + o);
-            vstore8(acc + T[v] * bg[ch], 0, out_img + ch * plane + o);
+            float8 acc = VLD(out_img + ch * plane + o);
+            VST(out_img + ch * plane + o, acc + T[v] * bg[ch]);
         }
-        vstore8(T[v], 0, out_T + o);
-        vstore8(last[v], 0, out_last + o);
+        VST(out_T + o, T[v]);
+        *(__global int8 *)(out_last + o) = last[v];
     }
 }
 
@@ -134,6 +161,7 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
                             __global const int *tile_start, __global const int *tile_end,
                             __global const int *ids, __global const float *means2d,
                             __global const float *conics, __global const float *opac,
+                            __global const float2 *ext,
                             __global const float *feats, __global const float *bg,
                             __global const float *out_T, __global const int *out_last,
                             __global const float *v_img, __global const float *v_alpha_img,
@@ -149,13 +177,13 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
     int max_last = 0;
     for (int v = 0; v < NVEC; ++v) {
         int o = base + (v / NCHUNK) * stride + (v % NCHUNK) * 8;
-        T[v] = vload8(0, out_T + o);
-        last[v] = vload8(0, out_last + o);
+        T[v] = VLD(out_T + o);
+        last[v] = *(__global const int8 *)(out_last + o);
         /* d(T_final)/d(alpha_i) = -T_final / (1 - alpha_i): the background and alpha outputs. */
-        float8 gb = vload8(0, v_alpha_img + o);
+        float8 gb = VLD(v_alpha_img + o);
         for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
-            gb -= bg[ch] * vload8(0, v_img + ch * plane + o);
-            vstore8((float8)(0.0f), 0, scratch + ch * plane + o);
+            gb -= bg[ch] * VLD(v_img + ch * plane + o);
+            VST(scratch + ch * plane + o, (float8)(0.0f));
         }
         bgterm[v] = T[v] * gb;
         int8 l = last[v];
@@ -165,7 +193,7 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
     for (int k = start + max_last - 1; k >= start; --k) {
         const int g = ids[k];
         Splat sp;
-        if (!load_splat(g, means2d, conics, opac, px0, py0, &sp))
+        if (!load_splat(g, means2d, conics, opac, ext, px0, py0, &sp))
             continue;
         const float mx = sp.mx, my = sp.my, A = sp.A, B = sp.B, C = sp.C, o = sp.o;
         const int r0 = sp.r0, r1 = sp.r1, c0 = sp.c0, c1 = sp.c1;
@@ -188,25 +216,25 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
                 const float8 sigma = 0.5f * A * dx * dx + bdy * dx + hc;
                 const float8 G = EXPF(-sigma);
                 const float8 araw = o * G;
-                const float8 alpha = fmin((float8)(MAX_ALPHA), araw);
+                const float8 alpha = VMIN((float8)(MAX_ALPHA), araw);
                 const int8 valid = (kk < last[v]) & (sigma >= 0.0f) & (alpha >= ALPHA_THRESHOLD);
-                if (!any(valid))
+                if (!ANY(valid))
                     continue;
                 touched = 1;
-                const float8 ra = 1.0f / fmax(1.0f - alpha, ONE_MINUS_ALPHA_MIN);
-                const float8 Ti = select(T[v], T[v] * ra, valid);
+                const float8 ra = 1.0f / VMAXF(1.0f - alpha, ONE_MINUS_ALPHA_MIN);
+                const float8 Ti = SEL(T[v], T[v] * ra, valid);
                 T[v] = Ti;
-                const float8 w = select((float8)(0.0f), alpha * Ti, valid);
+                const float8 w = SEL((float8)(0.0f), alpha * Ti, valid);
                 const int o8 = base + r * stride + 8 * c;
                 float8 va = bgterm[v] * ra;
                 for (int ch = 0; ch < NUM_CHANNELS; ++ch) {
-                    const float8 gch = vload8(0, v_img + ch * plane + o8);
-                    float8 S = vload8(0, scratch + ch * plane + o8);
+                    const float8 gch = VLD(v_img + ch * plane + o8);
+                    float8 S = VLD(scratch + ch * plane + o8);
                     vf[ch] += ACC(w * gch);
                     va += (f[ch] * Ti - S * ra) * gch;
-                    vstore8(S + w * f[ch], 0, scratch + ch * plane + o8);
+                    VST(scratch + ch * plane + o8, S + w * f[ch]);
                 }
-                va = select((float8)(0.0f), va, valid & (araw <= MAX_ALPHA));
+                va = SEL((float8)(0.0f), va, valid & (araw <= MAX_ALPHA));
                 vo += ACC(va * G);
                 const float8 vs = -araw * va; /* dL/dsigma */
                 vA += ACC(0.5f * vs * dx * dx);

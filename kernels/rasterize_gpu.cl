@@ -30,6 +30,7 @@ void rasterize_fwd(const int tiles_x, const int stride, const int plane,
                    __global const int *tile_start, __global const int *tile_end,
                    __global const int *ids, __global const float *means2d,
                    __global const float *conics, __global const float *opac,
+                   __global const float2 *ext, /* unused: every pixel of the tile is evaluated */
                    __global const float *feats, __global const float *bg,
                    __global float *out_img, __global float *out_T, __global int *out_last)
 {
@@ -89,6 +90,7 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
                    __global const int *tile_start, __global const int *tile_end,
                    __global const int *ids, __global const float *means2d,
                    __global const float *conics, __global const float *opac,
+                   __global const float2 *ext, /* unused: every pixel of the tile is evaluated */
                    __global const float *feats, __global const float *bg,
                    __global const float *out_T, __global const int *out_last,
                    __global const float *v_img, __global const float *v_alpha_img,
