@@ -122,30 +122,25 @@ class TileBins:
         ts = cst.TILE_SIZE
         self.tiles_x, self.tiles_y = math.ceil(width / ts), math.ceil(height / ts)
         n_tiles = self.tiles_x * self.tiles_y
-        vis = (radii > 0).nonzero().squeeze(1)
-        # One stable depth sort of the visible splats; every tile list inherits its order.
-        order = vis[torch.argsort(depths[vis], stable=True)].to(torch.int32).contiguous()
-        n_vis = int(order.numel())
-        self.n_visible = n_vis
+        n = means2d.shape[0]
+        # Per-splat half extents (px) of the opacity-aware box; read by the rasterizers.
+        self.extents = rt.empty(n, 2)
         self.tile_start = torch.zeros(n_tiles, dtype=torch.int32)
         self.tile_end = torch.zeros(n_tiles, dtype=torch.int32)
         self.ids = torch.zeros(0, dtype=torch.int32)
-        # Per-splat half extents (px) of the opacity-aware box; read by the rasterizers.
-        self.extents = rt.empty(means2d.shape[0], 2)
-        self.n_pairs = 0
-        if n_vis == 0:
+        self.n_pairs = self.n_visible = 0
+        if n == 0:
             return
-        rects = rt.empty(n_vis, 4, dtype=torch.int32)
-        a_order, a_m, a_c, a_o, a_r = (rt.array(t) for t in (order, means2d, conics, opacities, radii))
+        rects = rt.empty(n, 4, dtype=torch.int32)
+        a_m, a_c, a_o, a_r = (rt.array(t) for t in (means2d, conics, opacities, radii))
         a_rects = rt.array(rects, mode="out")
         a_ext = rt.array(self.extents, mode="out")
         rt.launch(
             "bin.cl",
             "bin_rects",
-            (_groups(n_vis),),
+            (_groups(n),),
             (64,),
-            i32(n_vis),
-            a_order.buf,
+            i32(n),
             a_m.buf,
             a_c.buf,
             a_o.buf,
@@ -164,6 +159,13 @@ class TileBins:
         self.n_pairs = n_pairs
         if n_pairs == 0:
             return
+        # One stable depth sort of the splats that reach a tile; every tile list inherits it.
+        vis = (area > 0).nonzero().squeeze(1)
+        order_np = np.argsort(depths[vis].numpy(), kind="stable")  # numpy's beats torch's here
+        order = vis[torch.from_numpy(order_np)].to(torch.int32)
+        n_vis = self.n_visible = int(order.numel())
+        rects = rects[order.long()]  # gathered once, so the passes below read sequentially
+        a_rects, a_order = rt.array(rects), rt.array(order)
         # Enough chunks to keep every compute unit busy with some balance, few enough that the
         # [chunks, tiles] histogram stays small.
         n_chunks = int(min(n_vis, max(1, min(1024, (1 << 22) // n_tiles, n_vis // 256 + 1))))

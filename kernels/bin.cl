@@ -1,35 +1,34 @@
 /* Binning of splats to tiles without sorting pairs.
  *
- * The splats arrive already depth-sorted (`order`). They are cut into contiguous chunks; pass 1
+ * The splats' rectangles arrive in depth order. They are cut into contiguous chunks; pass 1
  * counts, per chunk, how many of its splats land in each tile; an exclusive scan over
  * (tile, chunk) gives every chunk its own write position in every tile; pass 2 writes the ids.
  * Each tile's list is therefore in depth order (chunk by chunk, each chunk in order) and the
  * result is deterministic: no atomics, no sort of the pairs. */
 #include "common.h"
 
-/* Per sorted splat: its tile rectangle, from the opacity-aware extent capped by the radius, and
- * that extent itself (indexed by splat id; only splats that are binned are ever read). */
-__kernel void bin_rects(const int n_vis, __global const int *order, __global const float *means2d,
-                        __global const float *conics, __global const float *opac,
-                        __global const int *radii, const int tiles_x, const int tiles_y,
-                        __global int4 *rects, __global float2 *ext)
+/* Per splat (in id order, so every read is sequential): its tile rectangle, from the
+ * opacity-aware extent capped by the radius, and that extent itself. Culled or invisible splats
+ * get an empty rectangle and a negative extent. */
+__kernel void bin_rects(const int n, __global const float *means2d, __global const float *conics,
+                        __global const float *opac, __global const int *radii, const int tiles_x,
+                        const int tiles_y, __global int4 *rects, __global float2 *ext)
 {
-    const int s = get_global_id(0);
-    if (s >= n_vis)
+    const int g = get_global_id(0);
+    if (g >= n)
         return;
-    const int g = order[s];
     float ex, ey;
     float3 con = (float3)(conics[3 * g], conics[3 * g + 1], conics[3 * g + 2]);
     int4 r = (int4)(0, 0, 0, 0);
     const int rad = radii[g];
     /* The box is not capped by the radius: inside a tile it is binned to, a splat is evaluated
      * on every pixel it can reach. Its tiles are those of the box capped by the radius. */
-    if (splat_extent(con, opac[g], MAX_RADIUS_PX, &ex, &ey) && rad > 0)
+    if (rad > 0 && splat_extent(con, opac[g], MAX_RADIUS_PX, &ex, &ey))
         r = tile_rect((float2)(means2d[2 * g], means2d[2 * g + 1]), fmin(ex, (float)rad),
                       fmin(ey, (float)rad), tiles_x, tiles_y);
     else
         ex = ey = -1.0f;
-    rects[s] = r;
+    rects[g] = r;
     ext[g] = (float2)(ex, ey); /* the rasterizers' per-pixel box, computed once per splat */
 }
 
