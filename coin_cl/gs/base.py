@@ -1,0 +1,84 @@
+"""What every trainable model gives the trainer (vanilla 3DGS and Scaffold-GS both implement it)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from coin_cl.gs.data import Camera
+from coin_cl.gs.optim import ParamOptimizer
+
+# gsplat / 3DGS measure the screen-space gradient in NDC-like units: the gradient with respect to
+# the pixel position times half the image size (dL/dx_ndc = dL/dx_px * W / 2). All `grad2d`
+# thresholds in this package are in those units, so the familiar 0.0002 keeps its meaning.
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view: image [H, W, 3], alpha [H, W], depth [H, W] (expected z, or None),
+    `reg` a scalar regulariser the model wants added to the loss, `meta` from the rasterizer plus
+    whatever the model needs in `after_backward`."""
+
+    image: Tensor
+    alpha: Tensor
+    depth: Tensor | None
+    reg: Tensor
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def ndc_grad_norm(means2d: Tensor, width: int, height: int) -> Tensor:
+    """[M] norm of the screen-space gradient in NDC units (needs means2d.grad)."""
+    g = means2d.grad
+    if g is None:
+        return means2d.new_zeros(means2d.shape[0])
+    scale = g.new_tensor([0.5 * width, 0.5 * height])
+    return (g * scale).norm(dim=-1)
+
+
+class Model:
+    """Interface: see `GaussianModel` and `ScaffoldModel`."""
+
+    kind: str = ""
+    optimizer: ParamOptimizer
+
+    def render(
+        self,
+        cam: Camera,
+        step: int,
+        *,
+        backend: str = "opencl",
+        background: Tensor | None = None,
+        return_depth: bool = False,
+        training: bool = False,
+    ) -> RenderOutput:
+        raise NotImplementedError
+
+    def after_backward(self, out: RenderOutput, step: int) -> None:
+        """Accumulate densification statistics from the last backward pass."""
+
+    def refine(self, step: int) -> dict[str, int]:
+        """Densify / prune after the optimizer step of `step`; returns counts of what changed."""
+        return {}
+
+    @property
+    def n_primitives(self) -> int:
+        raise NotImplementedError
+
+    def export_gaussians(self) -> dict[str, Tensor]:
+        """Plain Gaussians: means [N,3], quats [N,4], scales [N,3] (log), opacities [N]
+        (logit), sh0 [N,1,3], shN [N,K,3]."""
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+
+def inverse_sigmoid(x: Tensor | float) -> Tensor:
+    x = torch.as_tensor(x, dtype=torch.float32)
+    return torch.log(x / (1 - x))

@@ -1,0 +1,461 @@
+"""The training loop: one view per step, weighted/masked photometric loss, densification,
+periodic held-out evaluation, resumable checkpoints, a NaN guard, PLY export and a JSON log.
+
+Output folder layout:
+    ckpt.pt          last good checkpoint (written to ckpt.pt.tmp, then renamed)
+    log.json         config, per-interval losses and timings, evaluations, refinement events
+    cameras.json     train/test cameras, so that `coin-cl render` needs no scene
+    point_cloud.ply  final Gaussians (Scaffold-GS decoded to plain Gaussians)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import resource
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from coin_cl.gs.base import Model
+from coin_cl.gs.data import Camera, View, colors_from_views, scene_extent
+from coin_cl.gs.gaussians import GaussianConfig, GaussianModel, gaussian_config_from_dict
+from coin_cl.gs.losses import LossConfig, photometric_loss
+from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, scaffold_config_from_dict
+
+log = logging.getLogger(__name__)
+
+CKPT_NAME = "ckpt.pt"
+LOG_NAME = "log.json"
+CAMERAS_NAME = "cameras.json"
+PLY_NAME = "point_cloud.ply"
+MODELS = ("scaffold", "3dgs")
+
+
+class TrainingDivergedError(RuntimeError):
+    """A loss, gradient or parameter became non-finite; training stopped without saving."""
+
+
+@dataclass
+class TrainConfig:
+    model: str = "scaffold"
+    iters: int = 30_000
+    backend: str = "opencl"
+    seed: int = 0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    loss: LossConfig = field(default_factory=LossConfig)
+    eval_every: int = 0  # steps between held-out evaluations (0: only at the end)
+    eval_at_seconds: tuple[float, ...] = ()  # also evaluate when training time crosses these
+    ckpt_every: int = 1000  # steps between checkpoints (0: only at the end)
+    log_every: int = 50
+    max_seconds: float = 0.0  # stop when training time (evaluation excluded) exceeds this
+    progress: bool = True  # tqdm bar
+    export_ply: bool = True
+
+
+def build_model(
+    kind: str,
+    points: np.ndarray,
+    colors: np.ndarray | None,
+    extent: float,
+    seed: int = 0,
+    model_cfg: GaussianConfig | ScaffoldConfig | None = None,
+) -> Model:
+    """A fresh 'scaffold' or '3dgs' model from points [N, 3] and optional colours [N, 3]."""
+    if kind == "scaffold":
+        return ScaffoldModel(points, colors, extent, model_cfg, seed=seed)
+    if kind == "3dgs":
+        return GaussianModel(points, colors, extent, model_cfg, seed=seed)
+    raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
+
+
+REFERENCE_ITERS = 30_000  # the step counts the published schedules were written for
+
+
+def scaled_model_config(kind: str, iters: int) -> GaussianConfig | ScaffoldConfig:
+    """Default model config with its schedules compressed to a run of `iters` steps.
+
+    Learning rates decay over exactly `iters`; densification start/stop/interval and the SH
+    degree steps shrink by iters / 30k (as gsplat's `steps_scaler`), with floors so that
+    statistics still gather over enough views. Runs of 30k steps or more get the defaults.
+    """
+    f = min(1.0, iters / REFERENCE_ITERS)
+    if kind == "3dgs":
+        c = GaussianConfig()
+        d = c.densify
+        every = max(20, round(d.refine_every * f))
+        c.densify = replace(
+            d,
+            refine_every=every,
+            refine_start=max(100, round(d.refine_start * f)),
+            refine_stop=max(200, round(d.refine_stop * f)),
+            reset_every=max(30 * every, round(d.reset_every * f)),
+        )
+        c.lr_means = replace(c.lr_means, max_steps=iters)
+        c.sh_degree_interval = max(100, round(c.sh_degree_interval * f))
+        return c
+    if kind == "scaffold":
+        c2 = ScaffoldConfig()
+        every = max(20, round(c2.update_interval * f))
+        return replace(
+            c2,
+            update_interval=every,
+            start_stat=max(50, round(c2.start_stat * f)),
+            update_from=max(every * 2, round(c2.update_from * f)),
+            update_until=max(every * 4, round(c2.update_until * f)),
+            lr_offsets=replace(c2.lr_offsets, max_steps=iters),
+            lr_mlp_opacity=replace(c2.lr_mlp_opacity, max_steps=iters),
+            lr_mlp_cov=replace(c2.lr_mlp_cov, max_steps=iters),
+            lr_mlp_color=replace(c2.lr_mlp_color, max_steps=iters),
+        )
+    raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
+
+
+def model_from_state(sd: dict[str, Any]) -> Model:
+    """Rebuild a model (any size) from its `state_dict`."""
+    params = sd["optimizer"]["params"]
+    if sd["kind"] == "scaffold":
+        cfg = scaffold_config_from_dict(sd["cfg"])
+        cfg.voxel_size = sd["voxel_size"]
+        m: Model = ScaffoldModel(params["anchors"].numpy(), None, sd["extent"], cfg)
+    elif sd["kind"] == "3dgs":
+        cfg3 = gaussian_config_from_dict(sd["cfg"])
+        m = GaussianModel(params["means"].numpy(), None, sd["extent"], cfg3)
+    else:
+        raise ValueError(f"checkpoint holds an unknown model kind {sd['kind']!r}")
+    m.load_state_dict(sd)
+    return m
+
+
+def _atomic_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=_json_default))
+    os.replace(tmp, path)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic | Tensor):
+        return o.item() if getattr(o, "ndim", 0) == 0 else o.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(o)}")
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cameras_to_json(cams: Sequence[Camera]) -> list[dict]:
+    return [
+        {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
+         "viewmat": c.viewmat.tolist()}
+        for c in cams
+    ]  # fmt: skip
+
+
+def cameras_from_json(items: list[dict]) -> list[Camera]:
+    return [
+        Camera(torch.tensor(d["K"]), torch.tensor(d["viewmat"]), d["width"], d["height"], d["name"])
+        for d in items
+    ]
+
+
+def evaluate_views(
+    model: Model, views: Sequence[View], step: int, backend: str, background: Tensor
+) -> dict[str, Any]:
+    """Mean PSNR / SSIM (`coin_cl.metrics`: scikit-image SSIM) of renders over all pixels."""
+    from coin_cl import metrics
+
+    ps, ss = [], []
+    with torch.no_grad():
+        for v in views:
+            out = model.render(v.camera, step, backend=backend, background=background)
+            img = out.image.clamp(0, 1).numpy()
+            gt = v.image.numpy()
+            ps.append(metrics.psnr(img, gt))
+            ss.append(metrics.ssim(img, gt))
+    return {"psnr": float(np.mean(ps)) if ps else math.nan,
+            "ssim": float(np.mean(ss)) if ss else math.nan, "psnr_views": ps}  # fmt: skip
+
+
+class Trainer:
+    """Train `model` on `train_views`, evaluating on `test_views`.
+
+    Args:
+        out_dir: where checkpoints, the log and the PLY go (None: nothing is written).
+        callback: called as callback(trainer, step) at the start of every step (tests use it
+            to kill or poison a run).
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        train_views: Sequence[View],
+        test_views: Sequence[View],
+        cfg: TrainConfig,
+        out_dir: str | Path | None = None,
+        callback: Callable[[Trainer, int], None] | None = None,
+    ):
+        if not train_views:
+            raise ValueError("no training views")
+        self.model = model
+        self.train_views = list(train_views)
+        self.test_views = list(test_views)
+        self.cfg = cfg
+        self.out = Path(out_dir) if out_dir is not None else None
+        self.callback = callback
+        self.background = torch.tensor(cfg.background, dtype=torch.float32)
+        self.step = 0
+        self.train_seconds = 0.0
+        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
+        self.perm: list[int] = []
+        self.log: dict[str, Any] = {"config": asdict(cfg), "train": [], "eval": [], "refine": []}
+        self._evals_done: set[float] = set()
+        if self.out is not None:
+            self.out.mkdir(parents=True, exist_ok=True)
+            cams = {"train": cameras_to_json([v.camera for v in self.train_views]),
+                    "test": cameras_to_json([v.camera for v in self.test_views])}  # fmt: skip
+            _atomic_json(self.out / CAMERAS_NAME, cams)
+
+    # ---- checkpoints ----
+    @property
+    def ckpt_path(self) -> Path | None:
+        return None if self.out is None else self.out / CKPT_NAME
+
+    def save_checkpoint(self) -> None:
+        """Write the whole training state to ckpt.pt.tmp, then rename over ckpt.pt."""
+        if self.out is None:
+            return
+        state = {
+            "model": self.model.state_dict(),
+            "trainer": {
+                "step": self.step,
+                "train_seconds": self.train_seconds,
+                "gen": self.gen.get_state(),
+                "perm": list(self.perm),
+                "log": self.log,
+                "evals_done": sorted(self._evals_done),
+            },
+        }
+        tmp = self.out / (CKPT_NAME + ".tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, self.out / CKPT_NAME)
+        self.save_log()
+
+    def load_checkpoint(self, path: str | Path | None = None) -> None:
+        """Restore model, optimizer, RNG and log from a checkpoint (default out_dir/ckpt.pt)."""
+        path = Path(path) if path is not None else self.ckpt_path
+        if path is None or not path.is_file():
+            raise FileNotFoundError(f"no checkpoint at {path}")
+        state = torch.load(path, weights_only=False)
+        self.model = model_from_state(state["model"])
+        t = state["trainer"]
+        self.step = int(t["step"])
+        self.train_seconds = float(t["train_seconds"])
+        self.gen.set_state(t["gen"])
+        self.perm = list(t["perm"])
+        self.log = t["log"]
+        self._evals_done = set(t["evals_done"])
+
+    def save_log(self) -> None:
+        if self.out is not None:
+            self.log["peak_rss_mb"] = _peak_rss_mb()
+            _atomic_json(self.out / LOG_NAME, self.log)
+
+    # ---- loop ----
+    def _next_view(self) -> View:
+        if not self.perm:
+            self.perm = torch.randperm(len(self.train_views), generator=self.gen).tolist()
+        return self.train_views[self.perm.pop()]
+
+    def _diverged(self, what: str) -> TrainingDivergedError:
+        last = "none was written"
+        if self.ckpt_path is not None and self.ckpt_path.is_file():
+            st = torch.load(self.ckpt_path, weights_only=False)["trainer"]["step"]
+            last = f"{self.ckpt_path} (after step {st}) is kept"
+        self.log["diverged"] = {"step": self.step, "what": what}
+        self.save_log()
+        return TrainingDivergedError(
+            f"training diverged: non-finite {what} at step {self.step}; stopped without saving. "
+            f"Last good checkpoint: {last}. Try a lower learning rate or another seed."
+        )
+
+    def _check_finite(self, loss: Tensor) -> None:
+        if not torch.isfinite(loss):
+            raise self._diverged("loss")
+        for name, p in self.model.optimizer.params.items():
+            if p.grad is not None and not torch.isfinite(p.grad.sum()):
+                raise self._diverged(f"gradient of {name}")
+            if not torch.isfinite(p.detach().sum()):
+                raise self._diverged(f"parameter {name}")
+
+    def train_step(self) -> dict[str, float]:
+        """One optimisation step on the next view; returns the loss parts and timings."""
+        view = self._next_view()
+        m = self.model
+        t0 = time.perf_counter()
+        out = m.render(view.camera, self.step, backend=self.cfg.backend,
+                       background=self.background, training=True)  # fmt: skip
+        loss, parts = photometric_loss(
+            out.image[None], view.image[None], torch.tensor([float(view.weight)]),
+            None if view.exclude is None else view.exclude[None], self.cfg.loss,
+        )  # fmt: skip
+        total = loss + (out.reg if view.weight != 0 else 0.0)
+        t1 = time.perf_counter()
+        m.optimizer.zero_grad()
+        total.backward()
+        t2 = time.perf_counter()
+        self._check_finite(total.detach())
+        m.after_backward(out, self.step)
+        m.optimizer.step(self.step)
+        t3 = time.perf_counter()
+        events = m.refine(self.step)
+        t4 = time.perf_counter()
+        if any(events.values()):
+            self.log["refine"].append({"step": self.step + 1, **events, "n": m.n_primitives})
+        return {
+            "loss": float(total.detach()),
+            "l1": float(parts["l1"][0]),
+            "ssim": float(parts["ssim"][0]),
+            "t_fwd": t1 - t0,
+            "t_bwd": t2 - t1,
+            "t_opt": t3 - t2,
+            "t_refine": t4 - t3,
+            "n_drawn": int(out.meta["visible"].sum()),
+        }
+
+    def evaluate(self) -> dict[str, Any]:
+        """Held-out PSNR/SSIM now; appended to the log with the training time so far."""
+        t = time.perf_counter()
+        res = evaluate_views(self.model, self.test_views, self.step, self.cfg.backend,
+                             self.background)  # fmt: skip
+        entry = {"step": self.step, "train_seconds": self.train_seconds,
+                 "eval_seconds": time.perf_counter() - t, "n": self.model.n_primitives, **res}  # fmt: skip
+        self.log["eval"].append(entry)
+        log.info("step %d (%.0f s): held-out PSNR %.2f dB SSIM %.4f", self.step,
+                 self.train_seconds, res["psnr"], res["ssim"])  # fmt: skip
+        self.save_log()
+        return entry
+
+    def train(self) -> dict[str, Any]:
+        """Run until `iters` steps (or `max_seconds` of training); returns the final summary."""
+        cfg = self.cfg
+        if self.step == 0 and self.out is not None and not self.ckpt_path.is_file():
+            self.save_checkpoint()  # a last good state exists from the very start
+        bar = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=cfg.iters, initial=self.step, desc=f"train {self.model.kind}",
+                       dynamic_ncols=True)  # fmt: skip
+        acc: dict[str, float] = {}
+        n_acc = 0
+        try:
+            while self.step < cfg.iters:
+                if cfg.max_seconds and self.train_seconds >= cfg.max_seconds:
+                    log.info("time budget of %.0f s reached at step %d", cfg.max_seconds, self.step)
+                    break
+                if self.callback is not None:
+                    self.callback(self, self.step)
+                t = time.perf_counter()
+                rec = self.train_step()
+                self.train_seconds += time.perf_counter() - t
+                self.step += 1
+                for k, v in rec.items():
+                    acc[k] = acc.get(k, 0.0) + v
+                n_acc += 1
+                if self.step % cfg.log_every == 0 or self.step == cfg.iters:
+                    mean = {k: v / n_acc for k, v in acc.items()}
+                    self.log["train"].append({"step": self.step, "train_seconds": self.train_seconds,
+                                              "n": self.model.n_primitives, **mean})  # fmt: skip
+                    if bar is not None:
+                        bar.set_postfix(loss=f"{mean['loss']:.4f}", n=self.model.n_primitives)
+                    acc, n_acc = {}, 0
+                if bar is not None:
+                    bar.update(1)
+                due = [s for s in cfg.eval_at_seconds
+                       if s not in self._evals_done and self.train_seconds >= s]  # fmt: skip
+                if due or (cfg.eval_every and self.step % cfg.eval_every == 0):
+                    self._evals_done.update(due)
+                    if self.test_views:
+                        self.evaluate()
+                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
+                    self.save_checkpoint()
+        finally:
+            if bar is not None:
+                bar.close()
+        final: dict[str, Any] = {}
+        if self.test_views:
+            last = self.log["eval"][-1] if self.log["eval"] else None
+            final = last if last is not None and last["step"] == self.step else self.evaluate()
+        self.save_checkpoint()
+        if cfg.export_ply and self.out is not None:
+            self.export_ply(self.out / PLY_NAME)
+        return {"step": self.step, "train_seconds": self.train_seconds,
+                "n": self.model.n_primitives, **final}  # fmt: skip
+
+    def export_ply(self, path: Path) -> None:
+        """Write the model as plain 3DGS Gaussians (Scaffold-GS decoded from the mean camera)."""
+        from coin_cl.scene.ply import GaussianPly, write_gaussians_ply
+
+        m = self.model
+        if isinstance(m, ScaffoldModel):
+            center = torch.stack([v.camera.center for v in self.train_views]).mean(0)
+            g = m.export_gaussians(center)
+        else:
+            g = m.export_gaussians()
+        write_gaussians_ply(
+            path,
+            GaussianPly(
+                means=g["means"].numpy().astype(np.float32),
+                sh_dc=g["sh0"][:, 0].numpy().astype(np.float32),
+                sh_rest=g["shN"].numpy().astype(np.float32),
+                opacities=g["opacities"].numpy().astype(np.float32),
+                log_scales=g["scales"].numpy().astype(np.float32),
+                quats=g["quats"].numpy().astype(np.float32),
+            ),
+        )
+
+
+def init_points(scene, views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:
+    """The scene's sparse points and colours, colouring them from the views when unknown."""
+    pts = np.asarray(scene.points, dtype=np.float32)
+    cols = scene.colors
+    if cols is None:
+        cols = colors_from_views(pts, views)
+    return pts, np.asarray(cols, dtype=np.float32)
+
+
+def make_trainer(
+    scene,
+    train_idx: Sequence[int],
+    test_idx: Sequence[int],
+    cfg: TrainConfig,
+    out_dir: str | Path | None = None,
+    train_images: Sequence | None = None,
+    model_cfg: GaussianConfig | ScaffoldConfig | None = None,
+    exclude_masks: bool = False,
+    resume: bool = True,
+) -> Trainer:
+    """A trainer over a loaded scene; resumes from out_dir/ckpt.pt when it exists and `resume`.
+
+    train_images: replacement targets for the training views (e.g. per-view inpaints).
+    """
+    from coin_cl.gs.data import views_from_scene
+
+    train = views_from_scene(scene, train_idx, train_images, exclude_masks=exclude_masks)
+    test = views_from_scene(scene, test_idx)
+    pts, cols = init_points(scene, train)
+    extent = scene_extent([v.camera for v in train])
+    model = build_model(cfg.model, pts, cols, extent, cfg.seed, model_cfg)
+    tr = Trainer(model, train, test, cfg, out_dir)
+    if resume and tr.ckpt_path is not None and tr.ckpt_path.is_file():
+        tr.load_checkpoint()
+        log.info("resumed from %s at step %d", tr.ckpt_path, tr.step)
+    return tr

@@ -1,0 +1,45 @@
+import json
+
+import numpy as np
+import pytest
+
+from coin_cl.cli import main
+from coin_cl.gs.synthetic import tiny_scene
+from coin_cl.scene import Camera, Scene, save_scene
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    sc = tiny_scene(n=30, width=32, height=24, n_views=8, backend="opencl")
+    cams = [Camera(v.camera.K.numpy(), v.camera.viewmat.numpy(), v.camera.width,
+                   v.camera.height, f"{v.camera.name}.png") for v in sc.views]  # fmt: skip
+    imgs = [v.image.numpy() for v in sc.views]
+    masks = [np.zeros((24, 32), bool) for _ in sc.views]
+    scene = Scene(cams, imgs, masks, sc.noisy_points().astype(np.float32), None,
+                  train_idx=list(range(8)), test_idx=[])  # fmt: skip
+    return save_scene(scene, tmp_path_factory.mktemp("tiny_scene"))
+
+
+def test_train_then_render_all_view_kinds(scene_dir, tmp_path):
+    out = tmp_path / "run"
+    rc = main(["train", str(scene_dir), "--model", "3dgs", "--iters", "20", "--resolution", "1.0",
+               "--out", str(out), "--ckpt-every", "10"])  # fmt: skip
+    assert rc == 0
+    log = json.loads((out / "log.json").read_text())
+    assert log["eval"][-1]["step"] == 20 and np.isfinite(log["eval"][-1]["psnr"])
+    cams = json.loads((out / "cameras.json").read_text())
+    assert len(cams["train"]) == 7 and len(cams["test"]) == 1  # every 8th view held out
+    # A second call resumes at the end: nothing to do, same step.
+    assert main(["train", str(scene_dir), "--model", "3dgs", "--iters", "20", "--resolution", "1.0",
+                 "--out", str(out)]) == 0  # fmt: skip
+    assert json.loads((out / "log.json").read_text())["train"][-1]["step"] == 20
+    assert main(["render", str(out), "--views", "test"]) == 0
+    assert len(list((out / "renders" / "test").glob("*_depth.png"))) == 1
+    assert main(["render", str(out), "--views", "orbit", "--frames", "4"]) == 0
+    assert (out / "renders" / "orbit.gif").is_file()
+    assert len(list((out / "renders" / "orbit").glob("*.png"))) == 8  # image + depth per frame
+
+
+def test_render_without_training_is_a_clear_error(tmp_path, capsys):
+    assert main(["render", str(tmp_path)]) == 2
+    assert "ckpt.pt" in capsys.readouterr().err
