@@ -22,18 +22,19 @@ typedef float8 acc8;
 #define ACC_SUM(v) (((v).s0 + (v).s4) + ((v).s1 + (v).s5) + ((v).s2 + (v).s6) + ((v).s3 + (v).s7))
 #endif
 
-/* exp for x <= 0 with operators only (no built-in call): 2^t = 2^n * 2^f, n rounded by the
- * 1.5 * 2^23 trick, 2^f (|f| <= 0.5) by its degree-6 Taylor polynomial. Relative error < 3e-7;
- * below 2^-126 it returns 2^-126 (alpha is then far under ALPHA_THRESHOLD). */
+/* exp for x <= 0 with operators only (no built-in call): e^x = 2^n e^f with n = round(x / ln 2)
+ * by the 1.5 * 2^23 trick, f = x - n ln 2 in two parts (Cody-Waite, so the reduction is exact
+ * enough), e^f (|f| <= 0.35) by its degree-7 Taylor polynomial. Relative error ~1e-7, as the
+ * built-in; below 2^-126 it returns 2^-126 (alpha is then far under ALPHA_THRESHOLD). */
 inline float8 exp_neg8(float8 x)
 {
-    float8 t = x * 1.44269504f;
-    t = t < -126.0f ? (float8)(-126.0f) : t;
+    x = x < -87.0f ? (float8)(-87.0f) : x;
     const float8 magic = (float8)(12582912.0f);
-    const float8 tm = t + magic;
+    const float8 tm = x * 1.44269504f + magic;
     const float8 n = tm - magic;
-    const float8 f = (t - n) * 0.693147181f;
-    float8 p = 1.0f + f * (1.0f + f * (0.5f + f * (0.166666667f + f * (0.0416666667f + f * (0.00833333333f + f * 0.00138888889f)))));
+    const float8 f = (x - n * 0.693145751953125f) - n * 1.428606820309417e-06f;
+    const float8 p = 1.0f + f * (1.0f + f * (0.5f + f * (0.166666667f + f * (0.0416666667f +
+                     f * (0.00833333333f + f * (0.00138888889f + f * 0.000198412698f))))));
     const int8 e = (as_int8(tm) - as_int8(magic) + 127) << 23;
     return p * as_float8(e);
 }
