@@ -38,6 +38,34 @@ def ndc_grad_norm(means2d: Tensor, width: int, height: int) -> Tensor:
     return (g * scale).norm(dim=-1)
 
 
+def splat(
+    cam: Camera,
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    *,
+    backend: str,
+    background: Tensor | None,
+    return_depth: bool,
+    training: bool,
+) -> tuple[Tensor, Tensor, Tensor | None, dict[str, Any]]:
+    """Rasterize activated Gaussians into `cam` (see `coin_cl.rasterize`); keeps the screen-space
+    gradient for densification when training and turns accumulated depth into expected depth."""
+    from coin_cl.rendering import rasterize
+
+    image, alpha, depth, meta = rasterize(
+        means, quats, scales, opacities, colors, cam.viewmat, cam.K, cam.width, cam.height,
+        background=background, return_depth=return_depth, backend=backend,
+    )  # fmt: skip
+    if training and meta["means2d"].requires_grad:
+        meta["means2d"].retain_grad()
+    if depth is not None:
+        depth = depth / alpha.clamp_min(1e-6)
+    return image, alpha, depth, meta
+
+
 class Model:
     """Interface: see `GaussianModel` and `ScaffoldModel`."""
 

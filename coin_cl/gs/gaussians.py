@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from coin_cl.gs.base import Model, RenderOutput, inverse_sigmoid, ndc_grad_norm
+from coin_cl.gs.base import Model, RenderOutput, inverse_sigmoid, ndc_grad_norm, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
 from coin_cl.gs.sh import eval_sh, num_sh_bases, rgb_to_sh
@@ -147,30 +147,14 @@ class GaussianModel(Model):
         return_depth: bool = False,
         training: bool = False,
     ) -> RenderOutput:
-        from coin_cl.rendering import rasterize
-
         p = self.p
         deg = self.sh_degree_at(step)
         coeffs = torch.cat([p["sh0"], p["shN"][:, : num_sh_bases(deg) - 1]], 1)
         colors = eval_sh(deg, coeffs, p["means"] - cam.center)
-        image, alpha, depth, meta = rasterize(
-            p["means"],
-            p["quats"],
-            torch.exp(p["scales"]),
-            torch.sigmoid(p["opacities"]),
-            colors,
-            cam.viewmat,
-            cam.K,
-            cam.width,
-            cam.height,
-            background=background,
-            return_depth=return_depth,
-            backend=backend,
-        )
-        if training and meta["means2d"].requires_grad:
-            meta["means2d"].retain_grad()
-        if depth is not None:
-            depth = depth / alpha.clamp_min(1e-6)
+        image, alpha, depth, meta = splat(
+            cam, p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
+            backend=backend, background=background, return_depth=return_depth, training=training,
+        )  # fmt: skip
         meta["width"], meta["height"] = cam.width, cam.height
         return RenderOutput(image, alpha, depth, image.new_zeros(()), meta)
 

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from coin_cl import constants as cst
-from coin_cl.gs.base import Model, RenderOutput, ndc_grad_norm
+from coin_cl.gs.base import Model, RenderOutput, ndc_grad_norm, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
@@ -227,28 +227,12 @@ class ScaffoldModel(Model):
         return_depth: bool = False,
         training: bool = False,
     ) -> RenderOutput:
-        from coin_cl.rendering import rasterize
-
         vis = self.visible_anchors(cam)
         g = self.decode(cam.center, vis)
-        image, alpha, depth, meta = rasterize(
-            g["means"],
-            g["quats"],
-            g["scales"],
-            g["opacities"],
-            g["colors"],
-            cam.viewmat,
-            cam.K,
-            cam.width,
-            cam.height,
-            background=background,
-            return_depth=return_depth,
-            backend=backend,
-        )
-        if training and meta["means2d"].requires_grad:
-            meta["means2d"].retain_grad()
-        if depth is not None:
-            depth = depth / alpha.clamp_min(1e-6)
+        image, alpha, depth, meta = splat(
+            cam, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
+            backend=backend, background=background, return_depth=return_depth, training=training,
+        )  # fmt: skip
         if g["scales"].shape[0]:
             reg = self.cfg.lambda_scale_reg * g["scales"].prod(dim=1).mean()
         else:
