@@ -128,6 +128,9 @@ class TileBins:
         self.tile_start = torch.zeros(n_tiles, dtype=torch.int32)
         self.tile_end = torch.zeros(n_tiles, dtype=torch.int32)
         self.ids = torch.zeros(0, dtype=torch.int32)
+        # pair_slot[pair_start[g]:pair_start[g + 1]]: where splat g's (tile, splat) pairs are in ids
+        self.pair_start = torch.zeros(n + 1, dtype=torch.int32)
+        self.pair_slot = torch.zeros(0, dtype=torch.int32)
         self.n_pairs = self.n_visible = 0
         if n == 0:
             return
@@ -159,6 +162,7 @@ class TileBins:
         self.n_pairs = n_pairs
         if n_pairs == 0:
             return
+        self.pair_start[1:] = torch.cumsum(area, 0)
         # One stable depth sort of the splats that reach a tile; every tile list inherits it.
         vis = (area > 0).nonzero().squeeze(1)
         order_np = np.argsort(depths[vis].numpy(), kind="stable")  # numpy's beats torch's here
@@ -192,8 +196,9 @@ class TileBins:
         self.tile_start = per_tile
         self.tile_end = torch.cat([per_tile[1:], torch.tensor([n_pairs], dtype=torch.int32)])
         self.ids = rt.empty(n_pairs, dtype=torch.int32)
-        a_off = rt.array(offsets)
-        a_ids = rt.array(self.ids, mode="out")
+        self.pair_slot = rt.empty(n_pairs, dtype=torch.int32)
+        a_off, a_start = rt.array(offsets), rt.array(self.pair_start)
+        a_ids, a_slot = rt.array(self.ids, mode="out"), rt.array(self.pair_slot, mode="out")
         rt.launch(
             "bin.cl",
             "bin_scatter",
@@ -206,9 +211,17 @@ class TileBins:
             a_rects.buf,
             a_order.buf,
             a_off.buf,
+            a_start.buf,
             a_ids.buf,
+            a_slot.buf,
         )
-        rt.finish(a_ids)
+        rt.finish(a_ids, a_slot)
+
+
+def deterministic(rt: Runtime, defines: dict[str, Any]) -> bool:
+    """Whether the backward sums per-tile gradient shares in a fixed order (bit-reproducible)
+    rather than with atomics: `defines["DETERMINISTIC"]`, else `rt.deterministic`."""
+    return bool(int(defines.get("DETERMINISTIC", rt.deterministic)))
 
 
 def raster_variant(rt: Runtime) -> tuple[str, int]:
@@ -277,8 +290,9 @@ class _Rasterize(torch.autograd.Function):
             # of the last contributor); the backward pass starts there.
             stats.update(n_pairs=bins.n_pairs, n_visible=bins.n_visible, last=last[:height, :width])
         ctx.save_for_backward(
-            m2, con, op, bins.extents, ft, bg, bins.tile_start, bins.tile_end, bins.ids, t_final, last
-        )
+            m2, con, op, bins.extents, ft, bg, bins.tile_start, bins.tile_end, bins.ids, t_final, last,
+            bins.pair_start, bins.pair_slot,
+        )  # fmt: skip
         ctx.meta = (width, height, rt, defines, bins.tiles_x, features.dtype, background is not None)
         out_img = img[:, :height, :width].permute(1, 2, 0).to(features.dtype)
         out_alpha = (1.0 - t_final[:height, :width]).to(features.dtype)
@@ -286,7 +300,7 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_img, v_alpha):
-        m2, con, op, ext, ft, bg, tstart, tend, ids, t_final, last = ctx.saved_tensors
+        m2, con, op, ext, ft, bg, tstart, tend, ids, t_final, last, pair_start, pair_slot = ctx.saved_tensors
         width, height, rt, defines, tiles_x, dtype, has_bg = ctx.meta
         n, C = ft.shape
         rows, stride = t_final.shape
@@ -298,15 +312,23 @@ class _Rasterize(torch.autograd.Function):
         g_alpha = torch.zeros(rows, stride)
         if v_alpha is not None:
             g_alpha[:height, :width] = v_alpha
-        outs = [torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]
-        scratch = rt.empty(C, rows, stride)
-        variant = {"NUM_CHANNELS": C, **defines}
+        det = deterministic(rt, defines)
+        variant = {"NUM_CHANNELS": C, **{k: v for k, v in defines.items() if k != "DETERMINISTIC"}}
+        if det:  # the kernels test #ifdef, so the define is present only when on
+            variant["DETERMINISTIC"] = 1
         src, local = raster_variant(rt)
+        nq = 6 + C
+        # Deterministic: each tile writes its share of each splat's gradient to the splat's pair
+        # slot, then reduce.cl sums the slots in a fixed order. Otherwise atomics add into zeros.
+        outs = [rt.empty(n, 2), rt.empty(n, 3), rt.empty(n), rt.empty(n, C)] if det else [
+            torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]  # fmt: skip
+        contrib = rt.empty(ids.numel() if det else 1, nq)
         a_in = [
             rt.array(t) for t in (tstart, tend, ids, m2, con, op, ext, ft, bg, t_final, last, g_img, g_alpha)
         ]
-        a_scr = rt.array(scratch, mode="scratch")
-        a_out = [rt.array(t, mode="inout") for t in outs]  # accumulated by atomics
+        a_scr = rt.array(rt.empty(C, rows, stride), mode="scratch")
+        a_contrib = rt.array(contrib, mode="scratch")
+        a_out = [rt.array(t, mode="out" if det else "inout") for t in outs]
         if ids.numel():
             rt.launch(
                 src,
@@ -318,8 +340,23 @@ class _Rasterize(torch.autograd.Function):
                 i32(plane),
                 *[a.buf for a in a_in],
                 a_scr.buf,
+                a_contrib.buf,
                 *[a.buf for a in a_out],
                 defines=variant,
+            )
+        if det and n:
+            a_start, a_slot = rt.array(pair_start), rt.array(pair_slot)
+            rt.launch(
+                "reduce.cl",
+                "reduce_grads",
+                (_groups(n),),
+                (64,),
+                i32(n),
+                a_start.buf,
+                a_slot.buf,
+                a_contrib.buf,
+                *[a.buf for a in a_out],
+                defines={"NUM_CHANNELS": C},
             )
         rt.finish(*a_out)
         v_bg = None

@@ -118,6 +118,9 @@ class Runtime:
     programs: dict = field(default_factory=dict)
     kernels: dict = field(default_factory=dict)
     raster: str | None = None  # force the "cpu" or "gpu" rasterizer variant (see ops.raster_variant)
+    # Bit-reproducible backward (fixed-order gradient sums) instead of atomics;
+    # COIN_CL_DETERMINISTIC=0 switches it off.
+    deterministic: bool = field(default_factory=lambda: os.environ.get("COIN_CL_DETERMINISTIC", "1") != "0")
     poison: bool = False  # tests: fill outputs with NaN / INT32_MIN so unwritten elements show
     extensions: frozenset = frozenset()
 

@@ -4,7 +4,8 @@
  * counts, per chunk, how many of its splats land in each tile; an exclusive scan over
  * (tile, chunk) gives every chunk its own write position in every tile; pass 2 writes the ids.
  * Each tile's list is therefore in depth order (chunk by chunk, each chunk in order) and the
- * result is deterministic: no atomics, no sort of the pairs. */
+ * result is deterministic: no atomics, no sort of the pairs. pair_slot lists, splat by splat,
+ * where its pairs went, for the deterministic gradient reduction. */
 #include "common.h"
 
 /* Per splat (in id order, so every read is sequential): its tile rectangle, from the
@@ -49,17 +50,21 @@ __kernel void bin_count(const int n_vis, const int chunk, const int n_tiles, con
 __kernel void bin_scatter(const int n_vis, const int chunk, const int n_chunks, const int tiles_x,
                           __global const int4 *rects, __global const int *order,
                           __global int *offsets /* [n_tiles, chunks], exclusive scan */,
-                          __global int *ids)
+                          __global const int *pair_start /* [n + 1] by splat id */,
+                          __global int *ids, __global int *pair_slot)
 {
     const int c = get_global_id(0);
     const int s0 = c * chunk, s1 = min(n_vis, s0 + chunk);
     for (int s = s0; s < s1; ++s) {
         int4 r = rects[s];
         int g = order[s];
+        int j = pair_start[g]; /* splat g's pair slots, listed in its tiles' order */
         for (int ty = r.y; ty < r.w; ++ty)
             for (int tx = r.x; tx < r.z; ++tx) {
-                long slot = (long)(ty * tiles_x + tx) * n_chunks + c;
-                ids[offsets[slot]++] = g;
+                long at = (long)(ty * tiles_x + tx) * n_chunks + c;
+                const int slot = offsets[at]++;
+                ids[slot] = g;
+                pair_slot[j++] = slot;
             }
     }
 }

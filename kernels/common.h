@@ -71,4 +71,19 @@ inline void atomic_add_float(volatile __global float *addr, float val)
 #endif
 }
 
+/* The per-splat gradient quantities a rasterize backward produces, in this order:
+ * d means2d (2), d conics (3), d opacity (1), d features (NUM_CHANNELS). */
+#define GRAD_QUANTITIES(nch) (6 + (nch))
+
+/* Where quantity q of splat g's gradient lives in the per-splat gradient buffers. */
+inline __global float *grad_ptr(int q, int g, int nch, __global float *v_means2d,
+                                __global float *v_conics, __global float *v_opac,
+                                __global float *v_feats)
+{
+    return q < 2 ? v_means2d + 2 * g + q
+         : q < 5 ? v_conics + 3 * g + (q - 2)
+         : q < 6 ? v_opac + g
+                 : v_feats + g * nch + (q - 6);
+}
+
 #endif

@@ -53,6 +53,19 @@ inline float8 exp_neg8(float8 x)
 #define VMIN(x, y) ((x) < (y) ? (x) : (y))
 #define VMAXF(x, c) ((x) > (c) ? (x) : (float8)(c))
 
+/* A tile's share of splat g's gradient (quantity q, pair slot k): with DETERMINISTIC, stored in
+ * slot k of `contrib` and summed per splat in a fixed order by reduce.cl (every slot is written,
+ * zeros included); otherwise added straight into the gradients, one atomic per quantity. */
+#define NQ GRAD_QUANTITIES(NUM_CHANNELS)
+#ifdef DETERMINISTIC
+#define EMIT(k, g, q, val) (contrib[(long)(k) * NQ + (q)] = (val))
+#define ZERO_SLOT(k) for (int q_ = 0; q_ < NQ; ++q_) contrib[(long)(k) * NQ + q_] = 0.0f
+#else
+#define EMIT(k, g, q, val) \
+    atomic_add_float(grad_ptr(q, g, NUM_CHANNELS, v_means2d, v_conics, v_opac, v_feats), (val))
+#define ZERO_SLOT(k) ((void)0)
+#endif
+
 #define LANES ((float8)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f))
 
 /* Rows [*r0, *r1] and chunks [*c0, *c1] of the tile inside the splat's box; 0 if none. */
@@ -166,7 +179,7 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
                             __global const float *feats, __global const float *bg,
                             __global const float *out_T, __global const int *out_last,
                             __global const float *v_img, __global const float *v_alpha_img,
-                            __global float *scratch,
+                            __global float *scratch, __global float *contrib,
                             __global float *v_means2d, __global float *v_conics,
                             __global float *v_opac, __global float *v_feats)
 {
@@ -190,12 +203,16 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
         int8 l = last[v];
         max_last = max(max_last, max(max(max(l.s0, l.s1), max(l.s2, l.s3)), max(max(l.s4, l.s5), max(l.s6, l.s7))));
     }
-    const int start = tile_start[tile];
+    const int start = tile_start[tile], end = tile_end[tile];
+    for (int k = start + max_last; k < end; ++k)
+        ZERO_SLOT(k); /* behind every pixel's last contributor: no gradient */
     for (int k = start + max_last - 1; k >= start; --k) {
         const int g = ids[k];
         Splat sp;
-        if (!load_splat(g, means2d, conics, opac, ext, px0, py0, &sp))
+        if (!load_splat(g, means2d, conics, opac, ext, px0, py0, &sp)) {
+            ZERO_SLOT(k);
             continue;
+        }
         const float mx = sp.mx, my = sp.my, A = sp.A, B = sp.B, C = sp.C, o = sp.o;
         const int r0 = sp.r0, r1 = sp.r1, c0 = sp.c0, c1 = sp.c1;
         const int8 kk = (int8)(k - start);
@@ -245,15 +262,17 @@ __kernel void rasterize_bwd(const int tiles_x, const int stride, const int plane
                 vmy -= ACC(vs * (B * dx + C * dy));
             }
         }
-        if (!touched)
+        if (!touched) {
+            ZERO_SLOT(k);
             continue;
-        atomic_add_float(v_means2d + 2 * g, ACC_SUM(vmx));
-        atomic_add_float(v_means2d + 2 * g + 1, ACC_SUM(vmy));
-        atomic_add_float(v_conics + 3 * g, ACC_SUM(vA));
-        atomic_add_float(v_conics + 3 * g + 1, ACC_SUM(vB));
-        atomic_add_float(v_conics + 3 * g + 2, ACC_SUM(vC));
-        atomic_add_float(v_opac + g, ACC_SUM(vo));
+        }
+        EMIT(k, g, 0, ACC_SUM(vmx));
+        EMIT(k, g, 1, ACC_SUM(vmy));
+        EMIT(k, g, 2, ACC_SUM(vA));
+        EMIT(k, g, 3, ACC_SUM(vB));
+        EMIT(k, g, 4, ACC_SUM(vC));
+        EMIT(k, g, 5, ACC_SUM(vo));
         for (int ch = 0; ch < NUM_CHANNELS; ++ch)
-            atomic_add_float(v_feats + g * NUM_CHANNELS + ch, ACC_SUM(vf[ch]));
+            EMIT(k, g, 6 + ch, ACC_SUM(vf[ch]));
     }
 }

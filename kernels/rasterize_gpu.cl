@@ -3,13 +3,14 @@
  * reduces each splat's gradient over the tile in local memory (ROWS quantities at a time) and
  * then issues one atomic add per quantity per splat per tile.
  *
+ * With DETERMINISTIC the reduced values go to pair slots (see rasterize_cpu.cl) instead of atomics.
  * Same arguments, layouts and semantics as rasterize_cpu.cl (the tests hold both to the twin).
  * NUM_CHANNELS is a build-time define. OpenCL 1.2: barriers and local memory only. */
 #include "common.h"
 
 #define GROUP (TILE_SIZE * TILE_SIZE)
 #define ROWS 8 /* quantities reduced per pass: local memory = ROWS * GROUP floats */
-#define NQ (6 + NUM_CHANNELS)
+#define NQ GRAD_QUANTITIES(NUM_CHANNELS)
 
 inline void load_batch(int k0, int k1, __global const int *ids, __global const float *means2d,
                        __global const float *conics, __global const float *opac,
@@ -94,7 +95,7 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
                    __global const float *feats, __global const float *bg,
                    __global const float *out_T, __global const int *out_last,
                    __global const float *v_img, __global const float *v_alpha_img,
-                   __global float *scratch,
+                   __global float *scratch, __global float *contrib,
                    __global float *v_means2d, __global float *v_conics,
                    __global float *v_opac, __global float *v_feats)
 {
@@ -126,6 +127,11 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
     atomic_max(&s_max_last, last);
     barrier(CLK_LOCAL_MEM_FENCE);
     const int kend = start + s_max_last;
+#ifdef DETERMINISTIC
+    /* every pair slot of the tile gets written; those behind all last contributors get zeros */
+    for (long i = (long)kend * NQ + lid; i < (long)tile_end[tile] * NQ; i += GROUP)
+        contrib[i] = 0.0f;
+#endif
     float q[NQ]; /* this pixel's share of the current splat's gradients */
     for (int k1 = kend; k1 > start; k1 -= GROUP) {
         const int k0 = max(start, k1 - GROUP);
@@ -174,8 +180,13 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
             if (valid)
                 atomic_or(&s_any[p], 1);
             barrier(CLK_LOCAL_MEM_FENCE);
-            if (!s_any[p])
+            if (!s_any[p]) {
+#ifdef DETERMINISTIC
+                for (int q = lid; q < NQ; q += GROUP)
+                    contrib[(long)k * NQ + q] = 0.0f;
+#endif
                 continue;
+            }
             for (int q0 = 0; q0 < NQ; q0 += ROWS) {
                 for (int r = 0; r < ROWS; ++r)
                     s_red[r * GROUP + lid] = q0 + r < NQ ? q[q0 + r] : 0.0f;
@@ -189,12 +200,12 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
                 if (lid < ROWS && q0 + lid < NQ) {
                     const int qi = q0 + lid;
                     const float v = s_red[lid * GROUP];
-                    __global float *dst = qi < 2   ? v_means2d + 2 * g + qi
-                                          : qi < 5 ? v_conics + 3 * g + (qi - 2)
-                                          : qi < 6 ? v_opac + g
-                                                   : v_feats + g * NUM_CHANNELS + (qi - 6);
+#ifdef DETERMINISTIC
+                    contrib[(long)k * NQ + qi] = v;
+#else
                     if (v != 0.0f)
-                        atomic_add_float(dst, v);
+                        atomic_add_float(grad_ptr(qi, g, NUM_CHANNELS, v_means2d, v_conics, v_opac, v_feats), v);
+#endif
                 }
                 barrier(CLK_LOCAL_MEM_FENCE);
             }
