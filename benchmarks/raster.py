@@ -44,6 +44,7 @@ KNOBS = [
     ("T_min=1e-3", {"TRANSMITTANCE_MIN": "1e-3f"}),
     ("T_min=1e-2", {"TRANSMITTANCE_MIN": "1e-2f"}),
     ("acc=double", {"ACC_DOUBLE": 1}),
+    ("bwd=atomics (not deterministic)", {"DETERMINISTIC": 0}),
     ("exp=native_exp", {"EXPF": "native_exp"}),
 ]
 

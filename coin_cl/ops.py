@@ -218,6 +218,12 @@ class TileBins:
         rt.finish(a_ids, a_slot)
 
 
+def kernel_variant(channels: int, defines: dict[str, Any]) -> dict[str, Any]:
+    """Build defines of a rasterize program: the channel count and the user's knobs (the
+    DETERMINISTIC choice is added by the backward only, so the forward compiles once)."""
+    return {"NUM_CHANNELS": channels, **{k: v for k, v in defines.items() if k != "DETERMINISTIC"}}
+
+
 def deterministic(rt: Runtime, defines: dict[str, Any]) -> bool:
     """Whether the backward sums per-tile gradient shares in a fixed order (bit-reproducible)
     rather than with atomics: `defines["DETERMINISTIC"]`, else `rt.deterministic`."""
@@ -266,7 +272,7 @@ class _Rasterize(torch.autograd.Function):
         n_tiles = bins.tiles_x * bins.tiles_y
         img, t_final = rt.empty(C, rows, stride), rt.empty(rows, stride)
         last = rt.empty(rows, stride, dtype=torch.int32)
-        variant = {"NUM_CHANNELS": C, **defines}
+        variant = kernel_variant(C, defines)
         src, local = raster_variant(rt)
         a_in = [
             rt.array(t) for t in (bins.tile_start, bins.tile_end, bins.ids, m2, con, op, bins.extents, ft, bg)
@@ -313,7 +319,7 @@ class _Rasterize(torch.autograd.Function):
         if v_alpha is not None:
             g_alpha[:height, :width] = v_alpha
         det = deterministic(rt, defines)
-        variant = {"NUM_CHANNELS": C, **{k: v for k, v in defines.items() if k != "DETERMINISTIC"}}
+        variant = kernel_variant(C, defines)
         if det:  # the kernels test #ifdef, so the define is present only when on
             variant["DETERMINISTIC"] = 1
         src, local = raster_variant(rt)
