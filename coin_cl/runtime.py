@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
 import torch
 
 log = logging.getLogger(__name__)
@@ -256,7 +255,3 @@ def get_runtime(device: str | None = None) -> Runtime:
 def as_f32(t: torch.Tensor) -> torch.Tensor:
     """Contiguous float32 detached copy-or-view, the layout every kernel reads."""
     return t.detach().to(torch.float32).contiguous()
-
-
-def np_int(x: int) -> np.int32:
-    return np.int32(x)
