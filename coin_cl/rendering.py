@@ -7,6 +7,7 @@ Conventions: `viewmat` is world-to-camera [4, 4] in OpenCV axes (x right, y down
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
@@ -16,6 +17,7 @@ from torch import Tensor
 from coin_cl import constants as cst
 from coin_cl import reference
 
+log = logging.getLogger(__name__)
 
 def _backend(name: str):
     if name == "opencl":
@@ -135,6 +137,9 @@ def rasterize(
     finite_geo = reference.finite_rows(means, quats, scales)
     finite_all = finite_geo & reference.finite_rows(opacities[:, None], colors)
     radii = radii.masked_fill(~finite_all, 0)
+    n_nonfinite = int((~finite_all).sum())
+    if n_nonfinite:
+        log.warning("culled %d Gaussians with NaN/Inf inputs (meta['n_nonfinite'])", n_nonfinite)
 
     feats = torch.cat([colors, depths[:, None].to(colors.dtype)], 1) if return_depth else colors
     bg = background
@@ -154,7 +159,7 @@ def rasterize(
         "depths": depths,
         "radii": radii,
         "visible": radii > 0,
-        "n_nonfinite": int((~finite_all).sum()),
+        "n_nonfinite": n_nonfinite,
         "tiles": (math.ceil(width / cst.TILE_SIZE), math.ceil(height / cst.TILE_SIZE)),
         **stats,
     }

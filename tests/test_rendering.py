@@ -146,7 +146,7 @@ def test_many_gaussians_stacked_on_one_tile():
         both(sub, width=16, height=16)
 
 
-def test_nonfinite_inputs_are_culled_and_reported():
+def test_nonfinite_inputs_are_culled_and_reported(caplog):
     gs = random_gaussians(50, seed=7, dtype=torch.float32)
     gs.means[0, 0] = float("nan")
     gs.quats[1, 2] = float("inf")
@@ -156,6 +156,7 @@ def test_nonfinite_inputs_are_culled_and_reported():
     gs.quats[5] = 0.0  # zero quaternion: no rotation defined
     img, alpha, _, meta = render(gs)
     assert meta["n_nonfinite"] == 5
+    assert "culled 5 Gaussians with NaN/Inf" in caplog.text
     assert not meta["visible"][:6].any()
     assert torch.isfinite(img).all() and torch.isfinite(alpha).all()
     clean = Gaussians(*(t[6:] for t in gs.tensors()))
