@@ -84,6 +84,7 @@ def run_demo(args: argparse.Namespace) -> int:
     ground truth: reconstruct it from object-present views with the object masked out of the loss,
     render the object-absent test views and score them (the masked-reconstruction baseline)."""
     from coin_cl.runtime import get_runtime
+    from coin_cl.scene.io import write_text
 
     rt = get_runtime(args.device)
     out = Path(args.out)
@@ -91,7 +92,7 @@ def run_demo(args: argparse.Namespace) -> int:
     summary = {"device": rt.name, "turntable": demo_turntable(args, out / "turntable")}
     if not args.render_only:
         summary["room"] = demo_room(args, out / "room")
-    _write_json(out / "demo.json", summary)
+    write_text(out / "demo.json", json.dumps(summary, indent=2))
     print(json.dumps(summary))
     print(f"wrote {out}/ (turntable/, room/, demo.json)")
     return 0
@@ -104,6 +105,7 @@ def demo_turntable(args: argparse.Namespace, out: Path) -> dict:
 
     import coin_cl
     from coin_cl.runtime import get_runtime
+    from coin_cl.scene.io import atomic_write, write_png
 
     rt = get_runtime(args.device)
     W, H = args.size
@@ -123,10 +125,10 @@ def demo_turntable(args: argparse.Namespace, out: Path) -> dict:
         pairs.append(meta["n_pairs"])
         frame = (img.clamp(0, 1) * 255).to(torch.uint8).numpy()
         frames.append(frame)
-        _write_png(out / f"frame_{i:03d}.png", frame)
-    tmp = out / "turntable.gif.tmp"
-    iio.imwrite(tmp, frames, extension=".gif", duration=80, loop=0)
-    os.replace(tmp, out / "turntable.gif")
+        write_png(out / f"frame_{i:03d}.png", frame)
+    atomic_write(
+        out / "turntable.gif", lambda p: iio.imwrite(p, frames, extension=".gif", duration=80, loop=0)
+    )
     return {
         "gaussians": len(gs.means),
         "size": [W, H],
@@ -142,7 +144,7 @@ def demo_room(args: argparse.Namespace, out: Path) -> dict:
     from coin_cl import load_scene
     from coin_cl.cli_scene import evaluate_folder
     from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config
-    from coin_cl.scene.io import to_uint8
+    from coin_cl.scene.io import to_uint8, write_png
     from coin_cl.scene.synthetic import write_synthetic
 
     log.info(
@@ -165,7 +167,7 @@ def demo_room(args: argparse.Namespace, out: Path) -> dict:
     for view in trainer.test_views:
         with torch.no_grad():
             r = trainer.model.render(view.camera, trainer.step)
-        _write_png(pred / view.camera.name, to_uint8(r.image.clamp(0, 1).numpy()))
+        write_png(pred / view.camera.name, to_uint8(r.image.clamp(0, 1).numpy()))
     doc = evaluate_folder(pred, scene_dir, out / "eval")
     agg = doc["mean"]
     return {
@@ -176,20 +178,6 @@ def demo_room(args: argparse.Namespace, out: Path) -> dict:
         "test_m_psnr": agg.get("m_psnr"),
         "what": "masked-reconstruction baseline (object pixels excluded from the loss)",
     }
-
-
-def _write_png(path: Path, array) -> None:
-    import imageio.v3 as iio
-
-    tmp = path.with_suffix(".tmp.png")
-    iio.imwrite(tmp, array)
-    os.replace(tmp, path)
-
-
-def _write_json(path: Path, obj) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(obj, indent=2))
-    os.replace(tmp, path)
 
 
 def run_doctor(args: argparse.Namespace) -> int:

@@ -157,7 +157,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     import imageio.v2 as imageio
 
     from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json, model_from_state
-    from coin_cl.scene.io import to_uint8
+    from coin_cl.scene.io import atomic_write, to_uint8, write_png
 
     out_dir = args.out_dir
     ckpt = out_dir / CKPT_NAME
@@ -182,11 +182,14 @@ def cmd_render(args: argparse.Namespace) -> int:
         img = to_uint8(r.image.clamp(0, 1).numpy())
         dep = colorize_depth(r.depth.numpy(), r.alpha.numpy())
         stem = f"{i:03d}_{Path(cam.name).stem}" if cam.name else f"{i:03d}"
-        imageio.imwrite(dest / f"{stem}.png", img)
-        imageio.imwrite(dest / f"{stem}_depth.png", dep)
+        write_png(dest / f"{stem}.png", img)
+        write_png(dest / f"{stem}_depth.png", dep)
         frames.append(np.concatenate([img, dep], 1))
     if args.views == "orbit":
-        imageio.mimsave(out_dir / "renders" / "orbit.gif", frames, duration=1000 / 24, loop=0)
+        atomic_write(
+            out_dir / "renders" / "orbit.gif",
+            lambda p: imageio.mimsave(p, frames, format="GIF", duration=1000 / 24, loop=0),
+        )
         print(f"wrote {len(frames)} frames and {out_dir / 'renders' / 'orbit.gif'}")
     else:
         print(f"wrote {len(frames)} images and depth maps to {dest}")

@@ -11,7 +11,7 @@ def test_demo_turntable_writes_frames(tmp_path, capsys):
     assert doc["turntable"]["frames"] == 2 and doc["turntable"]["median_pairs"] > 0
     assert (tmp_path / "turntable" / "turntable.gif").is_file()
     assert len(list((tmp_path / "turntable").glob("frame_*.png"))) == 2
-    assert not list(tmp_path.rglob("*.tmp*")), "temporary files left behind"
+    assert not list(tmp_path.rglob(".*")), "temporary files left behind"
 
 
 def test_demo_room_trains_and_scores(tmp_path):
