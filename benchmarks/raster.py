@@ -1,6 +1,9 @@
 """Rasterizer benchmark: run time next to error against the float64 torch twin.
 
-    python benchmarks/raster.py [--quick] [--runs 5]
+    python benchmarks/raster.py [--quick] [--runs 5] [--device NAME|all]
+
+`--device all` runs the table on every OpenCL device that builds kernels (simulators excluded) and
+ends with a side-by-side table, so implementations are compared in one run on one machine.
 
 Scenes follow gsplat's garden test data: points of the shared SPIn-NeRF SfM cloud, replicated with
 jitter for larger N, scales U[1e-4, 0.02], random rotations, opacities U[0, 1], seen from the real
@@ -83,7 +86,10 @@ def median_time(fn, runs: int) -> float:
 
 
 class Case:
-    def __init__(self, n: int, width: int, height: int, points: torch.Tensor, scale_mult: float = 1.0):
+    def __init__(
+        self, n: int, width: int, height: int, points: torch.Tensor, rt: Runtime, scale_mult: float = 1.0
+    ):
+        self.rt = rt
         self.n, self.W, self.H = n, width, height
         self.gs = garden_like(points, n, seed=0)
         self.gs.scales *= scale_mult
@@ -94,6 +100,7 @@ class Case:
         self.params = [t.clone().requires_grad_(True) for t in self.gs.tensors()]
 
     def forward(self, defines=None, rt=None):
+        rt = rt or self.rt
         means, quats, scales, opac, colors = self.params
         m2, con, dep, rad = ops.project(
             means, quats, scales, self.viewmat, self.K, self.W, self.H, runtime=rt
@@ -114,7 +121,9 @@ class Case:
     def stage_inputs(self):
         """Projected float32 inputs (as the rasterize kernel sees them), for the twin in float64."""
         with torch.no_grad():
-            m2, con, dep, rad = ops.project(*self.gs.tensors()[:3], self.viewmat, self.K, self.W, self.H)
+            m2, con, dep, rad = ops.project(
+                *self.gs.tensors()[:3], self.viewmat, self.K, self.W, self.H, runtime=self.rt
+            )
         return m2, con, dep, rad
 
     def reference_stage(self):
@@ -131,7 +140,7 @@ class Case:
         m2, con, dep, rad = self.stage_inputs()
         xs = [t.clone().requires_grad_(True) for t in (m2, con, self.gs.opacities, self.gs.colors)]
         img, alpha = ops.rasterize_to_pixels(
-            xs[0], xs[1], xs[2], xs[3], dep, rad, self.W, self.H, defines=defines
+            xs[0], xs[1], xs[2], xs[3], dep, rad, self.W, self.H, defines=defines, runtime=self.rt
         )
         grads = torch.autograd.grad([img, alpha], xs, [self.v_img, self.v_alpha])
         return (img.detach(), alpha.detach()), grads
@@ -143,7 +152,7 @@ class Case:
             means, quats, scales, self.viewmat.double(), self.K.double(), self.W, self.H
         )
         f32 = [t.detach().float().requires_grad_(True) for t in (means, quats, scales)]
-        out_k = ops.project(*f32, self.viewmat, self.K, self.W, self.H)
+        out_k = ops.project(*f32, self.viewmat, self.K, self.W, self.H, runtime=self.rt)
         both = (out_r[3] > 0) & (out_k[3] > 0)
         fwd = max(rel_err(k[both], r[both].detach()) for k, r in zip(out_k[:3], out_r[:3]))
         g = torch.Generator().manual_seed(2)
@@ -163,19 +172,63 @@ def git_commit() -> str:
         return "unknown"
 
 
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def devices(request: str | None) -> list[Runtime]:
+    """The runtimes to benchmark: the default, a named one, or every device that builds kernels."""
+    from coin_cl import runtime
+
+    if request != "all":
+        return [get_runtime(request)]
+    for _, d in runtime.all_devices():
+        if runtime.default_rank(d)[0] < 9 and not runtime.probe_device(d).ok:
+            print(f"# skipped {runtime.device_label(d)}: {runtime.probe_device(d).message}")
+    return [Runtime(d) for d in runtime.working_devices()]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="10k and 100k scenes only, no knob table")
     ap.add_argument("--twin-max-n", type=int, default=100_000, help="largest N checked against the twin")
+    ap.add_argument("--device", default=None, help="device name substring, or 'all' (default: the default)")
     args = ap.parse_args()
-    rt = get_runtime()
     pts, _ = read_points_ply(data_dir() / "sparse" / "0" / "points3D.ply")
     points = torch.from_numpy(pts)
     print(
-        f"# coin-cl rasterizer benchmark: {rt.name}; {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} cores; commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}"
+        f"# coin-cl rasterizer benchmark: {cpu_model()}, {os.cpu_count()} cores; commit {git_commit()}; "
+        f"{time.strftime('%Y-%m-%d %H:%M')}"
     )
+    runtimes = devices(args.device)
+    summaries = [run_device(rt, args, points) for rt in runtimes]
+    if len(summaries) == 1:
+        print(json.dumps(summaries[0]))
+        return
+    print()
+    print("Side by side (same run, same machine):")
+    print()
+    keys = [k for k in summaries[0] if k.startswith("fwd") or k.startswith("max_rel")]
+    print("| device | " + " | ".join(keys) + " |")
+    print("|---|" + "---|" * len(keys))
+    for s in summaries:
+        print(f"| {s['device']} | " + " | ".join(f"{s[k]:.3g}" for k in keys) + " |")
+    print()
+    print(json.dumps({"cpu": cpu_model(), "commit": git_commit(), "devices": summaries}))
+
+
+def run_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) -> dict:
+    """The scene table (and knob tables unless --quick) on one device; returns its summary."""
+    print()
+    print(f"## {rt.name} ({rt.device.version})")
+    print()
     print(f"# medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (float64 twin)")
     print()
     cols = [
@@ -184,11 +237,11 @@ def main() -> None:
     ]  # fmt: skip
     print("| " + " | ".join(cols) + " |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    summary: dict = {"device": rt.name, "commit": git_commit()}
+    summary: dict = {"device": rt.name, "cpu": cpu_model(), "commit": git_commit()}
     err_f, err_g = [], []
     cases = {}
     for name, n, W, H in SCENES if not args.quick else SCENES[:2]:
-        case = cases[name] = Case(n, W, H, points)
+        case = cases[name] = Case(n, W, H, points, rt)
         t_f = median_time(case.forward, args.runs)
         t_fb = median_time(case.fwd_bwd, args.runs)
         _, _, stats = case.forward()
@@ -221,7 +274,7 @@ def main() -> None:
     if not args.quick:
         # Two scenes: the sparse garden-like one above, and a dense one (splats 50x larger, so
         # they overlap and pixels saturate) where the transmittance and alpha knobs matter.
-        dense = Case(100_000, 512, 512, points, scale_mult=50.0)
+        dense = Case(100_000, 512, 512, points, rt, scale_mult=50.0)
         for label_scene, case in (("garden-like", cases["100k"]), ("dense (scales x50)", dense)):
             (ri, ra), rg = case.reference_stage()
             print()
@@ -242,7 +295,7 @@ def main() -> None:
                 key = f"knob_{'dense_' if case is dense else ''}{label}"
                 summary[key] = {"fwd_s": t_f, "fwd_bwd_s": t_fb, "err_img": e_img}
     print()
-    print(json.dumps(summary))
+    return summary
 
 
 if __name__ == "__main__":

@@ -322,6 +322,8 @@ class _Rasterize(torch.autograd.Function):
         variant = kernel_variant(C, defines)
         if det:  # the kernels test #ifdef, so the define is present only when on
             variant["DETERMINISTIC"] = 1
+        elif rt.float_atomics:  # cl_ext_float_atomics instead of the compare-and-swap loop
+            variant["USE_FLOAT_ATOMICS"] = 1
         src, local = raster_variant(rt)
         nq = 6 + C
         # Deterministic: each tile writes its share of each splat's gradient to the splat's pair

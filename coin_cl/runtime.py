@@ -1,8 +1,11 @@
 """OpenCL runtime: device choice, one context and queue, per-variant program cache, shared buffers.
 
 Device choice: the `device` argument or `COIN_CL_DEVICE` (a case-insensitive substring of
-"platform / device", e.g. "oclgrind", "nvidia", "pthread"); by default the PoCL CPU device, picked
-by name because a machine may list several platforms.
+"platform / device", e.g. "oclgrind", "nvidia", "intel", "pthread"); a requested device that cannot
+build kernels is an error. Otherwise devices are tried in `default_rank` order (a GPU, then Intel's
+CPU runtime, then PoCL), each probed by building and running a tiny kernel; one that fails is
+skipped with a log line carrying the compiler's message. Platforms installed by pip are made
+visible first by `coin_cl.icd.register_platforms`.
 
 Buffers: on a host-unified-memory device (PoCL on the CPU) a `cl.Buffer` is created over the
 torch tensor's own memory (USE_HOST_PTR), so nothing is copied and `queue.finish()` is the
@@ -15,13 +18,19 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import torch
 
+from coin_cl.icd import register_platforms
+
 log = logging.getLogger(__name__)
+
+# Before pyopencl first lists platforms: the ICD loader reads its vendor folder once per process.
+register_platforms()
 
 _INSTALL_HINT = (
     "install an OpenCL driver: `pip install pocl-binary-distribution` gives a CPU device "
@@ -55,6 +64,10 @@ def kernel_dir() -> Path:
 
 def list_devices() -> list[tuple[str, str, str]]:
     """(platform name, device name, version) of every visible OpenCL device."""
+    return [(p.name, d.name, d.version) for p, d in all_devices()]
+
+
+def all_devices() -> list:
     import pyopencl as cl
 
     try:
@@ -64,38 +77,174 @@ def list_devices() -> list[tuple[str, str, str]]:
     out = []
     for p in platforms:
         try:
-            for d in p.get_devices():
-                out.append((p.name, d.name, d.version))
+            out += [(p, d) for d in p.get_devices()]
         except cl.Error:
             continue
     return out
+
+
+def device_label(device) -> str:
+    return f"{device.platform.name} / {device.name}"
+
+
+# A kernel that every working compiler builds: a build or a wrong result marks a device unusable
+# (PoCL 3.0's LLVM 14, for one, refuses every build on CPUs newer than it knows).
+_PROBE_SOURCE = """
+__kernel void probe(__global float *x)
+{
+    int i = get_global_id(0);
+    x[i] = sqrt((float)i) * 2.0f + 1.0f;
+}
+"""
+_PROBE_ATOMICS = """
+__kernel void probe(__global float *x)
+{
+    atomic_fetch_add_explicit((volatile __global atomic_float *)x, 0.5f, memory_order_relaxed);
+}
+"""
+FLOAT_ATOMICS_OPTIONS = ("-cl-std=CL3.0",)
+
+
+@dataclass(frozen=True)
+class Probe:
+    """Whether a device builds and runs the probe kernel; `message` says why not."""
+
+    ok: bool
+    message: str
+    seconds: float
+
+
+_PROBES: dict[tuple[str, str, str], Probe] = {}
+
+
+def _probe_key(device) -> tuple[str, str, str]:
+    return (device.platform.name, device.name, device.version)
+
+
+def probe_device(device) -> Probe:
+    """Build and run a tiny kernel on `device` (once per process); never raises."""
+    import time
+
+    import numpy as np
+    import pyopencl as cl
+
+    key = _probe_key(device)
+    if key in _PROBES:
+        return _PROBES[key]
+    t0 = time.perf_counter()
+    try:
+        ctx = cl.Context([device])
+        queue = cl.CommandQueue(ctx)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            prg = cl.Program(ctx, _PROBE_SOURCE).build()
+        n = 64
+        out = np.full(n, np.nan, np.float32)
+        buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        prg.probe(queue, (n,), None, buf)
+        cl.enqueue_copy(queue, out, buf)
+        queue.finish()
+        want = np.sqrt(np.arange(n, dtype=np.float32)) * 2 + 1
+        if np.allclose(out, want, rtol=1e-5):
+            result = Probe(True, "ok", time.perf_counter() - t0)
+        else:
+            result = Probe(False, "probe kernel ran but returned wrong values", time.perf_counter() - t0)
+    except Exception as exc:  # any failure of a foreign driver marks the device unusable
+        msg = " ".join(str(exc).split())
+        result = Probe(False, msg[:400], time.perf_counter() - t0)
+    _PROBES[key] = result
+    return result
+
+
+def probe_float_atomics(device) -> bool:
+    """Whether `device` builds and runs a float atomic add (cl_ext_float_atomics, OpenCL C 3.0)."""
+    import numpy as np
+    import pyopencl as cl
+
+    if "cl_ext_float_atomics" not in device.extensions:
+        return False
+    try:
+        ctx = cl.Context([device])
+        queue = cl.CommandQueue(ctx)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            prg = cl.Program(ctx, _PROBE_ATOMICS).build(options=list(FLOAT_ATOMICS_OPTIONS))
+        out = np.zeros(1, np.float32)
+        buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=out)
+        prg.probe(queue, (256,), None, buf)
+        cl.enqueue_copy(queue, out, buf)
+        queue.finish()
+        return bool(out[0] == 128.0)
+    except Exception as exc:
+        log.info("float atomics unusable on %s: %s", device_label(device), " ".join(str(exc).split())[:200])
+        return False
+
+
+def default_rank(device) -> tuple[int, str]:
+    """Order in which devices are tried when none is requested (lower first), and why.
+
+    A GPU first; then CPU implementations, Intel's runtime ahead of PoCL because it measured
+    faster on the same CPU (docs/BENCHMARKS.md, "CPU implementations side by side"); Oclgrind is a
+    simulator and is never a default.
+    """
+    import pyopencl as cl
+
+    pname = device.platform.name.lower()
+    if "oclgrind" in pname:
+        return (9, "a simulator (use COIN_CL_DEVICE=oclgrind)")
+    if device.type & cl.device_type.GPU:
+        return (0, "a GPU")
+    if device.type & cl.device_type.CPU:
+        if "intel" in pname:
+            return (1, "the fastest CPU implementation measured (Intel's runtime)")
+        if "portable computing language" in pname:
+            return (2, "a CPU implementation (PoCL)")
+        return (3, "a CPU implementation")
+    return (4, "another device type")
+
+
+def working_devices() -> list:
+    """Devices that build and run the probe kernel, in default order (simulators left out)."""
+    ranked = sorted((d for _, d in all_devices()), key=lambda d: default_rank(d)[0])
+    return [d for d in ranked if default_rank(d)[0] < 9 and probe_device(d).ok]
 
 
 def _choose_device(request: str | None):
     import pyopencl as cl
 
     try:
-        platforms = cl.get_platforms()
+        cl.get_platforms()
     except cl.Error as exc:
         raise NoDeviceError(f"no OpenCL platform found ({exc}); {_INSTALL_HINT}") from exc
-    devices = []
-    for p in platforms:
-        try:
-            devices += [(p, d) for d in p.get_devices()]
-        except cl.Error:
-            continue
+    devices = [d for _, d in all_devices()]
     if not devices:
         raise NoDeviceError(f"OpenCL platforms exist but list no device; {_INSTALL_HINT}")
     if request:
-        hits = [(p, d) for p, d in devices if request.lower() in f"{p.name} / {d.name}".lower()]
+        hits = [d for d in devices if request.lower() in device_label(d).lower()]
         if not hits:
-            names = "; ".join(f"{p.name} / {d.name}" for p, d in devices)
+            names = "; ".join(device_label(d) for d in devices)
             raise NoDeviceError(f"no OpenCL device matches {request!r}; visible: {names}")
-        return hits[0][1]
-    for p, d in devices:
-        if "portable computing language" in p.name.lower() and d.type & cl.device_type.CPU:
+        probe = probe_device(hits[0])
+        if not probe.ok:
+            raise NoDeviceError(
+                f"OpenCL device {device_label(hits[0])!r} (requested by {request!r}) cannot build or run "
+                f"kernels: {probe.message}. Unset COIN_CL_DEVICE to use a working one; `coin-cl doctor` "
+                "lists them."
+            )
+        return hits[0]
+    failures = []
+    for d in sorted(devices, key=lambda d: default_rank(d)[0]):
+        if default_rank(d)[0] >= 9:
+            continue
+        probe = probe_device(d)
+        if probe.ok:
             return d
-    return devices[0][1]
+        log.warning("OpenCL device %s skipped: it cannot build kernels (%s)", device_label(d), probe.message)
+        failures.append(f"{device_label(d)}: {probe.message}")
+    raise NoDeviceError(
+        "no OpenCL device can build kernels (" + "; ".join(failures) + "). On CPUs newer than PoCL's "
+        "LLVM, `pip install intel-opencl-rt` gives a working CPU device; " + _INSTALL_HINT
+    )
 
 
 @dataclass
@@ -134,11 +283,22 @@ class Runtime:
         self.unified = bool(self.device.host_unified_memory) and not _env_flag("COIN_CL_NO_ZERO_COPY")
         self.extensions = frozenset(self.device.extensions.split())
         self._lock = threading.Lock()
+        self._float_atomics: bool | None = None
         log.debug("OpenCL device: %s (unified memory: %s)", self.name, self.unified)
 
     @property
     def name(self) -> str:
-        return f"{self.device.platform.name} / {self.device.name}"
+        return device_label(self.device)
+
+    @property
+    def float_atomics(self) -> bool:
+        """Whether the device has a working float atomic add (probed once). COIN_CL_FLOAT_ATOMICS=0
+        keeps the compare-and-swap loop even where it does."""
+        if self._float_atomics is None:
+            self._float_atomics = os.environ.get("COIN_CL_FLOAT_ATOMICS", "1") != "0" and probe_float_atomics(
+                self.device
+            )
+        return self._float_atomics
 
     @property
     def is_cpu(self) -> bool:
@@ -160,9 +320,14 @@ class Runtime:
                 d = kernel_dir()
                 src = (d / filename).read_text()
                 opts = [f"-I{d}"] + [f"-D{k}={v}" for k, v in sorted((defines or {}).items())]
+                if "USE_FLOAT_ATOMICS" in (defines or {}):
+                    opts += FLOAT_ATOMICS_OPTIONS  # atomic_float needs OpenCL C 2.0+
                 log.debug("building %s with %s", filename, opts)
                 try:
-                    prg = cl.Program(self.context, src).build(options=opts)
+                    with warnings.catch_warnings():
+                        # Some compilers (Intel's) always print a build log; it is not a problem.
+                        warnings.simplefilter("ignore", cl.CompilerWarning)
+                        prg = cl.Program(self.context, src).build(options=opts)
                 except cl.RuntimeError as exc:
                     raise RuntimeError(f"OpenCL build of {filename} failed on {self.name}: {exc}") from exc
                 self.programs[key] = prg

@@ -25,6 +25,30 @@ def test_demo_room_trains_and_scores(tmp_path):
 
 
 def test_doctor_lists_the_device(capsys):
+    from coin_cl.runtime import get_runtime
+
     assert main(["doctor"]) == 0
     out = capsys.readouterr().out
-    assert "OpenCL devices:" in out and "default device:" in out
+    assert "OpenCL devices (probe" in out and "probe: works" in out
+    assert f"default device: {get_runtime().name} (" in out
+
+
+def test_doctor_working_lists_usable_devices(capsys):
+    from coin_cl.runtime import get_runtime
+
+    assert main(["doctor", "--working"]) == 0
+    labels = capsys.readouterr().out.splitlines()
+    assert labels and all(" / " in line for line in labels)
+    if "COIN_CL_DEVICE" not in __import__("os").environ:
+        assert labels[0] == get_runtime().name  # the default is the first working device
+
+
+def test_doctor_fails_when_no_device_builds(capsys, monkeypatch):
+    from coin_cl import runtime
+
+    monkeypatch.setattr(runtime, "_PROBES", {})
+    monkeypatch.setattr(runtime, "_PROBE_SOURCE", "__kernel void probe(__global float *x) { x[0] = y; }")
+    assert main(["doctor"]) == 1
+    out = capsys.readouterr().out
+    assert "FAILS:" in out and "No OpenCL device can build kernels" in out and "intel-opencl-rt" in out
+    assert main(["doctor", "--working"]) == 1

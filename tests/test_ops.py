@@ -8,6 +8,9 @@ from coin_cl import ops, reference
 from coin_cl.runtime import get_runtime
 from coin_cl.testing import look_at_camera, random_gaussians
 
+# Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.
+pytestmark = pytest.mark.kernel
+
 SMALL = small_mode()
 N = 60 if SMALL else 1500
 W, H = (40, 24) if SMALL else (150, 97)  # non-multiples of the tile size on purpose

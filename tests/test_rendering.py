@@ -11,6 +11,9 @@ from coin_cl import PairOverflowError
 from coin_cl.rendering import rasterize
 from coin_cl.testing import Gaussians, look_at_camera, random_gaussians
 
+# Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.
+pytestmark = pytest.mark.kernel
+
 SMALL = small_mode()
 W, H = (32, 24) if SMALL else (96, 64)
 

@@ -7,6 +7,9 @@ from coin_cl import ops
 from coin_cl.runtime import NoDeviceError, Runtime, get_runtime, list_devices
 from coin_cl.testing import look_at_camera, random_gaussians
 
+# Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.
+pytestmark = pytest.mark.kernel
+
 
 def test_default_device_is_listed():
     rt = get_runtime()
@@ -59,3 +62,57 @@ def test_no_opencl_platform_says_what_to_install(monkeypatch):
     with pytest.raises(NoDeviceError, match="pip install pocl-binary-distribution"):
         runtime._choose_device(None)
     assert runtime.list_devices() == []
+
+
+# -- probing: a device that cannot compile is skipped (default) or a clear error (requested) --------
+
+
+def _device_list():
+    from coin_cl import runtime
+
+    return [d for _, d in runtime.all_devices() if runtime.default_rank(d)[0] < 9]
+
+
+def test_broken_build_is_skipped_with_the_compiler_message(monkeypatch, caplog):
+    from coin_cl import runtime
+
+    monkeypatch.setattr(runtime, "_PROBES", {})
+    monkeypatch.setattr(runtime, "_PROBE_SOURCE", "__kernel void probe(__global float *x) { x[0] = y; }")
+    dev = _device_list()[0]
+    probe = runtime.probe_device(dev)
+    assert not probe.ok and "y" in probe.message  # the compiler names the undeclared identifier
+    with caplog.at_level("WARNING", logger="coin_cl.runtime"):
+        with pytest.raises(NoDeviceError, match="no OpenCL device can build kernels.*intel-opencl-rt"):
+            runtime._choose_device(None)
+    assert "skipped: it cannot build kernels" in caplog.text
+    with pytest.raises(NoDeviceError, match="cannot build or run kernels.*Unset COIN_CL_DEVICE"):
+        runtime._choose_device(dev.name)
+
+
+def test_default_skips_a_failing_device_for_the_next_one(monkeypatch):
+    from coin_cl import runtime
+
+    devices = sorted(_device_list(), key=lambda d: runtime.default_rank(d)[0])
+    if len(devices) < 2:
+        pytest.skip("needs two OpenCL implementations")
+    bad = devices[0]
+    monkeypatch.setattr(runtime, "_PROBES", {runtime._probe_key(bad): runtime.Probe(False, "simulated", 0.0)})
+    assert runtime.device_label(runtime._choose_device(None)) == runtime.device_label(devices[1])
+
+
+def test_float_atomics_variant_is_used_where_the_device_has_them():
+    rt = Runtime(get_runtime().device)
+    rt.deterministic = False
+    gs = random_gaussians(30, seed=2)
+    viewmat, K = look_at_camera(32, 32)
+    means = gs.means.clone().requires_grad_(True)
+    m2, con, dep, rad = ops.project(means, gs.quats, gs.scales, viewmat, K, 32, 32, runtime=rt)
+    img, alpha = ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 32, 32, runtime=rt)
+    (img.sum() + alpha.sum()).backward()
+    used = {
+        bool(dict(defs).get("USE_FLOAT_ATOMICS"))
+        for name, defs in rt.programs
+        if name.startswith("rasterize")
+    }
+    assert used == {False, True} if rt.float_atomics else used == {False}
+    assert torch.isfinite(means.grad).all()
