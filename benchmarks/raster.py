@@ -33,8 +33,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from coin_cl import ops, reference  # noqa: E402
-from coin_cl.runtime import Runtime, get_runtime  # noqa: E402
+from coin_cl.engine import ops, reference  # noqa: E402
+from coin_cl.engine.runtime import Runtime, get_runtime  # noqa: E402
 from coin_cl.scene.conventions import invert_rigid, llff_to_camtoworld  # noqa: E402
 from coin_cl.scene.ply import read_points_ply  # noqa: E402
 from coin_cl.testing import garden_like  # noqa: E402
@@ -102,12 +102,10 @@ class Case:
     def forward(self, defines=None, rt=None):
         rt = rt or self.rt
         means, quats, scales, opac, colors = self.params
-        m2, con, dep, rad = ops.project(
-            means, quats, scales, self.viewmat, self.K, self.W, self.H, runtime=rt
-        )
+        m2, con, dep, rad = ops.project(means, quats, scales, self.viewmat, self.K, self.W, self.H, device=rt)
         stats: dict = {}
         img, alpha = ops.rasterize_to_pixels(
-            m2, con, opac, colors, dep, rad, self.W, self.H, stats=stats, runtime=rt, defines=defines
+            m2, con, opac, colors, dep, rad, self.W, self.H, stats=stats, device=rt, defines=defines
         )
         return img, alpha, stats
 
@@ -122,7 +120,7 @@ class Case:
         """Projected float32 inputs (as the rasterize kernel sees them), for the twin in float64."""
         with torch.no_grad():
             m2, con, dep, rad = ops.project(
-                *self.gs.tensors()[:3], self.viewmat, self.K, self.W, self.H, runtime=self.rt
+                *self.gs.tensors()[:3], self.viewmat, self.K, self.W, self.H, device=self.rt
             )
         return m2, con, dep, rad
 
@@ -140,7 +138,7 @@ class Case:
         m2, con, dep, rad = self.stage_inputs()
         xs = [t.clone().requires_grad_(True) for t in (m2, con, self.gs.opacities, self.gs.colors)]
         img, alpha = ops.rasterize_to_pixels(
-            xs[0], xs[1], xs[2], xs[3], dep, rad, self.W, self.H, defines=defines, runtime=self.rt
+            xs[0], xs[1], xs[2], xs[3], dep, rad, self.W, self.H, defines=defines, device=self.rt
         )
         grads = torch.autograd.grad([img, alpha], xs, [self.v_img, self.v_alpha])
         return (img.detach(), alpha.detach()), grads
@@ -152,7 +150,7 @@ class Case:
             means, quats, scales, self.viewmat.double(), self.K.double(), self.W, self.H
         )
         f32 = [t.detach().float().requires_grad_(True) for t in (means, quats, scales)]
-        out_k = ops.project(*f32, self.viewmat, self.K, self.W, self.H, runtime=self.rt)
+        out_k = ops.project(*f32, self.viewmat, self.K, self.W, self.H, device=self.rt)
         both = (out_r[3] > 0) & (out_k[3] > 0)
         fwd = max(rel_err(k[both], r[both].detach()) for k, r in zip(out_k[:3], out_r[:3]))
         g = torch.Generator().manual_seed(2)
@@ -184,7 +182,7 @@ def cpu_model() -> str:
 
 def devices(request: str | None) -> list[Runtime]:
     """The runtimes to benchmark: the default, a named one, or every device that builds kernels."""
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     if request != "all":
         return [get_runtime(request)]

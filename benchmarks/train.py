@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from coin_cl import load_scene, metrics  # noqa: E402
-from coin_cl.cli_train import inpainted_targets, split_indices  # noqa: E402
 from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config  # noqa: E402
+from coin_cl.scene.splits import inpainted_targets, split_indices  # noqa: E402
 
 # Steps per second measured over 5-minute runs at 504x284 on the 2-core machine (2026-11-22), used
 # only to size each model's schedule to the time budget.

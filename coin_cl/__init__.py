@@ -1,7 +1,7 @@
 """coin-cl: CoIn 3D scene inpainting on a portable OpenCL Gaussian-splatting engine.
 
-Public engine API (differentiable torch ops, OpenCL underneath):
-    rasterize, project, rasterize_to_pixels
+Public engine API (differentiable torch ops, OpenCL underneath; `coin_cl.engine`):
+    rasterize, project, bin_tiles, rasterize_to_pixels, Gaussians, get_runtime
 Scenes and evaluation:
     load_scene, metrics
 """
@@ -15,11 +15,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 __version__ = "0.1.0"
 
 _LAZY = {
-    "rasterize": "coin_cl.rendering",
-    "project": "coin_cl.rendering",
-    "rasterize_to_pixels": "coin_cl.rendering",
-    "get_runtime": "coin_cl.runtime",
-    "PairOverflowError": "coin_cl.reference",
+    "rasterize": "coin_cl.engine",
+    "project": "coin_cl.engine",
+    "bin_tiles": "coin_cl.engine",
+    "rasterize_to_pixels": "coin_cl.engine",
+    "get_runtime": "coin_cl.engine",
+    "Gaussians": "coin_cl.engine",
+    "PairOverflowError": "coin_cl.engine",
+    "NoDeviceError": "coin_cl.engine",
     "load_scene": "coin_cl.scene",
 }
 

@@ -40,7 +40,7 @@ def embedded_scene(n: int = 60_000, seed: int = 0):
     """A procedural scene: a textured torus knot of Gaussians over a checkered floor disc."""
     import torch
 
-    from coin_cl.testing import Gaussians
+    from coin_cl.engine import Gaussians
 
     g = torch.Generator().manual_seed(seed)
     k = n * 2 // 3
@@ -89,7 +89,7 @@ def run_demo(args: argparse.Namespace) -> int:
     """Part 1: render a procedural Gaussian scene (the engine). Part 2: the synthetic room with
     ground truth: reconstruct it from object-present views with the object masked out of the loss,
     render the object-absent test views and score them (the masked-reconstruction baseline)."""
-    from coin_cl.runtime import get_runtime
+    from coin_cl.engine.runtime import get_runtime
     from coin_cl.scene.io import write_text
 
     rt = get_runtime(args.device)
@@ -110,7 +110,7 @@ def demo_turntable(args: argparse.Namespace, out: Path) -> dict:
     from tqdm import tqdm
 
     import coin_cl
-    from coin_cl.runtime import get_runtime
+    from coin_cl.engine.runtime import get_runtime
     from coin_cl.scene.io import atomic_write, write_png
 
     rt = get_runtime(args.device)
@@ -125,7 +125,14 @@ def demo_turntable(args: argparse.Namespace, out: Path) -> dict:
         vm = orbit_viewmat(2 * math.pi * i / args.frames)
         t0 = time.perf_counter()
         img, alpha, depth, meta = coin_cl.rasterize(
-            *gs.tensors(), vm, K, W, H, background=torch.tensor([0.06, 0.07, 0.1]), return_depth=True
+            *gs.tensors(),
+            vm,
+            K,
+            W,
+            H,
+            background=torch.tensor([0.06, 0.07, 0.1]),
+            return_depth=True,
+            device=rt,
         )
         times.append(time.perf_counter() - t0)
         pairs.append(meta["n_pairs"])
@@ -148,7 +155,7 @@ def demo_room(args: argparse.Namespace, out: Path) -> dict:
     import torch
 
     from coin_cl import load_scene
-    from coin_cl.cli_scene import evaluate_folder
+    from coin_cl.evaluation import evaluate_folder
     from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config
     from coin_cl.scene.io import to_uint8, write_png
     from coin_cl.scene.synthetic import write_synthetic
@@ -165,7 +172,7 @@ def demo_room(args: argparse.Namespace, out: Path) -> dict:
     cfg = TrainConfig(model="3dgs", iters=args.steps, ckpt_every=200)
     trainer = make_trainer(
         scene, scene.train_idx, scene.test_idx, cfg, out / "train",
-        model_cfg=scaled_model_config("3dgs", args.steps), exclude_masks=True,
+        model_cfg=scaled_model_config("3dgs", args.steps), exclude_masks=True, device=args.device,
     )  # fmt: skip
     res = trainer.train()
     pred = out / "pred"
@@ -191,7 +198,7 @@ def run_doctor(args: argparse.Namespace) -> int:
     none does (with what to install)."""
     from importlib import metadata
 
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     if args.working:
         labels = [runtime.device_label(d) for d in runtime.working_devices()]

@@ -4,13 +4,8 @@ test views against a scene's object-absent ground truth)."""
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import math
 from pathlib import Path
-
-import cv2
-import numpy as np
 
 log = logging.getLogger(__name__)
 
@@ -48,136 +43,15 @@ def cmd_make_scene(args: argparse.Namespace) -> int:
     return 0
 
 
-def _find_pred(pred_dir: Path, name: str) -> Path | None:
-    for cand in (pred_dir / name, *(pred_dir / (Path(name).stem + e) for e in (".png", ".jpg", ".jpeg"))):
-        if cand.is_file():
-            return cand
-    return None
-
-
-def _error_map(pred: np.ndarray, gt: np.ndarray, gain: float = 4.0) -> np.ndarray:
-    """(H, W, 3) float colour map of |pred - gt| (channel mean, x gain, clipped)."""
-    err = np.clip(np.abs(pred - gt).mean(axis=2) * gain, 0, 1)
-    cm = cv2.applyColorMap((err * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
-    return cm[..., ::-1].astype(np.float32) / 255.0
-
-
-def comparison_grid(inp: np.ndarray, mask: np.ndarray, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """input | mask | prediction | ground truth | error map, side by side: (H, 5W + 8, 3)."""
-    H = gt.shape[0]
-    m = np.repeat(mask[..., None].astype(np.float32), 3, axis=2)
-    gap = np.ones((H, 2, 3), np.float32)
-    tiles = [inp, m, pred, gt, _error_map(pred, gt)]
-    row = []
-    for i, t in enumerate(tiles):
-        row.append(t.astype(np.float32))
-        if i < len(tiles) - 1:
-            row.append(gap)
-    return np.concatenate(row, axis=1)
-
-
-def _fmt(v) -> str:
-    if v is None:
-        return "n/a"
-    if isinstance(v, float) and math.isinf(v):
-        return "inf"
-    if isinstance(v, float) and math.isnan(v):
-        return "nan"
-    return f"{v:.4f}"
-
-
-def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None) -> dict:
-    """Score PRED_DIR's test-view images against SCENE_DIR; writes metrics.json, metrics.md and
-    grids/<view>.png under out_dir (default PRED_DIR/eval). Returns the metrics document."""
-    from . import metrics as M
-    from .scene import load_scene
-    from .scene.io import read_image, write_png, write_text
-
-    pred_dir, scene_dir = Path(pred_dir), Path(scene_dir)
-    if not pred_dir.is_dir():
-        raise FileNotFoundError(f"prediction folder {pred_dir} not found")
-    out = Path(out_dir) if out_dir is not None else pred_dir / "eval"
-    scene = load_scene(scene_dir)
-    if not scene.test_idx:
-        raise ValueError(
-            f"scene {scene_dir} has no test views (object-absent ground truth); list them in "
-            "views.txt or sparse/0/test.txt"
-        )
-    missing = [
-        scene.cameras[i].name for i in scene.test_idx if _find_pred(pred_dir, scene.cameras[i].name) is None
-    ]
-    if missing:
-        raise FileNotFoundError(
-            f"{pred_dir} lacks predictions for test views {missing}; write one image per test "
-            f"view, named as the view (e.g. {missing[0]})"
-        )
-    model, reason = M.lpips_from_env()
-    if model is None:
-        log.info(reason)
-    per_view: dict[str, dict] = {}
-    for i in scene.test_idx:
-        cam = scene.cameras[i]
-        p = _find_pred(pred_dir, cam.name)
-        pred, gt, m = read_image(p), scene.images[i], scene.masks[i]
-        if pred.shape != gt.shape:
-            raise ValueError(
-                f"prediction {p} is {pred.shape[1]}x{pred.shape[0]} but view {cam.name} is "
-                f"{gt.shape[1]}x{gt.shape[0]}; render at the scene's resolution"
-            )
-        if not m.any():
-            log.warning("test view %s has an empty mask; its masked metrics are left out", cam.name)
-        per_view[cam.name] = M.evaluate_view(pred, gt, m, model)
-        inp = scene.extras.get("object_present", {}).get(i)
-        if inp is None:  # no object-present render of a test view: show the masked GT instead
-            inp = np.where(m[..., None], 0.5, gt).astype(np.float32)
-        write_png(out / "grids" / f"{Path(cam.name).stem}.png", comparison_grid(inp, m, pred, gt))
-    mean = M.aggregate(list(per_view.values()))
-    inception, fid_reason = M.inception_from_env()
-    if inception is not None and len(per_view) >= 2:
-        idx = scene.test_idx
-        preds = [read_image(_find_pred(pred_dir, scene.cameras[i].name)) for i in idx]
-        mean.update(
-            M.fid_scores(inception, preds, [scene.images[i] for i in idx], [scene.masks[i] for i in idx])
-        )
-    else:
-        if inception is not None:
-            fid_reason = "FID needs at least 2 test views"
-        log.info(fid_reason)
-        mean["fid"] = mean["m_fid"] = None
-    doc = {
-        "scene": str(scene_dir),
-        "predictions": str(pred_dir),
-        "n_views": len(per_view),
-        "mean": mean,
-        "per_view": per_view,
-        "lpips": "available" if model is not None else reason,
-        "fid": "available" if mean["fid"] is not None else fid_reason,
-        "notes": "m_* within the GT mask; bbox_*, m_lpips and m_fid on the mask's bounding-box "
-        "crop; SSIM Gaussian sigma 1.5; fid/m_fid are scene-level",
-    }
-    write_text(out / "metrics.json", json.dumps(M.jsonable(doc), indent=1))
-    keys = [k for k in mean if k not in ("fid", "m_fid")]  # FID exists per scene only
-    lines = ["| view | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]
-    for name, d in per_view.items():
-        lines.append(f"| {name} | " + " | ".join(_fmt(d[k]) for k in keys) + " |")
-    lines.append("| **mean** | " + " | ".join(_fmt(mean[k]) for k in keys) + " |")
-    if model is None:
-        lines += ["", reason]
-    if mean["fid"] is None:
-        lines += ["", fid_reason]
-    else:
-        lines += ["", f"FID {_fmt(mean['fid'])}, m-FID {_fmt(mean['m_fid'])} (scene level)."]
-    write_text(out / "metrics.md", "\n".join(lines) + "\n")
-    return doc
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
+    from coin_cl.evaluation import evaluate_folder, fmt_metric
+
     doc = evaluate_folder(args.pred_dir, args.scene, args.out)
     out = args.out or args.pred_dir / "eval"
     m = doc["mean"]
     print(
-        f"{doc['n_views']} views: PSNR {_fmt(m['psnr'])}  SSIM {_fmt(m['ssim'])}  "
-        f"m-PSNR {_fmt(m['m_psnr'])}  m-SSIM {_fmt(m['m_ssim'])}  LPIPS {_fmt(m['lpips'])}"
+        f"{doc['n_views']} views: PSNR {fmt_metric(m['psnr'])}  SSIM {fmt_metric(m['ssim'])}  "
+        f"m-PSNR {fmt_metric(m['m_psnr'])}  m-SSIM {fmt_metric(m['m_ssim'])}  LPIPS {fmt_metric(m['lpips'])}"
     )
     print(f"wrote {out / 'metrics.json'}, {out / 'metrics.md'}, {out / 'grids'}/")
     return 0

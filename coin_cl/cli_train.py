@@ -37,6 +37,7 @@ def add_commands(subparsers) -> None:
     t.add_argument("--eval-every", type=int, default=0)
     t.add_argument("--ckpt-every", type=int, default=1000)
     t.add_argument("--backend", choices=("opencl", "torch"), default="opencl")
+    t.add_argument("--device", default=None, help="OpenCL device name substring (default: coin-cl doctor's)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out")
     t.set_defaults(func=cmd_train)
@@ -46,29 +47,14 @@ def add_commands(subparsers) -> None:
     r.add_argument("--views", choices=("test", "train", "orbit"), default="test")
     r.add_argument("--frames", type=int, default=48, help="orbit frames")
     r.add_argument("--backend", choices=("opencl", "torch"), default="opencl")
+    r.add_argument("--device", default=None, help="OpenCL device name substring (default: coin-cl doctor's)")
     r.set_defaults(func=cmd_render)
-
-
-def split_indices(scene, holdout: int) -> tuple[list[int], list[int]]:
-    """(train, eval) view indices: every `holdout`-th training view held out, or the scene's split."""
-    if holdout > 0:
-        tr = [i for k, i in enumerate(scene.train_idx) if k % holdout != 0]
-        te = [i for k, i in enumerate(scene.train_idx) if k % holdout == 0]
-        return tr, te
-    return list(scene.train_idx), list(scene.test_idx)
-
-
-def inpainted_targets(scene) -> list:
-    """Per-view training targets with the dataset's 2D inpaints where it ships them."""
-    rgb = scene.priors.get("rgb", {})
-    if not rgb:
-        raise ValueError(f"scene {scene.path} has no per-view inpaints (RGB_inpainted/)")
-    return [rgb.get(i, img) for i, img in enumerate(scene.images)]
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from coin_cl import load_scene
     from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config
+    from coin_cl.scene.splits import inpainted_targets, split_indices
 
     scene = load_scene(args.scene_dir, resolution=args.resolution)
     tr_idx, te_idx = split_indices(scene, args.holdout)
@@ -85,6 +71,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     tr = make_trainer(
         scene, tr_idx, te_idx, cfg, args.out, images,
         scaled_model_config(args.model, args.iters), args.exclude_masks, resume=not args.fresh,
+        device=args.device,
     )  # fmt: skip
     res = tr.train()
     print(
@@ -165,6 +152,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{ckpt} not found: train into {out_dir} first")
     state = torch.load(ckpt, weights_only=False)
     model = model_from_state(state["model"])
+    model.device = args.device
     step = int(state["trainer"]["step"])
     import json
 

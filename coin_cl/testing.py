@@ -3,32 +3,13 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from coin_cl.engine.gaussians import Gaussians
 
-@dataclass
-class Gaussians:
-    """One set of renderer inputs: means [N,3], quats [N,4], scales [N,3], opacities [N], colors [N,C]."""
-
-    means: Tensor
-    quats: Tensor
-    scales: Tensor
-    opacities: Tensor
-    colors: Tensor
-
-    def tensors(self) -> list[Tensor]:
-        return [self.means, self.quats, self.scales, self.opacities, self.colors]
-
-    def to(self, dtype: torch.dtype) -> Gaussians:
-        return Gaussians(*(t.to(dtype) for t in self.tensors()))
-
-    def requires_grad_(self) -> Gaussians:
-        for t in self.tensors():
-            t.requires_grad_(True)
-        return self
+__all__ = ["Gaussians", "garden_like", "look_at_camera", "random_gaussians"]
 
 
 def look_at_camera(

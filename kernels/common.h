@@ -1,4 +1,4 @@
-/* Every constant of the renderer, mirrored in coin_cl/constants.py (tests/test_constants.py
+/* Every constant of the renderer, mirrored in coin_cl/engine/constants.py (tests/test_constants.py
  * checks the two agree). Knobs guarded by #ifndef may be overridden with -D at build time, which
  * is how the benchmark trades error for speed; the defaults are the paper's (gsplat's) values. */
 #ifndef COIN_COMMON_H

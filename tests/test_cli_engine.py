@@ -25,7 +25,7 @@ def test_demo_room_trains_and_scores(tmp_path):
 
 
 def test_doctor_lists_the_device(capsys):
-    from coin_cl.runtime import get_runtime
+    from coin_cl.engine.runtime import get_runtime
 
     assert main(["doctor"]) == 0
     out = capsys.readouterr().out
@@ -34,7 +34,7 @@ def test_doctor_lists_the_device(capsys):
 
 
 def test_doctor_working_lists_usable_devices(capsys):
-    from coin_cl.runtime import get_runtime
+    from coin_cl.engine.runtime import get_runtime
 
     assert main(["doctor", "--working"]) == 0
     labels = capsys.readouterr().out.splitlines()
@@ -44,7 +44,7 @@ def test_doctor_working_lists_usable_devices(capsys):
 
 
 def test_doctor_fails_when_no_device_builds(capsys, monkeypatch):
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     monkeypatch.setattr(runtime, "_PROBES", {})
     monkeypatch.setattr(runtime, "_PROBE_SOURCE", "__kernel void probe(__global float *x) { x[0] = y; }")
@@ -52,3 +52,30 @@ def test_doctor_fails_when_no_device_builds(capsys, monkeypatch):
     out = capsys.readouterr().out
     assert "FAILS:" in out and "No OpenCL device can build kernels" in out and "intel-opencl-rt" in out
     assert main(["doctor", "--working"]) == 1
+
+
+def _record_launches(monkeypatch) -> list[str]:
+    from coin_cl.engine.runtime import Runtime
+
+    seen: list[str] = []
+    orig = Runtime.launch
+
+    def launch(self, *a, **k):
+        seen.append(self.name)
+        return orig(self, *a, **k)
+
+    monkeypatch.setattr(Runtime, "launch", launch)
+    return seen
+
+
+def test_demo_device_flag_is_the_device_that_renders(tmp_path, monkeypatch):
+    """--device is honoured: every kernel launch of the demo goes to the named device (the last
+    working one, so that with two implementations present it is not the default)."""
+    from coin_cl.engine.runtime import device_label, working_devices
+
+    target = device_label(working_devices()[-1])
+    seen = _record_launches(monkeypatch)
+    args = ["demo", "--out", str(tmp_path), "--render-only", "--frames", "1", "--size", "32", "24"]
+    assert main([*args, "--device", target]) == 0
+    assert seen and set(seen) == {target}
+    assert json.loads((tmp_path / "demo.json").read_text())["device"] == target

@@ -1,9 +1,9 @@
-"""kernels/common.h and coin_cl/constants.py hold the same values."""
+"""kernels/common.h and coin_cl/engine/constants.py hold the same values."""
 
 import re
 
-from coin_cl import constants
-from coin_cl.runtime import kernel_dir
+from coin_cl.engine import constants
+from coin_cl.engine.runtime import kernel_dir
 
 NAMES = [
     "TILE_SIZE", "NEAR_PLANE", "FAR_PLANE", "EPS2D", "ALPHA_THRESHOLD", "MAX_ALPHA",

@@ -43,3 +43,19 @@ def test_train_then_render_all_view_kinds(scene_dir, tmp_path):
 def test_render_without_training_is_a_clear_error(tmp_path, capsys):
     assert main(["render", str(tmp_path)]) == 2
     assert "ckpt.pt" in capsys.readouterr().err
+
+
+def test_train_and_render_honour_device(scene_dir, tmp_path, monkeypatch):
+    from coin_cl.engine.runtime import Runtime, device_label, working_devices
+
+    target = device_label(working_devices()[-1])
+    seen: list[str] = []
+    orig = Runtime.launch
+    monkeypatch.setattr(
+        Runtime, "launch", lambda self, *a, **k: (seen.append(self.name), orig(self, *a, **k))[1]
+    )
+    out = tmp_path / "run"
+    assert main(["train", str(scene_dir), "--model", "3dgs", "--iters", "3", "--resolution", "1.0",
+                 "--out", str(out), "--device", target]) == 0  # fmt: skip
+    assert main(["render", str(out), "--views", "test", "--device", target]) == 0
+    assert seen and set(seen) == {target}

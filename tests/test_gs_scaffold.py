@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
+from coin_cl.engine.rendering import rasterize
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, voxelize
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.trainer import TrainConfig, Trainer, scaled_model_config
-from coin_cl.rendering import rasterize
 
 BACKEND = "opencl"
 

@@ -1,4 +1,4 @@
-"""Registration of pip-installed OpenCL implementations (coin_cl.icd)."""
+"""Registration of pip-installed OpenCL implementations (coin_cl.engine.icd)."""
 
 import logging
 import os
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from coin_cl import icd
+from coin_cl.engine import icd
 
 
 @pytest.fixture
@@ -83,7 +83,7 @@ def test_read_only_cache_falls_back_to_a_temporary_folder(fake_env, tmp_path, mo
     ro.mkdir()
     ro.chmod(stat.S_IRUSR | stat.S_IXUSR)
     monkeypatch.setenv("XDG_CACHE_HOME", str(ro))
-    with caplog.at_level(logging.INFO, logger="coin_cl.icd"):
+    with caplog.at_level(logging.INFO, logger="coin_cl.engine.icd"):
         folder = icd.register_platforms()
     assert not str(folder).startswith(str(ro))
     assert "not writable" in caplog.text
@@ -95,7 +95,7 @@ def test_unwritable_cache_falls_back_to_a_temporary_folder(fake_env, tmp_path, m
     blocker = tmp_path / "blocked"
     blocker.write_text("a file where a folder should be")
     monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))
-    with caplog.at_level(logging.INFO, logger="coin_cl.icd"):
+    with caplog.at_level(logging.INFO, logger="coin_cl.engine.icd"):
         folder = icd.register_platforms()
     assert not str(folder).startswith(str(blocker))
     assert "not writable" in caplog.text

@@ -268,7 +268,7 @@ def test_eval_ground_truth_against_itself(eval_scene, tmp_path, monkeypatch):
 
 
 def test_eval_scores_a_worse_prediction_lower(eval_scene, tmp_path):
-    from coin_cl.cli_scene import evaluate_folder
+    from coin_cl.evaluation import evaluate_folder
     from coin_cl.scene.io import read_image, write_png
 
     pred = tmp_path / "pred"
@@ -283,7 +283,7 @@ def test_eval_scores_a_worse_prediction_lower(eval_scene, tmp_path):
 
 
 def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
-    from coin_cl.cli_scene import evaluate_folder
+    from coin_cl.evaluation import evaluate_folder
 
     pred = tmp_path / "pred"
     pred.mkdir()
@@ -294,7 +294,7 @@ def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
 
 def test_eval_with_weight_files_reports_lpips_and_fid(eval_scene, tmp_path, monkeypatch, inception_file):
     # Wiring only: the weights are random, so the values mean nothing beyond "computed, finite".
-    from coin_cl.cli_scene import evaluate_folder
+    from coin_cl.evaluation import evaluate_folder
 
     b, h, _, _ = _random_lpips_files(tmp_path, "alex", seed=2)
     monkeypatch.setenv("COIN_LPIPS_BACKBONE", str(b))

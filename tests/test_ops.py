@@ -1,11 +1,11 @@
-"""OpenCL kernels (coin_cl.ops) against their float64 torch twins (coin_cl.reference)."""
+"""OpenCL kernels (coin_cl.engine.ops) against their float64 torch twins (coin_cl.engine.reference)."""
 
 import pytest
 import torch
 from conftest import small_mode
 
-from coin_cl import ops, reference
-from coin_cl.runtime import get_runtime
+from coin_cl.engine import ops, reference
+from coin_cl.engine.runtime import get_runtime
 from coin_cl.testing import look_at_camera, random_gaussians
 
 # Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.
@@ -145,7 +145,7 @@ def test_bins_are_depth_ordered_and_complete(rt):
     """Every tile's list is the depth-ordered set of splats whose tile rectangle covers it."""
     m2, con, op, feat, dep, rad = _projected(13)
     f32 = [t.float().contiguous() for t in (m2, con, op)]
-    bins = ops.TileBins(rt, *f32, dep.float(), rad.int(), W, H, max_pairs=1 << 30)
+    bins = ops.bin_tiles(*f32, dep.float(), rad.int(), W, H, max_pairs=1 << 30, device=rt)
     rect = reference.tile_rects(m2, rad, bins.tiles_x, bins.tiles_y)
     for t in range(bins.tiles_x * bins.tiles_y):
         ids = bins.ids[bins.tile_start[t] : bins.tile_end[t]].long()
@@ -157,13 +157,44 @@ def test_bins_are_depth_ordered_and_complete(rt):
     assert bins.n_pairs == bins.ids.numel()
 
 
+@pytest.mark.parametrize("seed", [13, 14])
+def test_bins_match_the_twin(rt, seed):
+    """bin_tiles (kernels) and its twin give the same tile lists, pair slots and extents."""
+    rt.poison = True
+    try:
+        m2, con, op, feat, dep, rad = _projected(seed)
+        f32 = [t.float().contiguous() for t in (m2, con, op, dep)]
+        got = ops.bin_tiles(*f32, rad.int(), W, H, max_pairs=1 << 30, device=rt)
+    finally:
+        rt.poison = False
+    want = reference.bin_tiles(*f32, rad.int(), W, H, max_pairs=1 << 30)
+    assert (got.tiles_x, got.tiles_y, got.n_pairs, got.n_visible) == (
+        want.tiles_x, want.tiles_y, want.n_pairs, want.n_visible)  # fmt: skip
+    assert got.n_pairs > 0
+    for name in ("tile_start", "tile_end", "ids", "pair_start", "pair_slot"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+    assert_rel(got.extents, want.extents, 1e-5, "extents")
+
+
+def test_given_bins_give_the_same_image(rt):
+    """Binning once and passing the bins to several passes changes nothing."""
+    m2, con, op, feat, dep, rad = _projected(15)
+    bins = ops.bin_tiles(m2, con, op, dep, rad, W, H, device=rt)
+    a = ops.rasterize_to_pixels(m2, con, op, feat, dep, rad, W, H, device=rt)
+    b = ops.rasterize_to_pixels(m2, con, op, feat, dep, rad, W, H, device=rt, bins=bins)
+    c = reference.rasterize_to_pixels(m2, con, op, feat, dep, rad, W, H, bins=bins)
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+    assert_rel(a[0], c[0], 1e-5, "image through the twin with kernel bins")
+
+
 def test_cpu_kernel_exp_matches_float64():
     """The CPU rasterizer's operator-only exp (PoCL does not inline the built-in) is as accurate
     as the built-in: relative error under 2e-7 over the whole range compositing uses."""
     import numpy as np
     import pyopencl as cl
 
-    from coin_cl.runtime import kernel_dir
+    from coin_cl.engine.runtime import kernel_dir
 
     r = get_runtime()
     src = (kernel_dir() / "rasterize_cpu.cl").read_text()

@@ -8,7 +8,7 @@ import torch
 from conftest import small_mode
 
 from coin_cl import PairOverflowError
-from coin_cl.rendering import rasterize
+from coin_cl.engine.rendering import rasterize
 from coin_cl.testing import Gaussians, look_at_camera, random_gaussians
 
 # Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.

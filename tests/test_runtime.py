@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from coin_cl import ops
-from coin_cl.runtime import NoDeviceError, Runtime, get_runtime, list_devices
+from coin_cl.engine import ops
+from coin_cl.engine.runtime import NoDeviceError, Runtime, get_runtime, list_devices
 from coin_cl.testing import look_at_camera, random_gaussians
 
 # Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.
@@ -25,9 +25,9 @@ def test_only_variants_in_use_are_compiled():
     rt = Runtime(get_runtime().device)
     gs = random_gaussians(20, seed=0, channels=5)
     viewmat, K = look_at_camera(32, 32)
-    m2, con, dep, rad = ops.project(gs.means, gs.quats, gs.scales, viewmat, K, 32, 32, runtime=rt)
+    m2, con, dep, rad = ops.project(gs.means, gs.quats, gs.scales, viewmat, K, 32, 32, device=rt)
     for _ in range(2):
-        ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 32, 32, runtime=rt)
+        ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 32, 32, device=rt)
     built = sorted((name, dict(defs).get("NUM_CHANNELS")) for name, defs in rt.programs)
     assert built == [("bin.cl", None), ("project.cl", None), ("rasterize_cpu.cl", 5)]
 
@@ -40,8 +40,8 @@ def test_zero_copy_and_explicit_transfer_agree():
     for unified in (True, False):
         rt = Runtime(get_runtime().device)
         rt.unified = unified and rt.unified
-        m2, con, dep, rad = ops.project(gs.means, gs.quats, gs.scales, viewmat, K, 48, 40, runtime=rt)
-        img, _ = ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 48, 40, runtime=rt)
+        m2, con, dep, rad = ops.project(gs.means, gs.quats, gs.scales, viewmat, K, 48, 40, device=rt)
+        img, _ = ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 48, 40, device=rt)
         outs.append(img)
         if rt.unified:
             assert rt.bytes_transferred == 0
@@ -53,7 +53,7 @@ def test_zero_copy_and_explicit_transfer_agree():
 def test_no_opencl_platform_says_what_to_install(monkeypatch):
     import pyopencl as cl
 
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     def no_platforms():
         raise cl.LogicError("clGetPlatformIDs failed: PLATFORM_NOT_FOUND_KHR")
@@ -68,20 +68,20 @@ def test_no_opencl_platform_says_what_to_install(monkeypatch):
 
 
 def _device_list():
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     return [d for _, d in runtime.all_devices() if runtime.default_rank(d)[0] < 9]
 
 
 def test_broken_build_is_skipped_with_the_compiler_message(monkeypatch, caplog):
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     monkeypatch.setattr(runtime, "_PROBES", {})
     monkeypatch.setattr(runtime, "_PROBE_SOURCE", "__kernel void probe(__global float *x) { x[0] = y; }")
     dev = _device_list()[0]
     probe = runtime.probe_device(dev)
     assert not probe.ok and "y" in probe.message  # the compiler names the undeclared identifier
-    with caplog.at_level("WARNING", logger="coin_cl.runtime"):
+    with caplog.at_level("WARNING", logger="coin_cl.engine.runtime"):
         with pytest.raises(NoDeviceError, match="no OpenCL device can build kernels.*intel-opencl-rt"):
             runtime._choose_device(None)
     assert "skipped: it cannot build kernels" in caplog.text
@@ -90,7 +90,7 @@ def test_broken_build_is_skipped_with_the_compiler_message(monkeypatch, caplog):
 
 
 def test_default_skips_a_failing_device_for_the_next_one(monkeypatch):
-    from coin_cl import runtime
+    from coin_cl.engine import runtime
 
     devices = sorted(_device_list(), key=lambda d: runtime.default_rank(d)[0])
     if len(devices) < 2:
@@ -106,8 +106,8 @@ def test_float_atomics_variant_is_used_where_the_device_has_them():
     gs = random_gaussians(30, seed=2)
     viewmat, K = look_at_camera(32, 32)
     means = gs.means.clone().requires_grad_(True)
-    m2, con, dep, rad = ops.project(means, gs.quats, gs.scales, viewmat, K, 32, 32, runtime=rt)
-    img, alpha = ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 32, 32, runtime=rt)
+    m2, con, dep, rad = ops.project(means, gs.quats, gs.scales, viewmat, K, 32, 32, device=rt)
+    img, alpha = ops.rasterize_to_pixels(m2, con, gs.opacities, gs.colors, dep, rad, 32, 32, device=rt)
     (img.sum() + alpha.sum()).backward()
     used = {
         bool(dict(defs).get("USE_FLOAT_ATOMICS"))

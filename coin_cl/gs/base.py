@@ -50,14 +50,15 @@ def splat(
     background: Tensor | None,
     return_depth: bool,
     training: bool,
+    device: Any = None,
 ) -> tuple[Tensor, Tensor, Tensor | None, dict[str, Any]]:
     """Rasterize activated Gaussians into `cam` (see `coin_cl.rasterize`); keeps the screen-space
     gradient for densification when training and turns accumulated depth into expected depth."""
-    from coin_cl.rendering import rasterize
+    from coin_cl.engine.rendering import rasterize
 
     image, alpha, depth, meta = rasterize(
         means, quats, scales, opacities, colors, cam.viewmat, cam.K, cam.width, cam.height,
-        background=background, return_depth=return_depth, backend=backend,
+        background=background, return_depth=return_depth, backend=backend, device=device,
     )  # fmt: skip
     if training and meta["means2d"].requires_grad:
         meta["means2d"].retain_grad()
@@ -71,6 +72,8 @@ class Model:
 
     kind: str = ""
     optimizer: ParamOptimizer
+    # The OpenCL device renders go to (a Runtime or a name; None: the default device).
+    device: Any = None
 
     def render(
         self,

@@ -20,11 +20,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from coin_cl.engine.geometry import quat_to_rotmat
 from coin_cl.gs.base import Model, RenderOutput, inverse_sigmoid, ndc_grad_norm, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
 from coin_cl.gs.sh import eval_sh, num_sh_bases, rgb_to_sh
-from coin_cl.reference import quat_to_rotmat
 
 PER_GAUSSIAN = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -154,6 +154,7 @@ class GaussianModel(Model):
         image, alpha, depth, meta = splat(
             cam, p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
             backend=backend, background=background, return_depth=return_depth, training=training,
+            device=self.device,
         )  # fmt: skip
         meta["width"], meta["height"] = cam.width, cam.height
         return RenderOutput(image, alpha, depth, image.new_zeros(()), meta)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from coin_cl import constants as cst
+from coin_cl.engine import constants as cst
 from coin_cl.gs.base import Model, RenderOutput, ndc_grad_norm, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
@@ -232,6 +232,7 @@ class ScaffoldModel(Model):
         image, alpha, depth, meta = splat(
             cam, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             backend=backend, background=background, return_depth=return_depth, training=training,
+            device=self.device,
         )  # fmt: skip
         if g["scales"].shape[0]:
             reg = self.cfg.lambda_scale_reg * g["scales"].prod(dim=1).mean()

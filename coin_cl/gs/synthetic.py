@@ -58,7 +58,7 @@ def tiny_scene(
 ) -> TinyScene:
     """`n` random Gaussians in a 1.6-wide cube, seen from `n_views` cameras on a ring of
     radius 3.5 around it (black background)."""
-    from coin_cl.rendering import rasterize
+    from coin_cl.engine.rendering import rasterize
 
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g) - 0.5) * 1.6

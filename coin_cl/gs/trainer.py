@@ -442,10 +442,12 @@ def make_trainer(
     model_cfg: GaussianConfig | ScaffoldConfig | None = None,
     exclude_masks: bool = False,
     resume: bool = True,
+    device=None,
 ) -> Trainer:
     """A trainer over a loaded scene; resumes from out_dir/ckpt.pt when it exists and `resume`.
 
     train_images: replacement targets for the training views (e.g. per-view inpaints).
+    device: the OpenCL device the model renders on (a Runtime or a name; default device if None).
     """
     from coin_cl.gs.data import views_from_scene
 
@@ -454,6 +456,7 @@ def make_trainer(
     pts, cols = init_points(scene, train)
     extent = scene_extent([v.camera for v in train])
     model = build_model(cfg.model, pts, cols, extent, cfg.seed, model_cfg)
+    model.device = device
     tr = Trainer(model, train, test, cfg, out_dir)
     if resume and tr.ckpt_path is not None and tr.ckpt_path.is_file():
         tr.load_checkpoint()

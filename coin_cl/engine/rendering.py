@@ -14,17 +14,23 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from coin_cl import constants as cst
-from coin_cl import reference
+from coin_cl.engine import constants as cst
+from coin_cl.engine.geometry import finite_rows
 
 log = logging.getLogger(__name__)
 
+Device = Any  # a `Runtime`, a device-name substring, or None for the default device
+
+
 def _backend(name: str):
+    # Imported on use: the fast path never loads the twins, the twins never load OpenCL.
     if name == "opencl":
-        from coin_cl import ops
+        from coin_cl.engine import ops
 
         return ops
     if name == "torch":
+        from coin_cl.engine import reference
+
         return reference
     raise ValueError(f"unknown backend {name!r}: use 'opencl' or 'torch'")
 
@@ -40,9 +46,36 @@ def project(
     near: float = cst.NEAR_PLANE,
     far: float = cst.FAR_PLANE,
     backend: str = "opencl",
+    device: Device = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Project Gaussians to screen space; see `coin_cl.reference.project` for the outputs."""
-    return _backend(backend).project(means, quats, scales, viewmat, K, width, height, near, far)
+    """Project Gaussians to screen space; see `coin_cl.engine.reference.project` for the outputs.
+
+    device: the OpenCL device (a `Runtime` or a name substring; default `get_runtime()`).
+    """
+    return _backend(backend).project(
+        means, quats, scales, viewmat, K, width, height, near, far, device=device
+    )
+
+
+def bin_tiles(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    max_pairs: int = cst.MAX_PAIRS_DEFAULT,
+    backend: str = "opencl",
+    device: Device = None,
+):
+    """Bin projected splats to 16x16 tiles, front to back; see `coin_cl.engine.ops.bin_tiles`.
+
+    The result can be passed as `bins=` to `rasterize_to_pixels` by every pass over one view.
+    """
+    return _backend(backend).bin_tiles(
+        means2d, conics, opacities, depths, radii, width, height, max_pairs, device=device
+    )
 
 
 def rasterize_to_pixels(
@@ -55,13 +88,20 @@ def rasterize_to_pixels(
     width: int,
     height: int,
     background: Tensor | None = None,
+    max_pairs: int = cst.MAX_PAIRS_DEFAULT,
+    stats: dict | None = None,
+    bins: Any = None,
     backend: str = "opencl",
-    **kwargs: Any,
+    device: Device = None,
 ) -> tuple[Tensor, Tensor]:
-    """Composite projected splats; see `coin_cl.reference.rasterize_to_pixels`."""
+    """Composite projected splats; see `coin_cl.engine.reference.rasterize_to_pixels`.
+
+    bins: a `bin_tiles` result for these splats (binned here when None).
+    """
     return _backend(backend).rasterize_to_pixels(
-        means2d, conics, opacities, features, depths, radii, width, height, background, **kwargs
-    )
+        means2d, conics, opacities, features, depths, radii, width, height, background,
+        max_pairs=max_pairs, stats=stats, device=device, bins=bins,
+    )  # fmt: skip
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background):
@@ -109,6 +149,7 @@ def rasterize(
     return_depth: bool = False,
     max_pairs: int = cst.MAX_PAIRS_DEFAULT,
     backend: str = "opencl",
+    device: Device = None,
 ) -> tuple[Tensor, Tensor, Tensor | None, dict[str, Any]]:
     """Render N 3D Gaussians into one camera, differentiably.
 
@@ -120,6 +161,8 @@ def rasterize(
         max_pairs: cap on (tile, Gaussian) pairs; exceeding it raises `PairOverflowError`
             (OpenCL backend) rather than failing an allocation.
         backend: 'opencl' (the kernels) or 'torch' (the float64-capable twin, slow).
+        device: the OpenCL device: a `Runtime`, a name substring ("intel", "pthread", "nvidia"),
+            or None for the default (`COIN_CL_DEVICE`, else the first working device).
     Returns:
         image [H, W, C]; alpha [H, W] (1 - final transmittance); depth [H, W] or None, the
         alpha-weighted camera z sum_i w_i z_i (divide by alpha for the expected depth); meta with
@@ -130,12 +173,11 @@ def rasterize(
     _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
     be = _backend(backend)
     means2d, conics, depths, radii = be.project(
-        means, quats, scales, viewmat, K, int(width), int(height), near, far
+        means, quats, scales, viewmat, K, int(width), int(height), near, far, device=device
     )
     # Projection culls NaN/Inf geometry; NaN/Inf in opacity or colour would poison every pixel the
     # splat covers, so those Gaussians are culled here and counted.
-    finite_geo = reference.finite_rows(means, quats, scales)
-    finite_all = finite_geo & reference.finite_rows(opacities[:, None], colors)
+    finite_all = finite_rows(means, quats, scales, opacities, colors)
     radii = radii.masked_fill(~finite_all, 0)
     n_nonfinite = int((~finite_all).sum())
     if n_nonfinite:
@@ -148,7 +190,7 @@ def rasterize(
     stats: dict[str, Any] = {}
     image, alpha = be.rasterize_to_pixels(
         means2d, conics, opacities, feats, depths, radii, int(width), int(height), bg,
-        max_pairs=max_pairs, stats=stats,
+        max_pairs=max_pairs, stats=stats, device=device,
     )  # fmt: skip
     depth = None
     if return_depth:

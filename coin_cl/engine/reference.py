@@ -1,4 +1,4 @@
-"""Pure-torch float64 twins of every kernel op, with the same signatures as `coin_cl.ops`.
+"""Pure-torch float64 twins of every kernel op, with the same signatures as `coin_cl.engine.ops`.
 
 They follow the kernels' semantics exactly (tile binning by 3-sigma radius, front-to-back
 compositing with the alpha clamp, the 1/255 skip and the transmittance stop), written the plainest
@@ -13,47 +13,9 @@ import math
 import torch
 from torch import Tensor
 
-from coin_cl import constants as cst
-
-
-class PairOverflowError(RuntimeError):
-    """More (tile, Gaussian) pairs than the cap allows: raised before anything is allocated."""
-
-    def __init__(self, n_pairs: int, max_pairs: int):
-        super().__init__(
-            f"{n_pairs} (tile, Gaussian) pairs exceed max_pairs={max_pairs}: splats this large "
-            "cover the screen many times over; shrink huge scales, cull them, or raise max_pairs"
-        )
-        self.n_pairs, self.max_pairs = n_pairs, max_pairs
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices from quaternions.
-
-    Args:
-        quats: [N, 4] (w, x, y, z), any non-zero norm (normalised here).
-    Returns:
-        [N, 3, 3]
-    """
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
-
-
-def finite_rows(*tensors: Tensor) -> Tensor:
-    """[N] bool: rows where every given [N, ...] tensor is finite."""
-    ok = torch.ones(tensors[0].shape[0], dtype=torch.bool, device=tensors[0].device)
-    for t in tensors:
-        t = t[:, None] if t.dim() == 1 else t.flatten(1)
-        ok = ok & torch.isfinite(t).all(dim=1)
-    return ok
+from coin_cl.engine import constants as cst
+from coin_cl.engine.errors import PairOverflowError
+from coin_cl.engine.geometry import finite_rows, quat_to_rotmat
 
 
 def project(
@@ -66,8 +28,9 @@ def project(
     height: int,
     near: float = cst.NEAR_PLANE,
     far: float = cst.FAR_PLANE,
+    device: object = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """EWA projection of 3D Gaussians to screen space.
+    """EWA projection of 3D Gaussians to screen space (`device` is ignored: the twin runs in torch).
 
     Args:
         means: [N, 3] world positions. quats: [N, 4] (w, x, y, z). scales: [N, 3] (activated).
@@ -155,6 +118,9 @@ def rasterize_to_pixels(
     background: Tensor | None = None,
     max_pairs: int = cst.MAX_PAIRS_DEFAULT,
     stats: dict | None = None,
+    device: object = None,
+    bins: object = None,
+    defines: dict | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back alpha compositing of projected splats, tile by tile.
 
@@ -163,6 +129,10 @@ def rasterize_to_pixels(
         radii [N] (0 = culled), background [C] or None (zeros).
         max_pairs: cap on (tile, splat) pairs; over it a `PairOverflowError` is raised.
         stats: if given, filled with 'n_pairs'.
+        bins: tile lists from `bin_tiles` (either implementation) to composite instead of this
+            twin's own 3-sigma binning; the image is the same either way (the opacity-aware
+            box only drops pairs that contribute nothing). `device` and `defines` are accepted
+            for the kernels' signature and ignored (the twin has the default semantics).
     Returns:
         image [H, W, C] (sum_i w_i f_i + T_final * background), alpha [H, W] (1 - T_final).
     """
@@ -172,16 +142,29 @@ def rasterize_to_pixels(
     tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
     bg = torch.zeros(C, dtype=dt) if background is None else background.to(dt)
 
-    vis = (radii > 0) & torch.isfinite(opacities) & (opacities > 0)
-    order = torch.argsort(depths.detach(), stable=True)
-    order = order[vis[order]]
-    rect = tile_rects(means2d.detach()[order], radii[order], tiles_x, tiles_y)
-    m2, con, op, feat = means2d[order], conics[order], opacities[order], features[order]
-    n_pairs = int(((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])).sum())
-    if n_pairs > max_pairs:
-        raise PairOverflowError(n_pairs, max_pairs)
+    if bins is None:
+        vis = (radii > 0) & torch.isfinite(opacities) & (opacities > 0)
+        order = torch.argsort(depths.detach(), stable=True)
+        order = order[vis[order]]
+        rect = tile_rects(means2d.detach()[order], radii[order], tiles_x, tiles_y)
+        n_pairs = int(((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])).sum())
+        if n_pairs > max_pairs:
+            raise PairOverflowError(n_pairs, max_pairs)
+
+        def tile_ids(tx: int, ty: int) -> Tensor:
+            sel = (rect[:, 0] <= tx) & (tx < rect[:, 2]) & (rect[:, 1] <= ty) & (ty < rect[:, 3])
+            return sel.nonzero().squeeze(1)
+    else:
+        # Tile lists given: index the unsorted arrays through them (already front to back).
+        order = torch.arange(means2d.shape[0])
+        n_pairs = bins.n_pairs
+
+        def tile_ids(tx: int, ty: int) -> Tensor:
+            return bins.tile(ty * tiles_x + tx)
+
     if stats is not None:
         stats["n_pairs"] = n_pairs
+    m2, con, op, feat = means2d[order], conics[order], opacities[order], features[order]
 
     py, px = torch.meshgrid(torch.arange(ts, dtype=dt), torch.arange(ts, dtype=dt), indexing="ij")
     img = torch.zeros(tiles_y * ts, tiles_x * ts, C, dtype=dt)
@@ -190,8 +173,7 @@ def rasterize_to_pixels(
     for ty in range(tiles_y):
         tiles_img, tiles_alp = [], []
         for tx in range(tiles_x):
-            sel = (rect[:, 0] <= tx) & (tx < rect[:, 2]) & (rect[:, 1] <= ty) & (ty < rect[:, 3])
-            idx = sel.nonzero().squeeze(1)
+            idx = tile_ids(tx, ty)
             gx = (px + tx * ts + 0.5).reshape(-1, 1)
             gy = (py + ty * ts + 0.5).reshape(-1, 1)
             if idx.numel() == 0:
@@ -219,3 +201,75 @@ def rasterize_to_pixels(
     img = torch.stack(rows_img, 0).permute(0, 2, 1, 3, 4).reshape(tiles_y * ts, tiles_x * ts, C)
     alp = torch.stack(rows_alp, 0).permute(0, 2, 1, 3).reshape(tiles_y * ts, tiles_x * ts)
     return img[:height, :width], alp[:height, :width]
+
+
+def splat_extents(conics: Tensor, opacities: Tensor, radii: Tensor) -> Tensor:
+    """[N, 2] half extents (px) of the box outside which o exp(-sigma) < ALPHA_THRESHOLD, padded
+    by a pixel (common.h `splat_extent`); -1 where the splat reaches no pixel. Binning caps the
+    box by the 3-sigma radius; the rasterizers evaluate every pixel of the uncapped box inside a
+    tile the splat is binned to."""
+    o = opacities
+    a, b, c = conics.unbind(-1)
+    det = a * c - b * b
+    ok = (radii > 0) & torch.isfinite(o) & (o >= cst.ALPHA_THRESHOLD) & (det > 0)
+    det = torch.where(ok, det, torch.ones_like(det))
+    t = torch.log(torch.where(ok, o, torch.ones_like(o)) / cst.ALPHA_THRESHOLD).clamp_min(0)
+    ex = (torch.sqrt(2 * t * c / det) + 1).clamp(max=cst.MAX_RADIUS_PX)
+    ey = (torch.sqrt(2 * t * a / det) + 1).clamp(max=cst.MAX_RADIUS_PX)
+    return torch.where(ok[:, None], torch.stack([ex, ey], -1), torch.full_like(conics[:, :2], -1.0))
+
+
+def bin_tiles(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    max_pairs: int = cst.MAX_PAIRS_DEFAULT,
+    device: object = None,
+):
+    """Twin of `coin_cl.engine.ops.bin_tiles`: the same `TileBins`, built the plainest way (a
+    Python loop over tiles), for tests on small scenes."""
+    from coin_cl.engine.ops.bin import TileBins  # a dataclass only: no kernel is touched
+
+    ts = cst.TILE_SIZE
+    tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+    ext = splat_extents(conics.detach().double(), opacities.detach().double(), radii)
+    m = means2d.detach().double()
+    capped = torch.minimum(ext, radii.double()[:, None])
+    x0 = torch.floor((m[:, 0] - capped[:, 0]) / ts).clamp(0, tiles_x)
+    y0 = torch.floor((m[:, 1] - capped[:, 1]) / ts).clamp(0, tiles_y)
+    x1 = torch.ceil((m[:, 0] + capped[:, 0]) / ts).clamp(0, tiles_x)
+    y1 = torch.ceil((m[:, 1] + capped[:, 1]) / ts).clamp(0, tiles_y)
+    rect = torch.stack([x0, y0, x1, y1], -1).long()
+    empty = (ext[:, 0] < 0) | (rect[:, 2] <= rect[:, 0]) | (rect[:, 3] <= rect[:, 1])
+    rect[empty] = 0
+    area = (rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])
+    n_pairs = int(area.sum())
+    if n_pairs > max_pairs:
+        raise PairOverflowError(n_pairs, max_pairs)
+    order = torch.argsort(depths.detach(), stable=True)
+    order = order[area[order] > 0]
+    starts, lists = [], []
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            r = rect[order]
+            sel = (r[:, 0] <= tx) & (tx < r[:, 2]) & (r[:, 1] <= ty) & (ty < r[:, 3])
+            starts.append(sum(len(x) for x in lists))
+            lists.append(order[sel])
+    ids = torch.cat(lists) if lists else torch.zeros(0, dtype=torch.int64)
+    tile_start = torch.tensor(starts, dtype=torch.int32)
+    tile_end = torch.cat([tile_start[1:], torch.tensor([ids.numel()], dtype=torch.int32)])
+    pair_start = torch.zeros(means2d.shape[0] + 1, dtype=torch.int32)
+    pair_start[1:] = torch.cumsum(area, 0)
+    # Splat g's slots, in its tiles' row-major order (the order the fixed reduction sums in).
+    slots = [[] for _ in range(means2d.shape[0])]
+    for j, g in enumerate(ids.tolist()):
+        slots[g].append(j)
+    pair_slot = torch.tensor([j for s in slots for j in s], dtype=torch.int32)
+    return TileBins(
+        tiles_x, tiles_y, tile_start, tile_end, ids.to(torch.int32), pair_start, pair_slot,
+        ext.float(), n_pairs=n_pairs, n_visible=int(order.numel()),
+    )  # fmt: skip

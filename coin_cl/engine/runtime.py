@@ -25,7 +25,8 @@ from pathlib import Path
 
 import torch
 
-from coin_cl.icd import register_platforms
+from coin_cl.engine.errors import NoDeviceError
+from coin_cl.engine.icd import register_platforms
 
 log = logging.getLogger(__name__)
 
@@ -36,10 +37,6 @@ _INSTALL_HINT = (
     "install an OpenCL driver: `pip install pocl-binary-distribution` gives a CPU device "
     "(GPU vendors ship their own); `coin-cl doctor` lists what is visible"
 )
-
-
-class NoDeviceError(RuntimeError):
-    """No OpenCL platform/device matches the request."""
 
 
 def kernel_dir() -> Path:
@@ -56,7 +53,7 @@ def kernel_dir() -> Path:
             return p
     except ModuleNotFoundError:
         pass
-    p = Path(__file__).resolve().parent.parent / "kernels"
+    p = Path(__file__).resolve().parents[2] / "kernels"
     if (p / "common.h").is_file():
         return p
     raise FileNotFoundError(f"OpenCL kernel sources not found (looked in {p}); reinstall coin-cl")
@@ -284,6 +281,8 @@ class Runtime:
         self.extensions = frozenset(self.device.extensions.split())
         self._lock = threading.Lock()
         self._float_atomics: bool | None = None
+        self.n_finish = 0  # host waits, counted (the benchmark reports them per frame)
+        self._in_flight: list = []  # arguments of launches not yet waited for
         log.debug("OpenCL device: %s (unified memory: %s)", self.name, self.unified)
 
     @property
@@ -354,6 +353,50 @@ class Runtime:
             ev.wait()
             self.kernel_times.setdefault(name, []).append((ev.profile.end - ev.profile.start) * 1e-9)
 
+    def run(
+        self,
+        filename: str,
+        name: str,
+        global_size: tuple[int, ...],
+        local_size: tuple[int, ...] | None,
+        args: list,
+        defines: dict[str, object] | None = None,
+        wait: bool = True,
+    ) -> None:
+        """Launch kernel `name` with a declarative argument list, then wait for its outputs.
+
+        Each entry of `args` is a numpy scalar (passed by value), a tensor (read by the kernel:
+        mode "in"), a (tensor, mode) pair with mode "out", "inout" or "scratch" (see `array`), or
+        a `DeviceArray` from `array` when one buffer must outlive a launch (a scratch buffer one
+        kernel writes and the next reads).
+        With `wait` (the default) the queue is finished and outputs copied back when the host is
+        about to read them; pass wait=False when the next launch on this in-order queue is the
+        only reader.
+        """
+        bufs, outs = [], []
+        for a in args:
+            if isinstance(a, DeviceArray):  # already wrapped: shared with another launch
+                bufs.append(a.buf)
+                if a.copy_back:
+                    outs.append(a)
+                continue
+            if isinstance(a, torch.Tensor):
+                a = (a, "in")
+            if isinstance(a, tuple):
+                arr = self.array(a[0], mode=a[1])
+                bufs.append(arr.buf)
+                if a[1] in ("out", "inout"):
+                    outs.append(arr)
+            else:
+                bufs.append(a)
+        self.launch(filename, name, global_size, local_size, *bufs, defines=defines)
+        if wait:
+            self.finish(*outs)
+        else:
+            # The kernel may still read or write these: keep the tensors (whose memory the
+            # buffers alias or are copied from) and buffers alive until the next finish.
+            self._in_flight.append((args, bufs))
+
     # -- shared buffers ---------------------------------------------------------------------
     def array(self, tensor: torch.Tensor, mode: str = "in") -> DeviceArray:
         """Wrap a contiguous CPU tensor as a device buffer (aliased when memory is unified).
@@ -393,11 +436,14 @@ class Runtime:
         """Wait for the queue and bring outputs back to their tensors (a no-op copy when unified)."""
         import pyopencl as cl
 
+        self.n_finish += 1
+        in_flight, self._in_flight = self._in_flight, []
         for a in arrays:
             if a.copy_back and a.tensor.numel():
                 cl.enqueue_copy(self.queue, a.tensor.detach().numpy(), a.buf)
                 self.bytes_transferred += a.tensor.numel() * a.tensor.element_size()
         self.queue.finish()
+        del in_flight  # released only once the queue has drained
 
 
 def _env_flag(name: str) -> bool:
@@ -415,6 +461,15 @@ def get_runtime(device: str | None = None) -> Runtime:
         rt = _RUNTIMES[key] = Runtime(_choose_device(key or None))
         log.info("coin-cl OpenCL device: %s", rt.name)
     return rt
+
+
+def resolve_device(device: Runtime | str | None) -> Runtime:
+    """The runtime for `device`: a Runtime as is, a name substring, or None for the default."""
+    if isinstance(device, Runtime):
+        return device
+    if device is None or isinstance(device, str):
+        return get_runtime(device)
+    raise TypeError(f"device must be a Runtime, a device name or None, not {type(device).__name__}")
 
 
 def as_f32(t: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,35 @@
+"""Small math shared by the fast path and the float64 twins (so neither imports the other)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices from quaternions.
+
+    Args:
+        quats: [..., 4] (w, x, y, z), any non-zero norm (normalised here).
+    Returns:
+        [..., 3, 3]
+    """
+    q = quats / quats.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)  # fmt: skip
+
+
+def finite_rows(*tensors: Tensor) -> Tensor:
+    """[N] bool: rows where every given [N, ...] tensor is finite."""
+    ok = torch.ones(tensors[0].shape[0], dtype=torch.bool, device=tensors[0].device)
+    for t in tensors:
+        t = t[:, None] if t.dim() == 1 else t.flatten(1)
+        ok = ok & torch.isfinite(t).all(dim=1)
+    return ok

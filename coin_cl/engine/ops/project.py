@@ -1,0 +1,73 @@
+"""EWA projection (kernels/project.cl): 3D Gaussians to screen-space splats, forward and backward."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from coin_cl.engine import constants as cst
+from coin_cl.engine.ops._util import f32, groups, i32
+from coin_cl.engine.runtime import Runtime, as_f32, resolve_device
+
+
+def _cam(viewmat: Tensor, K: Tensor) -> Tensor:
+    """[16] float32: R row-major, t, fx, fy, cx, cy, the camera as the kernels read it."""
+    v = viewmat.detach().to(torch.float32)
+    k = K.detach().to(torch.float32)
+    return torch.cat([v[:3, :3].reshape(-1), v[:3, 3], torch.stack([k[0, 0], k[1, 1], k[0, 2], k[1, 2]])])
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmat, K, width, height, near, far, rt):
+        n = means.shape[0]
+        cam = _cam(viewmat, K)
+        ins = [as_f32(means), as_f32(quats), as_f32(scales), cam]
+        means2d, conics, depths = rt.empty(n, 2), rt.empty(n, 3), rt.empty(n)
+        radii = rt.empty(n, dtype=torch.int32)
+        if n:
+            rt.run(
+                "project.cl", "project_fwd", (groups(n),), (64,),
+                [i32(n), *ins, i32(width), i32(height), f32(near), f32(far),
+                 *[(t, "out") for t in (means2d, conics, depths, radii)]],
+            )  # fmt: skip
+        ctx.save_for_backward(*ins, radii, conics)
+        ctx.meta = (width, height, near, far, rt, means.dtype)
+        ctx.mark_non_differentiable(radii)
+        return means2d.to(means.dtype), conics.to(means.dtype), depths.to(means.dtype), radii
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
+        means, quats, scales, cam, radii, conics = ctx.saved_tensors
+        width, height, near, far, rt, dtype = ctx.meta
+        n = means.shape[0]
+        outs = [rt.empty(n, 3), rt.empty(n, 4), rt.empty(n, 3)]
+        if n:
+            grads = [
+                as_f32(torch.zeros(shape) if g is None else g)
+                for g, shape in ((v_means2d, (n, 2)), (v_conics, (n, 3)), (v_depths, (n,)))
+            ]
+            rt.run(
+                "project.cl", "project_bwd", (groups(n),), (64,),
+                [i32(n), means, quats, scales, cam, i32(width), i32(height), f32(near), f32(far),
+                 radii, conics, *grads, *[(t, "out") for t in outs]],
+            )  # fmt: skip
+        v_means, v_quats, v_scales = (o.to(dtype) for o in outs)
+        return v_means, v_quats, v_scales, None, None, None, None, None, None, None
+
+
+def project(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    near: float = cst.NEAR_PLANE,
+    far: float = cst.FAR_PLANE,
+    device: Runtime | str | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """OpenCL twin of `coin_cl.engine.reference.project` (same arguments and outputs)."""
+    rt = resolve_device(device)
+    return _Project.apply(means, quats, scales, viewmat, K, int(width), int(height), near, far, rt)
