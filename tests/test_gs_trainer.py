@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from coin_cl.gs.gaussians import DensifyConfig, GaussianConfig
-from coin_cl.gs.scaffold import ScaffoldConfig
+from coin_cl.gs.gaussians import GaussianConfig
+from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.trainer import (
     CAMERAS_NAME,
@@ -29,16 +29,18 @@ def scene():
 
 
 def _model_cfg(kind):
-    if kind == "3dgs":  # refine and reset inside a short run
-        d = DensifyConfig(refine_start=5, refine_every=8, reset_every=24)
-        return GaussianConfig(sh_degree_interval=10, densify=d)
-    return ScaffoldConfig(start_stat=2, update_from=8, update_interval=8, update_until=40)
+    """Model config and strategy that refine (and, for 3DGS, reset) inside a short run."""
+    if kind == "3dgs":
+        strategy = DefaultStrategy(refine_start=5, refine_every=8, reset_every=24)
+        return GaussianConfig(sh_degree_interval=10), strategy
+    return None, ScaffoldStrategy(start_stat=2, update_from=8, update_interval=8, update_until=40)
 
 
 def _trainer(scene, kind, out, iters, callback=None, backend=EXACT, **kw):
-    m = build_model(kind, scene.noisy_points(), None, 3.5, seed=0, model_cfg=_model_cfg(kind))
+    model_cfg, strategy = _model_cfg(kind)
+    m = build_model(kind, scene.noisy_points(), None, 3.5, seed=0, model_cfg=model_cfg)
     cfg = TrainConfig(model=kind, iters=iters, backend=backend, progress=False, log_every=5, **kw)
-    return Trainer(m, scene.views[1:], scene.views[:1], cfg, out, callback=callback)
+    return Trainer(m, scene.views[1:], scene.views[:1], cfg, out, callback=callback, strategy=strategy)
 
 
 class Killed(Exception):
