@@ -119,3 +119,39 @@ def test_outputs_written(scene, tmp_path):
     assert np.isfinite(res["psnr"])
     g = read_gaussians_ply(tmp_path / PLY_NAME)
     assert 0 < len(g) <= tr.model.n_primitives
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "scaffold"])
+def test_checkpoint_from_before_the_strategy_split_still_resumes(scene, kind, tmp_path):
+    """Older checkpoints kept the densification statistics and generator in the model (its config
+    held the schedule) and the view order in the trainer; they load into the same state."""
+    tr = _trainer(scene, kind, tmp_path / "new", 12, backend="opencl", ckpt_every=12, export_ply=False)
+    tr.train()
+    state = torch.load(tmp_path / "new" / CKPT_NAME, weights_only=False)
+    st = state.pop("strategy")
+    state.pop("terms")
+    smp = state.pop("sampler")
+    cfg = dict(st["config"])
+    if kind == "3dgs":
+        state["model"]["cfg"]["densify"] = cfg
+    else:
+        state["model"]["cfg"].update(cfg)
+    state["model"].update(stats=st["stats"], gen=st["gen"])
+    state["trainer"].update(gen=smp["gen"], perm=smp["perm"])
+    (tmp_path / "old").mkdir()
+    torch.save(state, tmp_path / "old" / CKPT_NAME)
+    fresh = _model_cfg(kind)[1]
+    for k in cfg:  # a different schedule on the caller's side: the checkpoint's wins
+        if k.endswith(("every", "interval")):
+            setattr(fresh, k, 1000)
+    old = _trainer(scene, kind, tmp_path / "old", 12, backend="opencl")
+    old.strategy = fresh
+    old.load_checkpoint()
+    assert old.step == 12 and old.strategy.config() == tr.strategy.config()
+    for k, v in st["stats"].items():
+        assert torch.equal(getattr(old.strategy, k), v), k
+    assert torch.equal(old.strategy.gen.get_state(), tr.strategy.gen.get_state())
+    assert old.sampler.state_dict()["perm"] == smp["perm"]
+    assert torch.equal(old.sampler.gen.get_state(), tr.sampler.gen.get_state())
+    for k, p in old.model.optimizer.params.items():
+        assert torch.equal(p, tr.model.optimizer.params[k]), k

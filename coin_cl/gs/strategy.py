@@ -87,6 +87,8 @@ class Strategy:
         """Restore settings, statistics and generator. Like a model's config, the checkpoint's
         settings win over the ones this object was built with (a resumed run keeps its schedule);
         keys this strategy does not know are ignored (older checkpoints)."""
+        if sd.get("kind", type(self).__name__) != type(self).__name__:
+            raise ValueError(f"checkpoint holds {sd['kind']} state, not {type(self).__name__}'s")
         known = {f.name for f in fields(self)} if hasattr(self, "__dataclass_fields__") else set()
         for k, v in (sd.get("config") or {}).items():
             if k in known:

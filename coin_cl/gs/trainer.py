@@ -260,6 +260,9 @@ class Trainer:
         # seed + 1: the view order stream of earlier versions, so old runs replay identically.
         self.sampler = sampler if sampler is not None else ShuffledEpochs(len(self.train_views), cfg.seed + 1)
         self.log: dict[str, Any] = {"config": asdict(cfg), "train": [], "eval": [], "refine": []}
+        # What else shaped the run, for the record (the loop's own settings are in "config").
+        self.log["strategy"] = {"kind": type(self.strategy).__name__, **self.strategy.config()}
+        self.log["terms"] = {t.name: t.weight for t in self.terms}
         self._evals_done: set[float] = set()
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -308,9 +311,13 @@ class Trainer:
         sst = state.get("strategy") or {"config": legacy_cfg, "stats": msd["stats"], "gen": msd["gen"]}
         self.strategy.initialize(self.model, seed=self.cfg.seed)
         self.strategy.load_state_dict(sst)
+        saved = state.get("terms", {})
         for term in self.terms:
-            if term.name in state.get("terms", {}) and hasattr(term, "load_state_dict"):
-                term.load_state_dict(state["terms"][term.name])
+            if term.name in saved and hasattr(term, "load_state_dict"):
+                term.load_state_dict(saved[term.name])
+        unused = sorted(set(saved) - {t.name for t in self.terms})
+        if unused:
+            log.warning("checkpoint has state for loss terms this trainer lacks: %s", unused)
         self.sampler.load_state_dict(state.get("sampler") or {"gen": t["gen"], "perm": t["perm"]})
         self.step = int(t["step"])
         self.train_seconds = float(t["train_seconds"])
