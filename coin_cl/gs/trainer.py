@@ -255,6 +255,8 @@ class Trainer:
         self.strategy.initialize(model, seed=cfg.seed)
         self.terms = list(terms) if terms is not None else default_terms(model.kind, cfg.loss)
         names = [t.name for t in self.terms]
+        if not names:
+            raise ValueError("no loss terms")
         if len(set(names)) != len(names):
             raise ValueError(f"loss term names must be unique (they key checkpoints): {names}")
         # seed + 1: the view order stream of earlier versions, so old runs replay identically.
@@ -367,8 +369,7 @@ class Trainer:
             v = term.weight * term(ctx)
             values[term.name] = float(v.detach())
             total = v if total is None else total + v
-        if total is None:
-            raise ValueError("no loss terms")
+        assert total is not None  # __init__ requires a term
         t1 = time.perf_counter()
         m.optimizer.zero_grad()
         total.backward()
