@@ -1,10 +1,12 @@
 import json
+from dataclasses import asdict
 
 import numpy as np
 import pytest
 
 from coin_cl.cli import main
 from coin_cl.gs.synthetic import tiny_scene
+from coin_cl.gs.trainer import scaled_strategy
 from coin_cl.scene import Camera, Scene, save_scene
 
 
@@ -27,6 +29,9 @@ def test_train_then_render_all_view_kinds(scene_dir, tmp_path):
     assert rc == 0
     log = json.loads((out / "log.json").read_text())
     assert log["eval"][-1]["step"] == 20 and np.isfinite(log["eval"][-1]["psnr"])
+    # The run's densification is the published schedule compressed to its length.
+    assert log["strategy"] == {"kind": "DefaultStrategy", **asdict(scaled_strategy("3dgs", 20))}
+    assert log["terms"] == {"photometric": 1.0}
     cams = json.loads((out / "cameras.json").read_text())
     assert len(cams["train"]) == 7 and len(cams["test"]) == 1  # every 8th view held out
     # A second call resumes at the end: nothing to do, same step.

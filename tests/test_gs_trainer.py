@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from coin_cl.gs.gaussians import DensifyConfig, GaussianConfig
-from coin_cl.gs.scaffold import ScaffoldConfig
+from coin_cl.gs.gaussians import GaussianConfig
+from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.trainer import (
     CAMERAS_NAME,
@@ -29,16 +29,18 @@ def scene():
 
 
 def _model_cfg(kind):
-    if kind == "3dgs":  # refine and reset inside a short run
-        d = DensifyConfig(refine_start=5, refine_every=8, reset_every=24)
-        return GaussianConfig(sh_degree_interval=10, densify=d)
-    return ScaffoldConfig(start_stat=2, update_from=8, update_interval=8, update_until=40)
+    """Model config and strategy that refine (and, for 3DGS, reset) inside a short run."""
+    if kind == "3dgs":
+        strategy = DefaultStrategy(refine_start=5, refine_every=8, reset_every=24)
+        return GaussianConfig(sh_degree_interval=10), strategy
+    return None, ScaffoldStrategy(start_stat=2, update_from=8, update_interval=8, update_until=40)
 
 
 def _trainer(scene, kind, out, iters, callback=None, backend=EXACT, **kw):
-    m = build_model(kind, scene.noisy_points(), None, 3.5, seed=0, model_cfg=_model_cfg(kind))
+    model_cfg, strategy = _model_cfg(kind)
+    m = build_model(kind, scene.noisy_points(), None, 3.5, seed=0, model_cfg=model_cfg)
     cfg = TrainConfig(model=kind, iters=iters, backend=backend, progress=False, log_every=5, **kw)
-    return Trainer(m, scene.views[1:], scene.views[:1], cfg, out, callback=callback)
+    return Trainer(m, scene.views[1:], scene.views[:1], cfg, out, callback=callback, strategy=strategy)
 
 
 class Killed(Exception):
@@ -117,3 +119,39 @@ def test_outputs_written(scene, tmp_path):
     assert np.isfinite(res["psnr"])
     g = read_gaussians_ply(tmp_path / PLY_NAME)
     assert 0 < len(g) <= tr.model.n_primitives
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "scaffold"])
+def test_checkpoint_from_before_the_strategy_split_still_resumes(scene, kind, tmp_path):
+    """Older checkpoints kept the densification statistics and generator in the model (its config
+    held the schedule) and the view order in the trainer; they load into the same state."""
+    tr = _trainer(scene, kind, tmp_path / "new", 12, backend="opencl", ckpt_every=12, export_ply=False)
+    tr.train()
+    state = torch.load(tmp_path / "new" / CKPT_NAME, weights_only=False)
+    st = state.pop("strategy")
+    state.pop("terms")
+    smp = state.pop("sampler")
+    cfg = dict(st["config"])
+    if kind == "3dgs":
+        state["model"]["cfg"]["densify"] = cfg
+    else:
+        state["model"]["cfg"].update(cfg)
+    state["model"].update(stats=st["stats"], gen=st["gen"])
+    state["trainer"].update(gen=smp["gen"], perm=smp["perm"])
+    (tmp_path / "old").mkdir()
+    torch.save(state, tmp_path / "old" / CKPT_NAME)
+    fresh = _model_cfg(kind)[1]
+    for k in cfg:  # a different schedule on the caller's side: the checkpoint's wins
+        if k.endswith(("every", "interval")):
+            setattr(fresh, k, 1000)
+    old = _trainer(scene, kind, tmp_path / "old", 12, backend="opencl")
+    old.strategy = fresh
+    old.load_checkpoint()
+    assert old.step == 12 and old.strategy.config() == tr.strategy.config()
+    for k, v in st["stats"].items():
+        assert torch.equal(getattr(old.strategy, k), v), k
+    assert torch.equal(old.strategy.gen.get_state(), tr.strategy.gen.get_state())
+    assert old.sampler.state_dict()["perm"] == smp["perm"]
+    assert torch.equal(old.sampler.gen.get_state(), tr.sampler.gen.get_state())
+    for k, p in old.model.optimizer.params.items():
+        assert torch.equal(p, tr.model.optimizer.params[k]), k

@@ -19,13 +19,13 @@ from coin_cl.gs.optim import ParamOptimizer
 @dataclass
 class RenderOutput:
     """One rendered view: image [H, W, 3], alpha [H, W], depth [H, W] (expected z, or None),
-    `reg` a scalar regulariser the model wants added to the loss, `meta` from the rasterizer plus
-    whatever the model needs in `after_backward`."""
+    `meta` from the rasterizer (means2d [M, 2], radii [M], ...) plus what strategies and loss
+    terms read: width, height, scales [M, 3] (the drawn Gaussians' activated scales) and
+    model-specific entries (Scaffold-GS: anchor_visible, selected, neural_opacity)."""
 
     image: Tensor
     alpha: Tensor
     depth: Tensor | None
-    reg: Tensor
     meta: dict[str, Any] = field(default_factory=dict)
 
 
@@ -68,7 +68,9 @@ def splat(
 
 
 class Model:
-    """Interface: see `GaussianModel` and `ScaffoldModel`."""
+    """Interface: see `GaussianModel` and `ScaffoldModel`. A model holds parameters (all in
+    `optimizer`, a `ParamOptimizer`), renders, exports and saves; densification is a
+    `coin_cl.gs.strategy.Strategy` and the loss a list of `coin_cl.gs.terms.LossTerm`s."""
 
     kind: str = ""
     optimizer: ParamOptimizer
@@ -87,20 +89,14 @@ class Model:
     ) -> RenderOutput:
         raise NotImplementedError
 
-    def after_backward(self, out: RenderOutput, step: int) -> None:
-        """Accumulate densification statistics from the last backward pass."""
-
-    def refine(self, step: int) -> dict[str, int]:
-        """Densify / prune after the optimizer step of `step`; returns counts of what changed."""
-        return {}
-
     @property
     def n_primitives(self) -> int:
         raise NotImplementedError
 
-    def export_gaussians(self) -> dict[str, Tensor]:
+    def export_gaussians(self, cam_center: Tensor | None = None) -> dict[str, Tensor]:
         """Plain Gaussians: means [N,3], quats [N,4], scales [N,3] (log), opacities [N]
-        (logit), sh0 [N,1,3], shN [N,K,3]."""
+        (logit), sh0 [N,1,3], shN [N,K,3]. Models whose colour is decoded per view freeze it as
+        seen from `cam_center` [3] (default: the origin)."""
         raise NotImplementedError
 
     def state_dict(self) -> dict[str, Any]:

@@ -4,14 +4,16 @@ Each anchor (a voxel centre of the SfM points) holds a 32-d feature, 10 learnabl
 6-d log scale (3 for the offsets, 3 for its Gaussians). Per view, anchors whose Gaussians can
 reach the camera frustum are decoded by three 2-layer MLPs from [feature, view direction]:
 opacity (tanh; only Gaussians with opacity > 0 are drawn), covariance (3 scales through a
-sigmoid times the anchor's scale, 4 quaternion entries) and colour (sigmoid). Anchors grow where
-their Gaussians' screen gradients are large (at three voxel levels) and are pruned where their
-Gaussians stay transparent; a 0.01 x mean scale-volume term keeps Gaussians from bloating.
+sigmoid times the anchor's scale, 4 quaternion entries) and colour (sigmoid).
+
+Anchor growing and pruning live in `coin_cl.gs.strategy.ScaffoldStrategy`; the 0.01 x mean
+scale-volume regulariser is the loss term `coin_cl.gs.terms.ScaleVolumeReg` (the render exposes
+the drawn Gaussians' scales in `meta['scales']`).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -19,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from coin_cl.engine import constants as cst
-from coin_cl.gs.base import Model, RenderOutput, ndc_grad_norm, splat
+from coin_cl.gs.base import Model, RenderOutput, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
@@ -27,7 +29,6 @@ from coin_cl.gs.sh import rgb_to_sh
 
 PER_ANCHOR = ("anchors", "offsets", "features", "scaling")
 MLPS = ("mlp_opacity", "mlp_cov", "mlp_color")
-_KEY_BITS = 21  # grid-coordinate hashing: each axis must fit in +-2^20 cells
 
 
 @dataclass
@@ -44,23 +45,12 @@ class ScaffoldConfig:
     lr_mlp_opacity: ExpSchedule = ExpSchedule(0.002, 0.00002, 30_000)
     lr_mlp_cov: ExpSchedule = ExpSchedule(0.004, 0.004, 30_000)
     lr_mlp_color: ExpSchedule = ExpSchedule(0.008, 0.00005, 30_000)
-    lambda_scale_reg: float = 0.01  # weight of mean(prod(scales)) over drawn Gaussians
-    # anchor growing / pruning (steps are 1-based iteration counts, as in Scaffold-GS)
-    start_stat: int = 500
-    update_from: int = 1500
-    update_interval: int = 100
-    update_until: int = 15_000
-    grad_threshold: float = 0.0002  # NDC screen-gradient units (see coin_cl.gs.base)
-    min_opacity: float = 0.005
-    success_threshold: float = 0.8
-    update_depth: int = 3
-    update_init_factor: int = 16
-    update_hierarchy_factor: int = 4
-    max_anchors: int = 1_000_000  # growth stops here (memory guard)
 
 
 def scaffold_config_from_dict(d: dict[str, Any]) -> ScaffoldConfig:
-    d = dict(d)
+    """Rebuild a `ScaffoldConfig` from `asdict` output (checkpoints); keys it no longer has (the
+    anchor-growing settings and regulariser weight older checkpoints kept here) are ignored."""
+    d = {k: v for k, v in d.items() if k in {f.name for f in fields(ScaffoldConfig)}}
     for k in ("lr_offsets", "lr_mlp_opacity", "lr_mlp_cov", "lr_mlp_color"):
         d[k] = ExpSchedule(**d[k])
     return ScaffoldConfig(**d)
@@ -70,15 +60,6 @@ def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
     """[M, 3] centres of the occupied voxels of size `voxel` (sorted, unique)."""
     g = np.unique(np.round(np.asarray(points, np.float64) / voxel), axis=0)
     return (g * voxel).astype(np.float32)
-
-
-def _grid_keys(coords: Tensor) -> Tensor:
-    """[N, 3] int grid coordinates -> [N] int64 unique keys."""
-    half = 1 << (_KEY_BITS - 1)
-    if coords.numel() and (coords.abs().max() >= half):
-        raise ValueError("anchor grid coordinates exceed +-2^20 cells: the voxel size is too small")
-    c = coords.long() + half
-    return (c[:, 0] << (2 * _KEY_BITS)) | (c[:, 1] << _KEY_BITS) | c[:, 2]
 
 
 def _mlp(d_in: int, d_hidden: int, d_out: int, act: nn.Module | None) -> nn.Sequential:
@@ -142,8 +123,6 @@ class ScaffoldModel(Model):
                 params[f"{mname}.{pname}"] = prm
                 lrs[f"{mname}.{pname}"] = getattr(c, f"lr_{mname}")
         self.optimizer = ParamOptimizer(params, lrs)
-        self.gen = torch.Generator().manual_seed(seed)
-        self._reset_all_stats()
 
     @property
     def p(self) -> dict[str, nn.Parameter]:
@@ -234,11 +213,8 @@ class ScaffoldModel(Model):
             backend=backend, background=background, return_depth=return_depth, training=training,
             device=self.device,
         )  # fmt: skip
-        if g["scales"].shape[0]:
-            reg = self.cfg.lambda_scale_reg * g["scales"].prod(dim=1).mean()
-        else:
-            reg = image.new_zeros(())
         meta.update(
+            scales=g["scales"],  # [M, 3] drawn Gaussians' scales, for scale regularisers
             width=cam.width,
             height=cam.height,
             anchor_visible=vis,
@@ -246,124 +222,7 @@ class ScaffoldModel(Model):
             neural_opacity=g["neural_opacity"],
             n_anchors_visible=int(vis.sum()),
         )
-        return RenderOutput(image, alpha, depth, reg, meta)
-
-    # ---- statistics and anchor growing ----
-    def _reset_all_stats(self) -> None:
-        a, k = self.n_anchors, self.cfg.n_offsets
-        self.opacity_accum = torch.zeros(a)
-        self.anchor_denom = torch.zeros(a)
-        self.offset_grad_accum = torch.zeros(a * k)
-        self.offset_denom = torch.zeros(a * k)
-
-    def after_backward(self, out: RenderOutput, step: int) -> None:
-        """Scaffold-GS `training_statis` (between `start_stat` and `update_until`)."""
-        s, c = step + 1, self.cfg
-        if not (c.start_stat < s < c.update_until):
-            return
-        m, k = out.meta, c.n_offsets
-        vis = m["anchor_visible"]
-        op = m["neural_opacity"].clamp_min(0).view(-1, k)
-        self.opacity_accum[vis] += op.sum(1)
-        self.anchor_denom[vis] += 1
-        # Map drawn Gaussians back to their (anchor, offset) slot.
-        slot = torch.zeros(self.n_anchors * k, dtype=torch.bool)
-        slot[vis.repeat_interleave(k)] = m["selected"]
-        idx = slot.nonzero().squeeze(1)
-        drawn = m["radii"] > 0
-        g = ndc_grad_norm(m["means2d"], m["width"], m["height"])
-        self.offset_grad_accum[idx[drawn]] += g[drawn].to(self.offset_grad_accum.dtype)
-        self.offset_denom[idx[drawn]] += 1
-
-    def refine(self, step: int) -> dict[str, int]:
-        s, c = step + 1, self.cfg
-        if s > c.update_from and s % c.update_interval == 0 and s < c.update_until:
-            return self.adjust_anchors()
-        return {"grown": 0, "pruned": 0}
-
-    def adjust_anchors(self) -> dict[str, int]:
-        """Grow anchors from high-gradient offsets, then prune transparent anchors (Scaffold-GS
-        `adjust_anchor`). Returns {'grown': n, 'pruned': n}."""
-        c, k = self.cfg, self.cfg.n_offsets
-        grads = self.offset_grad_accum / self.offset_denom
-        grads = torch.nan_to_num(grads, nan=0.0)
-        offset_mask = self.offset_denom > c.update_interval * c.success_threshold * 0.5
-        grown = self._grow(grads, offset_mask)
-        # Reset statistics of the offsets that were considered; pad for the new anchors.
-        self.offset_denom[offset_mask] = 0
-        self.offset_grad_accum[offset_mask] = 0
-        pad = self.n_anchors * k - self.offset_denom.shape[0]
-        self.offset_denom = torch.cat([self.offset_denom, torch.zeros(pad)])
-        self.offset_grad_accum = torch.cat([self.offset_grad_accum, torch.zeros(pad)])
-        # Prune anchors seen often enough whose Gaussians stayed nearly transparent.
-        prune = self.opacity_accum < c.min_opacity * self.anchor_denom
-        checked = self.anchor_denom > c.update_interval * c.success_threshold
-        prune &= checked
-        self.opacity_accum[checked] = 0
-        self.anchor_denom[checked] = 0
-        n_prune = int(prune.sum())
-        if n_prune:
-            keep = ~prune
-            self.optimizer.keep_rows(list(PER_ANCHOR), keep)
-            self.opacity_accum = self.opacity_accum[keep]
-            self.anchor_denom = self.anchor_denom[keep]
-            kk = keep.repeat_interleave(k)
-            self.offset_denom = self.offset_denom[kk]
-            self.offset_grad_accum = self.offset_grad_accum[kk]
-        return {"grown": grown, "pruned": n_prune}
-
-    def _grow(self, grads: Tensor, offset_mask: Tensor) -> int:
-        c, k = self.cfg, self.cfg.n_offsets
-        init_len = self.n_anchors * k
-        total = 0
-        for i in range(c.update_depth):
-            if self.n_anchors >= c.max_anchors:
-                break
-            thr = c.grad_threshold * ((c.update_hierarchy_factor // 2) ** i)
-            cand = (grads >= thr) & offset_mask
-            cand &= torch.rand(cand.shape, generator=self.gen) > 0.5 ** (i + 1)
-            inc = self.n_anchors * k - init_len
-            if inc == 0 and i > 0:
-                continue  # Scaffold-GS only descends a level after the previous one grew
-            cand = torch.cat([cand, torch.zeros(inc, dtype=torch.bool)])
-            p = {n: self.p[n].data for n in PER_ANCHOR}
-            scaling = torch.exp(p["scaling"])
-            all_xyz = p["anchors"][:, None] + p["offsets"] * scaling[:, None, :3]
-            size = self.voxel_size * (c.update_init_factor // (c.update_hierarchy_factor**i))
-            sel_xyz = all_xyz.reshape(-1, 3)[cand]
-            if sel_xyz.shape[0] == 0:
-                continue
-            sel_keys = _grid_keys(torch.round(sel_xyz / size))
-            uniq, inv = torch.unique(sel_keys, return_inverse=True)
-            occupied = torch.isin(uniq, _grid_keys(torch.round(p["anchors"] / size)))
-            new_keep = ~occupied
-            if not bool(new_keep.any()):
-                continue
-            # Recover the integer cell of each unique key from one of its members.
-            first = torch.full((uniq.shape[0],), sel_keys.shape[0], dtype=torch.long)
-            first.scatter_reduce_(0, inv, torch.arange(sel_keys.shape[0]), reduce="amin")
-            cells = torch.round(sel_xyz[first] / size)
-            new_anchor = (cells * size)[new_keep].float()
-            feat_rep = p["features"].repeat_interleave(k, 0)[cand]
-            feat = torch.full((uniq.shape[0], c.feat_dim), -torch.inf)
-            feat = feat.scatter_reduce(
-                0, inv[:, None].expand(-1, c.feat_dim), feat_rep, reduce="amax", include_self=False
-            )[new_keep]
-            budget = c.max_anchors - self.n_anchors
-            new_anchor, feat = new_anchor[:budget], feat[:budget]
-            n_new = new_anchor.shape[0]
-            self.optimizer.append_rows(
-                {
-                    "anchors": new_anchor,
-                    "offsets": torch.zeros(n_new, k, 3),
-                    "features": feat,
-                    "scaling": torch.full((n_new, 6), float(np.log(size))),
-                }
-            )
-            self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(n_new)])
-            self.anchor_denom = torch.cat([self.anchor_denom, torch.zeros(n_new)])
-            total += n_new
-        return total
+        return RenderOutput(image, alpha, depth, meta)
 
     # ---- export / state ----
     @torch.no_grad()
@@ -389,19 +248,9 @@ class ScaffoldModel(Model):
             "voxel_size": self.voxel_size,
             "cfg": asdict(self.cfg),
             "optimizer": self.optimizer.state_dict(),
-            "stats": {
-                "opacity_accum": self.opacity_accum,
-                "anchor_denom": self.anchor_denom,
-                "offset_grad_accum": self.offset_grad_accum,
-                "offset_denom": self.offset_denom,
-            },
-            "gen": self.gen.get_state(),
         }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.extent = sd["extent"]
         self.voxel_size = sd["voxel_size"]
         self.optimizer.load_state_dict(sd["optimizer"])
-        for k, v in sd["stats"].items():
-            setattr(self, k, v.clone())
-        self.gen.set_state(sd["gen"])

@@ -1,5 +1,7 @@
-"""The training loop: one view per step, weighted/masked photometric loss, densification,
-periodic held-out evaluation, resumable checkpoints, a NaN guard, PLY export and a JSON log.
+"""The training loop: one view per step from a view sampler, a sum of loss terms, a densification
+strategy, periodic held-out evaluation, resumable checkpoints, a NaN guard, PLY export and a JSON
+log. The loop knows no model kind: the recipes beside it (`build_model`, `default_strategy`,
+`default_terms`, `scaled_model_config`, `scaled_strategy`) do.
 
 Output folder layout:
     ckpt.pt          last good checkpoint (written to ckpt.pt.tmp, then renamed)
@@ -28,8 +30,11 @@ from torch import Tensor
 from coin_cl.gs.base import Model
 from coin_cl.gs.data import Camera, View, colors_from_views, scene_extent
 from coin_cl.gs.gaussians import GaussianConfig, GaussianModel, gaussian_config_from_dict
-from coin_cl.gs.losses import LossConfig, photometric_loss
+from coin_cl.gs.losses import LossConfig
+from coin_cl.gs.sampler import ShuffledEpochs, ViewSampler
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, scaffold_config_from_dict
+from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy, default_strategy
+from coin_cl.gs.terms import LossContext, LossTerm, default_terms
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +56,7 @@ class TrainConfig:
     backend: str = "opencl"
     seed: int = 0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    loss: LossConfig = field(default_factory=LossConfig)
+    loss: LossConfig = field(default_factory=LossConfig)  # photometric term of `default_terms`
     eval_every: int = 0  # steps between held-out evaluations (0: only at the end)
     eval_at_seconds: tuple[float, ...] = ()  # also evaluate when training time crosses these
     ckpt_every: int = 1000  # steps between checkpoints (0: only at the end)
@@ -83,38 +88,54 @@ REFERENCE_ITERS = 30_000  # the step counts the published schedules were written
 def scaled_model_config(kind: str, iters: int) -> GaussianConfig | ScaffoldConfig:
     """Default model config with its schedules compressed to a run of `iters` steps.
 
-    Learning rates decay over exactly `iters`; densification start/stop/interval and the SH
-    degree steps shrink by iters / 30k (as gsplat's `steps_scaler`), with floors so that
-    statistics still gather over enough views. Runs of 30k steps or more get the defaults.
+    Learning rates decay over exactly `iters`; the SH degree steps shrink by iters / 30k (as
+    gsplat's `steps_scaler`), floored at 100. Runs of 30k steps or more get the defaults. The
+    densification schedule is scaled by `scaled_strategy`.
     """
     f = min(1.0, iters / REFERENCE_ITERS)
     if kind == "3dgs":
         c = GaussianConfig()
-        d = c.densify
+        c.lr_means = replace(c.lr_means, max_steps=iters)
+        c.sh_degree_interval = max(100, round(c.sh_degree_interval * f))
+        return c
+    if kind == "scaffold":
+        c2 = ScaffoldConfig()
+        return replace(
+            c2,
+            lr_offsets=replace(c2.lr_offsets, max_steps=iters),
+            lr_mlp_opacity=replace(c2.lr_mlp_opacity, max_steps=iters),
+            lr_mlp_cov=replace(c2.lr_mlp_cov, max_steps=iters),
+            lr_mlp_color=replace(c2.lr_mlp_color, max_steps=iters),
+        )
+    raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
+
+
+def scaled_strategy(kind: str, iters: int) -> Strategy:
+    """The default densification of `kind` with its schedule compressed to `iters` steps.
+
+    Start/stop/interval shrink by iters / 30k (gsplat's `steps_scaler`), with floors so that
+    statistics still gather over enough views. Runs of 30k steps or more get the defaults.
+    """
+    f = min(1.0, iters / REFERENCE_ITERS)
+    if kind == "3dgs":
+        d = DefaultStrategy()
         every = max(20, round(d.refine_every * f))
-        c.densify = replace(
+        return replace(
             d,
             refine_every=every,
             refine_start=max(100, round(d.refine_start * f)),
             refine_stop=max(200, round(d.refine_stop * f)),
             reset_every=max(30 * every, round(d.reset_every * f)),
         )
-        c.lr_means = replace(c.lr_means, max_steps=iters)
-        c.sh_degree_interval = max(100, round(c.sh_degree_interval * f))
-        return c
     if kind == "scaffold":
-        c2 = ScaffoldConfig()
-        every = max(20, round(c2.update_interval * f))
+        c = ScaffoldStrategy()
+        every = max(20, round(c.update_interval * f))
         return replace(
-            c2,
+            c,
             update_interval=every,
-            start_stat=max(50, round(c2.start_stat * f)),
-            update_from=max(every * 2, round(c2.update_from * f)),
-            update_until=max(every * 4, round(c2.update_until * f)),
-            lr_offsets=replace(c2.lr_offsets, max_steps=iters),
-            lr_mlp_opacity=replace(c2.lr_mlp_opacity, max_steps=iters),
-            lr_mlp_cov=replace(c2.lr_mlp_cov, max_steps=iters),
-            lr_mlp_color=replace(c2.lr_mlp_color, max_steps=iters),
+            start_stat=max(50, round(c.start_stat * f)),
+            update_from=max(every * 2, round(c.update_from * f)),
+            update_until=max(every * 4, round(c.update_until * f)),
         )
     raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
 
@@ -145,6 +166,11 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, np.generic | Tensor):
         return o.item() if getattr(o, "ndim", 0) == 0 else o.tolist()
     raise TypeError(f"not JSON-serialisable: {type(o)}")
+
+
+def _state(obj: Any) -> dict[str, Any]:
+    """`obj.state_dict()` for duck-typed parts that may not have one."""
+    return obj.state_dict() if hasattr(obj, "state_dict") else {}
 
 
 def _peak_rss_mb() -> float:
@@ -187,7 +213,15 @@ def evaluate_views(
 class Trainer:
     """Train `model` on `train_views`, evaluating on `test_views`.
 
+    One step: `sampler.next()` picks a view; the model renders it; `strategy.step_pre_backward`;
+    total = sum(term.weight * term(ctx)); backward; NaN guard; the model's optimiser step; every
+    term's `step_after(ctx)`; `strategy.step_post_backward` (statistics, densification).
+
     Args:
+        strategy: densification (default: `default_strategy(model.kind)`, the published
+            schedule; `scaled_strategy` fits it to a short run). Initialised here with cfg.seed.
+        terms: loss terms, unique names (default: `default_terms(model.kind, cfg.loss)`).
+        sampler: view order (default: `ShuffledEpochs` seeded with cfg.seed + 1).
         out_dir: where checkpoints, the log and the PLY go (None: nothing is written).
         callback: called as callback(trainer, step) at the start of every step (tests use it
             to kill or poison a run).
@@ -201,6 +235,10 @@ class Trainer:
         cfg: TrainConfig,
         out_dir: str | Path | None = None,
         callback: Callable[[Trainer, int], None] | None = None,
+        *,
+        strategy: Strategy | None = None,
+        terms: Sequence[LossTerm] | None = None,
+        sampler: ViewSampler | None = None,
     ):
         if not train_views:
             raise ValueError("no training views")
@@ -213,9 +251,20 @@ class Trainer:
         self.background = torch.tensor(cfg.background, dtype=torch.float32)
         self.step = 0
         self.train_seconds = 0.0
-        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
-        self.perm: list[int] = []
+        self.strategy = strategy if strategy is not None else default_strategy(model.kind)
+        self.strategy.initialize(model, seed=cfg.seed)
+        self.terms = list(terms) if terms is not None else default_terms(model.kind, cfg.loss)
+        names = [t.name for t in self.terms]
+        if not names:
+            raise ValueError("no loss terms")
+        if len(set(names)) != len(names):
+            raise ValueError(f"loss term names must be unique (they key checkpoints): {names}")
+        # seed + 1: the view order stream of earlier versions, so old runs replay identically.
+        self.sampler = sampler if sampler is not None else ShuffledEpochs(len(self.train_views), cfg.seed + 1)
         self.log: dict[str, Any] = {"config": asdict(cfg), "train": [], "eval": [], "refine": []}
+        # What else shaped the run, for the record (the loop's own settings are in "config").
+        self.log["strategy"] = {"kind": type(self.strategy).__name__, **self.strategy.config()}
+        self.log["terms"] = {t.name: t.weight for t in self.terms}
         self._evals_done: set[float] = set()
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -234,11 +283,12 @@ class Trainer:
             return
         state = {
             "model": self.model.state_dict(),
+            "strategy": self.strategy.state_dict(),
+            "terms": {t.name: _state(t) for t in self.terms},
+            "sampler": self.sampler.state_dict(),
             "trainer": {
                 "step": self.step,
                 "train_seconds": self.train_seconds,
-                "gen": self.gen.get_state(),
-                "perm": list(self.perm),
                 "log": self.log,
                 "evals_done": sorted(self._evals_done),
             },
@@ -249,17 +299,30 @@ class Trainer:
         self.save_log()
 
     def load_checkpoint(self, path: str | Path | None = None) -> None:
-        """Restore model, optimizer, RNG and log from a checkpoint (default out_dir/ckpt.pt)."""
+        """Restore model, optimizer, strategy, loss terms, sampler and log from a checkpoint
+        (default out_dir/ckpt.pt). The checkpoint's model and strategy settings win."""
         path = Path(path) if path is not None else self.ckpt_path
         if path is None or not path.is_file():
             raise FileNotFoundError(f"no checkpoint at {path}")
         state = torch.load(path, weights_only=False)
-        self.model = model_from_state(state["model"])
+        msd = state["model"]
+        self.model = model_from_state(msd)
         t = state["trainer"]
+        # Checkpoints from before the strategy / sampler split kept these in the model and trainer.
+        legacy_cfg = {**msd.get("cfg", {}), **msd.get("cfg", {}).get("densify", {})}
+        sst = state.get("strategy") or {"config": legacy_cfg, "stats": msd["stats"], "gen": msd["gen"]}
+        self.strategy.initialize(self.model, seed=self.cfg.seed)
+        self.strategy.load_state_dict(sst)
+        saved = state.get("terms", {})
+        for term in self.terms:
+            if term.name in saved and hasattr(term, "load_state_dict"):
+                term.load_state_dict(saved[term.name])
+        unused = sorted(set(saved) - {t.name for t in self.terms})
+        if unused:
+            log.warning("checkpoint has state for loss terms this trainer lacks: %s", unused)
+        self.sampler.load_state_dict(state.get("sampler") or {"gen": t["gen"], "perm": t["perm"]})
         self.step = int(t["step"])
         self.train_seconds = float(t["train_seconds"])
-        self.gen.set_state(t["gen"])
-        self.perm = list(t["perm"])
         self.log = t["log"]
         self._evals_done = set(t["evals_done"])
 
@@ -269,11 +332,6 @@ class Trainer:
             _atomic_json(self.out / LOG_NAME, self.log)
 
     # ---- loop ----
-    def _next_view(self) -> View:
-        if not self.perm:
-            self.perm = torch.randperm(len(self.train_views), generator=self.gen).tolist()
-        return self.train_views[self.perm.pop()]
-
     def _diverged(self, what: str) -> TrainingDivergedError:
         last = "none was written"
         if self.ckpt_path is not None and self.ckpt_path.is_file():
@@ -297,32 +355,39 @@ class Trainer:
 
     def train_step(self) -> dict[str, float]:
         """One optimisation step on the next view; returns the loss parts and timings."""
-        view = self._next_view()
+        idx = self.sampler.next()
+        view = self.train_views[idx]
         m = self.model
         t0 = time.perf_counter()
         out = m.render(view.camera, self.step, backend=self.cfg.backend,
                        background=self.background, training=True)  # fmt: skip
-        loss, parts = photometric_loss(
-            out.image[None], view.image[None], torch.tensor([float(view.weight)]),
-            None if view.exclude is None else view.exclude[None], self.cfg.loss,
-        )  # fmt: skip
-        total = loss + (out.reg if view.weight != 0 else 0.0)
+        self.strategy.step_pre_backward(m, self.step, out)
+        ctx = LossContext(view=view, index=idx, out=out, step=self.step, model=m)
+        values: dict[str, float] = {}
+        total: Tensor | None = None
+        for term in self.terms:
+            v = term.weight * term(ctx)
+            values[term.name] = float(v.detach())
+            total = v if total is None else total + v
+        assert total is not None  # __init__ requires a term
         t1 = time.perf_counter()
         m.optimizer.zero_grad()
         total.backward()
         t2 = time.perf_counter()
         self._check_finite(total.detach())
-        m.after_backward(out, self.step)
         m.optimizer.step(self.step)
+        for term in self.terms:
+            if hasattr(term, "step_after"):
+                term.step_after(ctx)
         t3 = time.perf_counter()
-        events = m.refine(self.step)
+        events = self.strategy.step_post_backward(m, self.step, out)
         t4 = time.perf_counter()
         if any(events.values()):
             self.log["refine"].append({"step": self.step + 1, **events, "n": m.n_primitives})
         return {
             "loss": float(total.detach()),
-            "l1": float(parts["l1"][0]),
-            "ssim": float(parts["ssim"][0]),
+            **values,
+            **ctx.log,
             "t_fwd": t1 - t0,
             "t_bwd": t2 - t1,
             "t_opt": t3 - t2,
@@ -401,15 +466,12 @@ class Trainer:
                 "n": self.model.n_primitives, **final}  # fmt: skip
 
     def export_ply(self, path: Path) -> None:
-        """Write the model as plain 3DGS Gaussians (Scaffold-GS decoded from the mean camera)."""
+        """Write the model as plain 3DGS Gaussians (view-decoded colours, as Scaffold-GS', frozen
+        at the mean training camera)."""
         from coin_cl.scene.ply import GaussianPly, write_gaussians_ply
 
-        m = self.model
-        if isinstance(m, ScaffoldModel):
-            center = torch.stack([v.camera.center for v in self.train_views]).mean(0)
-            g = m.export_gaussians(center)
-        else:
-            g = m.export_gaussians()
+        center = torch.stack([v.camera.center for v in self.train_views]).mean(0)
+        g = self.model.export_gaussians(center)
         write_gaussians_ply(
             path,
             GaussianPly(
@@ -443,11 +505,16 @@ def make_trainer(
     exclude_masks: bool = False,
     resume: bool = True,
     device=None,
+    strategy: Strategy | None = None,
+    terms: Sequence[LossTerm] | None = None,
+    sampler: ViewSampler | None = None,
 ) -> Trainer:
     """A trainer over a loaded scene; resumes from out_dir/ckpt.pt when it exists and `resume`.
 
     train_images: replacement targets for the training views (e.g. per-view inpaints).
     device: the OpenCL device the model renders on (a Runtime or a name; default device if None).
+    strategy: default `scaled_strategy(cfg.model, cfg.iters)`, the schedule every caller got
+        before densification left the model config; terms / sampler: see `Trainer`.
     """
     from coin_cl.gs.data import views_from_scene
 
@@ -457,7 +524,9 @@ def make_trainer(
     extent = scene_extent([v.camera for v in train])
     model = build_model(cfg.model, pts, cols, extent, cfg.seed, model_cfg)
     model.device = device
-    tr = Trainer(model, train, test, cfg, out_dir)
+    if strategy is None:
+        strategy = scaled_strategy(cfg.model, cfg.iters)
+    tr = Trainer(model, train, test, cfg, out_dir, strategy=strategy, terms=terms, sampler=sampler)
     if resume and tr.ckpt_path is not None and tr.ckpt_path.is_file():
         tr.load_checkpoint()
         log.info("resumed from %s at step %d", tr.ckpt_path, tr.step)

@@ -1,0 +1,162 @@
+"""Loss terms: what the trainer minimises, as a list of pluggable objects.
+
+Per step the trainer renders one view, builds a `LossContext` and minimises
+
+    total = sum(term.weight * term(ctx) for term in terms)
+
+The protocol (duck-typed; `LossTerm` gives the defaults):
+
+- `name: str` — unique among a trainer's terms; keys the term's logged value and its checkpoint
+  state;
+- `weight: float` — multiplies the term's value (its lambda);
+- `__call__(ctx) -> Tensor` — a scalar, differentiable with respect to the model's parameters
+  through `ctx.out`; it may add logged scalars to `ctx.log`;
+- `step_after(ctx)` — called after the model's optimiser step of every training step, before
+  densification changes the primitives. A term with parameters of its own (an adversarial
+  discriminator) updates them here with its own optimiser; the generator's backward may have
+  left gradients on them, so it clears them first;
+- `state_dict()` / `load_state_dict(sd)` — anything the term must carry across a checkpoint
+  (per-view statistics, its own networks and optimiser), so that resumed runs stay bit-exact.
+
+Per-view weights (CoIn's W_n) come from a `ViewWeights` source given to `PhotometricLoss`:
+`StaticViewWeights` reads `View.weight`; Ref-GS's adaptive weights replace it and see the view's
+current unweighted photometric loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from coin_cl.gs.losses import LossConfig, photometric_loss
+
+if TYPE_CHECKING:
+    from coin_cl.gs.base import Model, RenderOutput
+    from coin_cl.gs.data import View
+
+
+@dataclass
+class LossContext:
+    """Everything a loss term may look at for one training step.
+
+    view: the training view (camera, target image [H, W, 3], exclusion mask [H, W] or None,
+        static weight); index: its position in the trainer's training views (for per-view state);
+    out: the model's render of it (image [H, W, 3], alpha, depth, meta); step: counted from 0;
+    model: the model being trained; log: scalars terms want in the training log (floats).
+    """
+
+    view: View
+    index: int
+    out: RenderOutput
+    step: int
+    model: Model
+    log: dict[str, float] = field(default_factory=dict)
+
+
+class LossTerm:
+    """Base loss term: override `__call__`; the other hooks default to doing nothing."""
+
+    name: str = "term"
+    weight: float = 1.0
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        raise NotImplementedError
+
+    def step_after(self, ctx: LossContext) -> None:
+        """After the model's optimiser step (a term's own optimiser steps here)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        pass
+
+
+class ViewWeights:
+    """Per-view weight source for `PhotometricLoss`; this base returns each view's static
+    `View.weight` (0 removes the view).
+
+    `__call__(ctx, view_loss)` gets the view's current unweighted photometric loss (a detached
+    scalar) so adaptive schemes (Ref-GS: W_n from the change of L_R^n between visits) can use it;
+    it returns a float or a scalar Tensor. State for checkpoints as for loss terms.
+    """
+
+    def __call__(self, ctx: LossContext, view_loss: Tensor) -> float | Tensor:
+        return float(ctx.view.weight)
+
+    def step_after(self, ctx: LossContext) -> None:
+        pass
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        pass
+
+
+StaticViewWeights = ViewWeights
+
+
+@dataclass
+class PhotometricLoss(LossTerm):
+    """W_n x ((1 - lambda) L1 + lambda (1 - SSIM)) over the view's kept pixels (paper eq. 2;
+    `coin_cl.gs.losses.photometric_loss`), W_n from `view_weights`.
+
+    Logs 'l1' and 'ssim' (over kept pixels) and 'view_weight'.
+    """
+
+    cfg: LossConfig = field(default_factory=LossConfig)
+    view_weights: ViewWeights = field(default_factory=StaticViewWeights)
+    weight: float = 1.0
+    name: str = "photometric"
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        v = ctx.view
+        loss, parts = photometric_loss(
+            ctx.out.image[None], v.image[None], None,
+            None if v.exclude is None else v.exclude[None], self.cfg,
+        )  # fmt: skip
+        w = self.view_weights(ctx, parts["loss"][0])
+        w = torch.as_tensor(w, dtype=loss.dtype)
+        ctx.log.update(l1=float(parts["l1"][0]), ssim=float(parts["ssim"][0]), view_weight=float(w))
+        # A zero weight must give an exactly zero gradient even if the view's loss is not finite
+        # (and keep a graph, so that backward still runs when this is the only term).
+        return torch.where(w != 0, w * loss, torch.zeros_like(loss))
+
+    def step_after(self, ctx: LossContext) -> None:
+        self.view_weights.step_after(ctx)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"view_weights": self.view_weights.state_dict()}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        self.view_weights.load_state_dict(sd.get("view_weights", {}))
+
+
+@dataclass
+class ScaleVolumeReg(LossTerm):
+    """Mean volume prod(scales) of the drawn Gaussians (`out.meta['scales']` [M, 3]); Scaffold-GS
+    adds it with weight 0.01 to keep neural Gaussians from bloating. A view whose static weight is
+    0 is switched off entirely, so it adds nothing there either."""
+
+    weight: float = 0.01
+    name: str = "scale_reg"
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        scales = ctx.out.meta["scales"]
+        if ctx.view.weight == 0 or scales.shape[0] == 0:
+            return ctx.out.image.new_zeros(())
+        return scales.prod(dim=1).mean()
+
+
+def default_terms(kind: str, loss_cfg: LossConfig | None = None) -> list[LossTerm]:
+    """The published loss of a model kind: photometric (both), + 0.01 x scale volume (Scaffold-GS)."""
+    terms: list[LossTerm] = [PhotometricLoss(loss_cfg or LossConfig())]
+    if kind == "scaffold":
+        terms.append(ScaleVolumeReg())
+    elif kind != "3dgs":
+        raise ValueError(f"no default loss terms for model {kind!r}")
+    return terms

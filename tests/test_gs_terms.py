@@ -1,0 +1,209 @@
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+
+from coin_cl.gs.gaussians import GaussianConfig
+from coin_cl.gs.losses import LossConfig, photometric_loss
+from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel
+from coin_cl.gs.strategy import DefaultStrategy
+from coin_cl.gs.synthetic import tiny_scene
+from coin_cl.gs.terms import (
+    LossContext,
+    LossTerm,
+    PhotometricLoss,
+    ScaleVolumeReg,
+    ViewWeights,
+    default_terms,
+)
+from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, Trainer, build_model
+
+EXACT = "torch"
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return tiny_scene(n=30, width=24, height=16, n_views=6, backend=EXACT)
+
+
+def _trainer(scene, terms, out=None, iters=3, backend=EXACT, callback=None, **kw):
+    m = build_model("3dgs", scene.noisy_points(), None, 3.5, seed=0,
+                    model_cfg=GaussianConfig(sh_degree_interval=10))  # fmt: skip
+    cfg = TrainConfig(model="3dgs", iters=iters, backend=backend, progress=False, log_every=5,
+                      export_ply=False, **kw)  # fmt: skip
+    st = DefaultStrategy(refine_start=5, refine_every=8, reset_every=24)
+    return Trainer(m, scene.views[1:], scene.views[:1], cfg, out, callback, strategy=st, terms=terms)
+
+
+class MeansSquared(LossTerm):
+    """A custom term: sum of squared means, gradient 2 x means."""
+
+    name = "means_sq"
+
+    def __init__(self, weight: float):
+        self.weight = weight
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        return (ctx.model.optimizer.params["means"] ** 2).sum()
+
+
+def test_custom_term_adds_its_weighted_gradient(scene):
+    grads = {}
+    for w in (None, 0.0, 0.5):
+        terms = [PhotometricLoss()] + ([] if w is None else [MeansSquared(w)])
+        tr = _trainer(scene, terms)
+        means = tr.model.optimizer.params["means"].detach().clone()
+        rec = tr.train_step()
+        grads[w] = tr.model.optimizer.params["means"].grad.clone()
+        if w is not None:
+            assert math.isclose(rec["means_sq"], w * float((means**2).sum()), rel_tol=1e-6)
+            assert math.isclose(rec["loss"], rec["photometric"] + rec["means_sq"], rel_tol=1e-6)
+    assert torch.equal(grads[0.0], grads[None])  # weight 0: no contribution at all
+    assert torch.allclose(grads[0.5], grads[None] + 0.5 * 2 * means, atol=1e-6)
+
+
+def test_photometric_term_is_the_weighted_masked_loss(scene):
+    v = scene.views[1]
+    v2 = type(v)(v.camera, v.image, torch.zeros(16, 24, dtype=torch.bool), 0.25)
+    v2.exclude[4:9, 3:12] = True
+    img = torch.rand(16, 24, 3, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    out = type("R", (), {"image": img, "meta": {}})()
+    ctx = LossContext(view=v2, index=0, out=out, step=0, model=None)
+    cfg = LossConfig(lambda_dssim=0.3)
+    val = PhotometricLoss(cfg)(ctx)
+    ref, parts = photometric_loss(img[None], v2.image[None], torch.tensor([0.25]), v2.exclude[None], cfg)
+    assert torch.equal(val, ref)
+    assert ctx.log["view_weight"] == 0.25 and ctx.log["l1"] == float(parts["l1"][0])
+    (g,) = torch.autograd.grad(val, img)
+    assert torch.count_nonzero(g[v2.exclude]) == 0
+
+
+class RefLikeWeights(ViewWeights):
+    """Ref-GS-shaped adaptive weights: view `ref` gets `lam`; others 1 / (1 + exp(lam (L_t -
+    L_prev))) from the change of their own loss since their previous visit (state per view)."""
+
+    def __init__(self, n_views: int, ref: int = 0, lam: float = 50.0):
+        self.ref, self.lam = ref, lam
+        self.prev = torch.full((n_views,), float("nan"))
+
+    def __call__(self, ctx: LossContext, view_loss: Tensor) -> float:
+        i = ctx.index
+        prev, self.prev[i] = float(self.prev[i]), float(view_loss)
+        if i == self.ref:
+            return self.lam
+        return 1.0 if math.isnan(prev) else 1.0 / (1.0 + math.exp(self.lam * (float(view_loss) - prev)))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"prev": self.prev.clone()}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        self.prev = sd["prev"].clone()
+
+
+class ToyCritic(LossTerm):
+    """A term with a parameter and optimiser of its own (the shape of an adversarial term): the
+    generator sees `c * mean(image)`; after the model's step the critic fits c to the image."""
+
+    name = "critic"
+    weight = 0.1
+
+    def __init__(self):
+        self.c = torch.nn.Parameter(torch.tensor(1.0))
+        self.opt = torch.optim.Adam([self.c], lr=0.05)
+        self.calls: list[int] = []
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        return self.c.detach() * ctx.out.image.mean()
+
+    def step_after(self, ctx: LossContext) -> None:
+        self.calls.append(ctx.step)
+        self.opt.zero_grad()
+        ((self.c - ctx.out.image.detach().mean()) ** 2).backward()
+        self.opt.step()
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"c": self.c.detach().clone(), "opt": self.opt.state_dict()}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        with torch.no_grad():
+            self.c.copy_(sd["c"])
+        self.opt.load_state_dict(sd["opt"])
+
+
+class Killed(Exception):
+    pass
+
+
+def test_stateful_terms_roundtrip_through_a_checkpoint_bit_exactly(scene, tmp_path):
+    n = len(scene.views) - 1
+
+    def terms():
+        return [PhotometricLoss(view_weights=RefLikeWeights(n)), ToyCritic()]
+
+    iters = 20
+    at10 = {}
+
+    def snap(tr, step):
+        if step == 10:
+            at10["photometric"] = tr.terms[0].state_dict()
+            at10["critic"] = tr.terms[1].state_dict()
+
+    ref = _trainer(scene, terms(), tmp_path / "ref", iters, "opencl", snap, ckpt_every=0)
+    ref.train()
+    assert ref.terms[1].calls == list(range(iters))  # once per step, after the model's step
+
+    def kill(tr, step):
+        if step == 13:
+            raise Killed
+
+    run = _trainer(scene, terms(), tmp_path / "run", iters, "opencl", kill, ckpt_every=10)
+    with pytest.raises(Killed):
+        run.train()
+    saved = torch.load(tmp_path / "run" / CKPT_NAME, weights_only=False)
+    assert set(saved["terms"]) == {"photometric", "critic"}
+    resumed = _trainer(scene, terms(), tmp_path / "run", iters, "opencl", ckpt_every=10)
+    resumed.load_checkpoint()
+    assert resumed.step == 10
+    w = resumed.terms[0].view_weights
+    assert torch.equal(w.prev, at10["photometric"]["view_weights"]["prev"])
+    assert not torch.isnan(w.prev).all()  # the weights had state worth restoring
+    assert torch.equal(resumed.terms[1].c.detach(), at10["critic"]["c"])
+    resumed.train()
+    a, b = ref.model.optimizer.params, resumed.model.optimizer.params
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert torch.equal(ref.terms[0].view_weights.prev, resumed.terms[0].view_weights.prev)
+    assert torch.equal(ref.terms[1].c, resumed.terms[1].c)
+    # The adaptive weights were in play: the reference view's weight was logged.
+    assert max(e["view_weight"] for e in ref.log["train"]) > 1.0
+
+
+def test_scale_regulariser_is_the_mean_volume():
+    sc = tiny_scene(backend="opencl")
+    m = ScaffoldModel(sc.noisy_points(), None, 1.0, ScaffoldConfig(voxel_size=0.3), seed=0)
+    g = torch.Generator().manual_seed(0)
+    a = m.n_anchors
+    m.optimizer.set_rows("features", torch.randn(a, 32, generator=g))
+    m.optimizer.set_rows("offsets", torch.randn(a, 10, 3, generator=g))
+    m.optimizer.set_rows("scaling", torch.log(torch.full((a, 6), 0.08)))
+    cam = sc.views[0].camera
+    out = m.render(cam, 0, backend="opencl")
+    dec = m.decode(cam.center, m.visible_anchors(cam))
+    expected = 0.01 * float(dec["scales"].detach().prod(1).mean())
+    term = ScaleVolumeReg()
+    ctx = LossContext(view=sc.views[0], index=0, out=out, step=0, model=m)
+    assert math.isclose(float(term.weight * term(ctx).detach()), expected, rel_tol=1e-5)
+    sc.views[0].weight = 0.0  # a switched-off view gets no regulariser either
+    assert float(term(ctx)) == 0.0 and not term(ctx).requires_grad
+
+
+def test_default_terms_and_unique_names(scene):
+    assert [(t.name, t.weight) for t in default_terms("3dgs")] == [("photometric", 1.0)]
+    assert [(t.name, t.weight) for t in default_terms("scaffold")] == [
+        ("photometric", 1.0), ("scale_reg", 0.01)]  # fmt: skip
+    with pytest.raises(ValueError, match="unique"):
+        _trainer(scene, [PhotometricLoss(), PhotometricLoss(weight=2.0)])
+    np.testing.assert_equal(default_terms("3dgs", LossConfig(lambda_dssim=0.5))[0].cfg.lambda_dssim, 0.5)
