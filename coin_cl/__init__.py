@@ -23,6 +23,7 @@ _LAZY = {
     "Gaussians": "coin_cl.engine",
     "PairOverflowError": "coin_cl.engine",
     "NoDeviceError": "coin_cl.engine",
+    "warp_features": "coin_cl.engine",
     "load_scene": "coin_cl.scene",
 }
 

@@ -11,6 +11,7 @@ geometry    small math the fast path and the twins share
 
 from coin_cl.engine.errors import NoDeviceError, PairOverflowError
 from coin_cl.engine.gaussians import Gaussians
+from coin_cl.engine.ops.warp import support_mask, warp_features
 from coin_cl.engine.rendering import bin_tiles, project, rasterize, rasterize_to_pixels
 from coin_cl.engine.runtime import Runtime, get_runtime, resolve_device
 
@@ -25,4 +26,6 @@ __all__ = [
     "rasterize",
     "rasterize_to_pixels",
     "resolve_device",
+    "support_mask",
+    "warp_features",
 ]

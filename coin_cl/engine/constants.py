@@ -18,3 +18,7 @@ EIGEN_FLOOR = 0.1  # floor under the discriminant when the largest 2D eigenvalue
 MAX_RADIUS_PX = 1 << 24  # radii are clamped here before the float->int conversion
 MAX_PAIRS_DEFAULT = 1 << 27  # cap on (tile, Gaussian) pairs per image (512 MiB of int32 ids)
 MAX_CHANNELS = 128  # largest feature count a rasterize variant is compiled for
+
+# Feature warping (kernels/warp.cl; passed to the kernels as arguments, not -D defines).
+WARP_DEPTH_TOL = 0.01  # z-buffer: winners within 1% of the nearest candidate's camera z (relative)
+WARP_SRC_DEPTH_TOL = 0.01  # source visibility: a point > 1% behind the rendered depth is occluded

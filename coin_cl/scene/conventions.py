@@ -198,3 +198,87 @@ def colmap_to_pinhole(
     if dist is not None and not np.any(dist):
         dist = None
     return K, dist, model in FISHEYE_MODELS
+
+
+def _check_viewmat(V: np.ndarray, name: str) -> np.ndarray:
+    V = np.asarray(V, dtype=np.float64)
+    if V.shape != (4, 4):
+        raise ValueError(f"{name} must be a (4, 4) world-to-camera matrix, got shape {V.shape}")
+    if not np.all(np.isfinite(V)):
+        raise ValueError(f"{name} holds NaN or Inf: a pose must be finite")
+    R = V[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or np.linalg.det(R) < 0:
+        raise ValueError(f"{name}[:3, :3] is not a rotation (orthonormal with det +1 within 1e-5)")
+    return V
+
+
+def slerp_quat(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
+    """Unit quaternions (4,) (any order of components, the same for both) -> slerp at alpha.
+
+    Shortest arc: q and -q are the same rotation, so q1 is negated when the dot product is
+    negative (exactly opposite quaternions then coincide). When they are nearly equal
+    (|dot| > 1 - 1e-12) slerp's sin(theta) in the denominator loses all precision, so normalised
+    linear interpolation is used: it agrees with slerp to O(theta^3) there.
+    """
+    q0 = np.asarray(q0, dtype=np.float64) / np.linalg.norm(q0)
+    q1 = np.asarray(q1, dtype=np.float64) / np.linalg.norm(q1)
+    d = float(np.dot(q0, q1))
+    if d < 0.0:
+        q1, d = -q1, -d
+    if d > 1.0 - 1e-12:
+        q = (1.0 - alpha) * q0 + alpha * q1
+        return q / np.linalg.norm(q)
+    theta = np.arccos(min(d, 1.0))
+    s = np.sin(theta)
+    q = (np.sin((1.0 - alpha) * theta) / s) * q0 + (np.sin(alpha * theta) / s) * q1
+    return q / np.linalg.norm(q)
+
+
+def interpolate_pose(viewmat_k, viewmat_n, alpha: float = 0.5):
+    """Intermediate camera between two world-to-camera poses (paper 4.3, the viewpoint phi).
+
+    Args:
+        viewmat_k, viewmat_n: (4, 4) world-to-camera matrices (OpenCV axes), numpy arrays or torch
+            tensors; the result is float64 of the same kind (torch when `viewmat_k` is torch).
+        alpha: 0 gives `viewmat_k`, 1 gives `viewmat_n` (exactly: the inputs are returned as
+            float64 copies), values in between interpolate; values outside extrapolate.
+    Returns:
+        (4, 4) world-to-camera matrix of the intermediate camera.
+
+    Camera CENTRES c = -R^T t are interpolated linearly, not the translation column t of the
+    world-to-camera matrix: t = -R c mixes the rotation into the translation, so lerping t while
+    slerping R puts the optical centre off the segment between the two cameras (for a pure
+    rotation about a fixed centre it would even move the camera). The paper's "t_phi = lerp(t_k,
+    t_n)" is the camera-to-world translation, i.e. the centre. Rotations are slerped on unit
+    quaternions of the world-to-camera rotation (slerp commutes with inversion, so the
+    camera-to-world rotation is slerped identically), on the shortest arc.
+    Raises ValueError for NaN/Inf entries, a wrong shape or a non-rotation.
+    """
+    as_torch = False
+    try:
+        import torch
+
+        as_torch = isinstance(viewmat_k, torch.Tensor)
+        vk = viewmat_k.detach().cpu().numpy() if isinstance(viewmat_k, torch.Tensor) else viewmat_k
+        vn = viewmat_n.detach().cpu().numpy() if isinstance(viewmat_n, torch.Tensor) else viewmat_n
+    except ImportError:  # pragma: no cover - torch is a dependency
+        vk, vn = viewmat_k, viewmat_n
+    Vk, Vn = _check_viewmat(vk, "viewmat_k"), _check_viewmat(vn, "viewmat_n")
+    a = float(alpha)
+    if not np.isfinite(a):
+        raise ValueError(f"alpha must be finite, got {alpha}")
+    if a == 0.0:
+        out = Vk.copy()
+    elif a == 1.0:
+        out = Vn.copy()
+    else:
+        ck, cn = -Vk[:3, :3].T @ Vk[:3, 3], -Vn[:3, :3].T @ Vn[:3, 3]
+        q = slerp_quat(rotmat_to_quat_wxyz(Vk[:3, :3]), rotmat_to_quat_wxyz(Vn[:3, :3]), a)
+        R = quat_wxyz_to_rotmat(q)
+        c = (1.0 - a) * ck + a * cn
+        out = make_viewmat(R, -R @ c)
+    if as_torch:
+        import torch
+
+        return torch.from_numpy(out)
+    return out

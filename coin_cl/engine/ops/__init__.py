@@ -4,6 +4,7 @@
     bin.py        <- kernels/bin.cl
     rasterize.py  <- kernels/rasterize_cpu.cl, kernels/rasterize_gpu.cl (two variants of one pass)
     reduce.py     <- kernels/reduce.cl
+    warp.py       <- kernels/warp.cl (feature warping through a point cloud)
 
 Each public function has the signature of its float64 twin in `coin_cl.engine.reference`.
 Everything crosses into the kernels as contiguous float32 / int32 tensors wrapped by the runtime
