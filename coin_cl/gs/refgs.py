@@ -826,9 +826,11 @@ def choose_reference(
         raise ValueError("choose_reference: no candidate (training) views")
     if cameras is not None and len(cameras) != len(masks):
         raise ValueError(f"{len(cameras)} cameras but {len(masks)} masks")
-    names = [str(getattr(c, "name", "") or i) for i, c in enumerate(cameras)] if cameras else [
-        str(i) for i in range(len(masks))
-    ]
+    names = (
+        [str(getattr(c, "name", "") or i) for i, c in enumerate(cameras)]
+        if cameras
+        else [str(i) for i in range(len(masks))]
+    )
     if ref is not None:
         return resolve_reference(ref, names, cands)
     scores = [reference_score(masks[i]) for i in cands]
