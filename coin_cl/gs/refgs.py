@@ -16,6 +16,18 @@ for the paper's ablations (Table 4: w/o adaptive weight, w/o feature attention, 
   loss lambda_D * mean |A * R + B - D| with A, B a closed-form least-squares fit.
 * `choose_reference` / `resolve_reference`: which view is the reference.
 
+Intended use per run (the trainer wires it; nothing here touches the trainer):
+    before: k = choose_reference(scene, ref=cfg.ref); targets = composite_targets per view;
+            points = prune_points_in_masks(train cameras, train masks).points -> anchors;
+            prior = reference_depth_prior(scene, k, ...)
+    each step on view n (with its mask M_n):
+        feats, info = attn.apply_view(features, anchors, cam_n, M_n)   if cfg.attention_active
+        render with `feats` in place of the feature parameter (decode) -> image, depth
+        L_R = photometric loss; W_n = weights.weight(n, L_R)
+        loss = W_n * L_R (+ reference_depth_loss(depth, prior, M_k, disparity=...) when n == k)
+        backward, optimizer steps (model and attention), then write_back_features if enabled
+    checkpoint: weights.state_dict(), attn.state_dict() (generator state included).
+
 Cameras are duck-typed: anything with `K` [3, 3], `viewmat` [4, 4] world-to-camera (OpenCV axes),
 `width`, `height` (numpy or torch), i.e. both `coin_cl.scene.types.Camera` and
 `coin_cl.gs.data.Camera`. Pixel centres are at +0.5, so a projection (u, v) lies in pixel
@@ -36,6 +48,7 @@ import torch
 from torch import Tensor, nn
 
 from coin_cl import constants as cst
+from coin_cl.gs.optim import ExpSchedule
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +86,10 @@ class RefGSConfig:
     attn_write_back: bool = True  # store the attended features in the parameter after the step
     ring_frac: float = 0.5  # ring width as a fraction of the mask's bounding-box size ...
     ring_min_px: int = 4  # ... but at least this many pixels
+    attn_from: float = 0.5  # fraction of the run before attention starts (GScream: 15k of 30k,
+    #                         once anchor growth has stopped and the sets stay put); 0 = always
+    attn_lr_init: float = 0.01  # query/key projections: GScream's log-linear schedule
+    attn_lr_final: float = 1e-5
     # -- reference depth loss
     depth_loss: bool = True
     lambda_depth: float = 10.0  # supplement: lambda_D = 10
@@ -97,6 +114,18 @@ class RefGSConfig:
             raise ValueError("ring_frac must be >= 0 and ring_min_px >= 1")
         if self.lambda_depth < 0:
             raise ValueError(f"lambda_depth must be >= 0, got {self.lambda_depth}")
+        if not 0.0 <= self.attn_from <= 1.0:
+            raise ValueError(f"attn_from must be in [0, 1], got {self.attn_from}")
+        if not (self.attn_lr_init > 0 and self.attn_lr_final > 0):
+            raise ValueError("attn_lr_init and attn_lr_final must be > 0")
+
+    def attention_active(self, step: int, iters: int) -> bool:
+        """Whether anchor attention runs at 0-based `step` of a run of `iters` steps."""
+        return self.feature_attention and step >= self.attn_from * iters
+
+    def attn_lr(self, iters: int) -> ExpSchedule:
+        """Learning-rate schedule of the attention's parameters over a run of `iters` steps."""
+        return ExpSchedule(self.attn_lr_init, self.attn_lr_final, iters)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
