@@ -41,11 +41,14 @@ def alphas_cumprod(cfg: ScheduleConfig | None = None) -> torch.Tensor:
         raise ValueError(f"num_train_steps must be >= 2, got {cfg.num_train_steps}")
     if not (0.0 < cfg.beta_start < cfg.beta_end < 1.0):
         raise ValueError(f"need 0 < beta_start < beta_end < 1, got {cfg.beta_start}, {cfg.beta_end}")
-    betas = torch.linspace(cfg.beta_start**0.5, cfg.beta_end**0.5, cfg.num_train_steps, dtype=torch.float64) ** 2
+    b0, b1 = cfg.beta_start**0.5, cfg.beta_end**0.5
+    betas = torch.linspace(b0, b1, cfg.num_train_steps, dtype=torch.float64) ** 2
     return torch.cumprod(1.0 - betas, dim=0)
 
 
-def ddim_timesteps(num_steps: int, discretization: str = "uniform", num_train_steps: int = 1000) -> np.ndarray:
+def ddim_timesteps(
+    num_steps: int, discretization: str = "uniform", num_train_steps: int = 1000
+) -> np.ndarray:
     """DDIM timesteps in increasing order, int64 array of shape (num_steps,), as latent-diffusion.
 
     discretization: 'uniform' (every T//S-th step) or 'quad' (quadratically spaced up to 0.8 T, denser

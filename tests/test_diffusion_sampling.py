@@ -58,7 +58,8 @@ def test_eps_and_v_prediction_agree(disc):
     z = torch.randn(8, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     outs = []
     for pt in ("eps", "v"):
-        s = DDIMSampler(GaussianDenoiser(MU, STD, pt), SamplerConfig(num_steps=30, discretization=disc, eta=0.5))
+        cfg = SamplerConfig(num_steps=30, discretization=disc, eta=0.5)
+        s = DDIMSampler(GaussianDenoiser(MU, STD, pt), cfg)
         outs.append(s.sample(z, generator=torch.Generator().manual_seed(2)).z)
     assert torch.allclose(outs[0], outs[1], atol=1e-10)
 
