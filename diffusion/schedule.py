@@ -60,7 +60,9 @@ def ddim_timesteps(
         if num_steps > num_train_steps:
             raise ValueError(f"uniform: num_steps {num_steps} > num_train_steps {num_train_steps}")
         c = num_train_steps // num_steps
-        steps = np.asarray(list(range(0, num_train_steps, c)))
+        # latent-diffusion's range() yields one extra step when S does not divide T (and then indexes
+        # past the end); keeping the first S is the same for divisors and valid otherwise
+        steps = np.asarray(list(range(0, num_train_steps, c)))[:num_steps]
     elif discretization == "quad":
         steps = ((np.linspace(0, np.sqrt(num_train_steps * 0.8), num_steps)) ** 2).astype(int)
     else:

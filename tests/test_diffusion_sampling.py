@@ -22,6 +22,8 @@ def test_schedule_matches_stable_diffusion():
 def test_timesteps_uniform_and_quad():
     u = ddim_timesteps(50, "uniform")
     assert u[0] == 1 and u[-1] == 981 and np.all(np.diff(u) == 20)
+    u3 = ddim_timesteps(3, "uniform")
+    assert list(u3) == [1, 334, 667]  # S not dividing T: still S steps, all in range
     q = ddim_timesteps(200, "quad")
     assert len(q) == 200 and q[0] == 1 and q[-1] == 801
     assert np.all(np.diff(q) >= 0) and np.diff(q)[-1] > np.diff(q)[10]  # denser near t = 0
