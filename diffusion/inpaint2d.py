@@ -40,7 +40,8 @@ class InpaintConfig:
     """sd_crop: crop size for SD2 (paper: 512). context: the crop side is at least context x the mask's
     bounding-box side, so the model sees surroundings. feather_px: paste feather width inside the mask.
     opencv_method: 'telea', 'ns', 'fsr_fast' or 'fsr_best'. opencv_radius: radius of telea/ns.
-    sampler_sd / sampler_prior: DDIM settings (paper: 50 'uniform' steps)."""
+    sampler_sd / sampler_prior: DDIM settings (paper: 50 'uniform' steps; the scene prior's fills
+    measured sharper with eta = 0 than eta = 1 on the test texture)."""
 
     sd_crop: int = 512
     context: float = 1.5
@@ -50,7 +51,7 @@ class InpaintConfig:
     sampler_sd: SamplerConfig = field(
         default_factory=lambda: SamplerConfig(num_steps=50, discretization="uniform", cfg_scale=7.5))
     sampler_prior: SamplerConfig = field(
-        default_factory=lambda: SamplerConfig(num_steps=50, discretization="uniform", eta=1.0))
+        default_factory=lambda: SamplerConfig(num_steps=50, discretization="uniform", eta=0.0))
 
 
 def check_image_mask(image: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

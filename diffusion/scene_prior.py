@@ -176,7 +176,7 @@ class ScenePrior(Denoiser):
                 generator: torch.Generator | None = None) -> torch.Tensor:
         """Sample a fill of image (B, 3, H, W) [0, 1] under mask (B, 1, H, W); returns (B, 3, H, W) in
         [0, 1] (whole crop; H, W multiples of 4, ideally the working size P)."""
-        cfg = cfg or SamplerConfig(num_steps=50, discretization="uniform", eta=1.0)
+        cfg = cfg or SamplerConfig(num_steps=50, discretization="uniform", eta=0.0)
         cond = self.make_condition(image, mask, prompt)
         z = torch.randn(image.shape, generator=generator)
         res = DDIMSampler(self, cfg).sample(z, cond, None, energy=energy, generator=generator)
@@ -339,7 +339,8 @@ def train_scene_prior(
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
         steps += 1
-        ema = float(loss) if ema is None else 0.98 * ema + 0.02 * float(loss)
+        lv = loss.item()
+        ema = lv if ema is None else 0.98 * ema + 0.02 * lv
         bar.n = min(round(time.perf_counter() - t0), bar.total)
         bar.set_postfix(loss=f"{ema:.4f}", steps=steps, refresh=False)
         bar.refresh()
