@@ -86,7 +86,9 @@ class DinoViT(nn.Module):
     interpolated to other grid sizes, as DINO does.
     """
 
-    def __init__(self, dim: int = 384, depth: int = 12, heads: int = 6, patch: int = 16, grid: int = 14) -> None:
+    def __init__(
+        self, dim: int = 384, depth: int = 12, heads: int = 6, patch: int = 16, grid: int = 14
+    ) -> None:
         super().__init__()
         self.patch = patch
         self.patch_embed = nn.Module()

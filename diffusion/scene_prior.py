@@ -120,7 +120,9 @@ class InpaintUNet(nn.Module):
         nn.init.zeros_(self.out[-1].weight)
         nn.init.zeros_(self.out[-1].bias)
 
-    def forward(self, z: torch.Tensor, masked: torch.Tensor, hole: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, z: torch.Tensor, masked: torch.Tensor, hole: torch.Tensor, t: torch.Tensor
+    ) -> torch.Tensor:
         e = self.temb(_timestep_embedding(t, self.tdim))
         h1 = self.d1b(self.d1a(self.inp(torch.cat([z, masked, hole], 1)), e), e)
         h2 = self.d2b(self.d2a(self.down1(h1), e), e)
@@ -276,7 +278,8 @@ def _check_inputs(images: list[np.ndarray], exclude: list[np.ndarray] | None) ->
 
 
 def denoising_loss(net: InpaintUNet, x0: torch.Tensor, hole: torch.Tensor, w: torch.Tensor,
-                   t: torch.Tensor, noise: torch.Tensor, acp: torch.Tensor, prediction_type: str) -> torch.Tensor:
+                   t: torch.Tensor, noise: torch.Tensor, acp: torch.Tensor,
+                   prediction_type: str) -> torch.Tensor:
     """Weighted MSE of the v (or eps) prediction; all tensors (B, C, P, P), t (B,) int64."""
     a = acp[t].float()[:, None, None, None]
     z = a.sqrt() * x0 + (1 - a).sqrt() * noise

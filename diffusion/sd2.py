@@ -131,7 +131,8 @@ class SD2Denoiser(Denoiser):
             kind = json.loads(sched.read_text()).get("prediction_type", "epsilon")
             pt = {"epsilon": "eps", "v_prediction": "v"}.get(kind)
             if pt is None:
-                raise ValueError(f"{sched}: prediction_type {kind!r} is not supported (epsilon, v_prediction)")
+                raise ValueError(
+                    f"{sched}: prediction_type {kind!r} is not supported (epsilon, v_prediction)")
         else:
             log.warning("%s has no scheduler/scheduler_config.json: assuming eps-prediction", root)
         log.info("Stable Diffusion 2 inpainting loaded from %s (%s-prediction)", root, pt)

@@ -117,3 +117,33 @@ def test_missing_file_is_named(tiny_sd2, tmp_path, monkeypatch):
     monkeypatch.setenv("COIN_SD2_PATH", str(tmp_path / "nowhere"))
     with pytest.raises(FileNotFoundError, match="nowhere"):
         check_sd2_folder(None)
+
+
+def test_available_models_reports_why(tiny_sd2, tmp_path, monkeypatch):
+    import diffusion
+
+    monkeypatch.delenv("COIN_SD2_PATH", raising=False)
+    monkeypatch.delenv("COIN_DINO_WEIGHTS", raising=False)
+    r = diffusion.available_models()
+    assert set(r) == {"sd2", "dino", "scene_prior"}
+    assert not r["sd2"]["available"] and "COIN_SD2_PATH" in r["sd2"]["reason"]
+    assert not r["dino"]["available"] and "analytic" in r["dino"]["reason"]
+    assert r["scene_prior"]["available"]
+    monkeypatch.setenv("COIN_SD2_PATH", str(tiny_sd2))
+    monkeypatch.setenv("COIN_DINO_WEIGHTS", str(tmp_path / "missing.pth"))
+    r = diffusion.available_models(prior_cache_dir=tmp_path)
+    assert r["sd2"]["available"] and "complete" in r["sd2"]["reason"]
+    assert not r["dino"]["available"] and "does not exist" in r["dino"]["reason"]
+    assert "0 cached" in r["scene_prior"]["reason"]
+    r = diffusion.available_models(sd2_path=tmp_path)
+    assert not r["sd2"]["available"] and "unet/config.json" in r["sd2"]["reason"]
+
+
+def test_package_never_imports_opencl():
+    import subprocess
+    import sys
+
+    code = ("import sys, diffusion; "
+            "print([m for m in sys.modules if m.startswith(('pyopencl', 'coin_cl'))])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
