@@ -5,9 +5,11 @@ consistency-guided sampling (CLG) run for real on any machine. It is always call
 logs and results; it is not Stable Diffusion and makes no claim to its quality.
 
 Model: a plain-torch UNet (3 resolutions, GroupNorm + SiLU residual blocks, sinusoidal time embedding;
-~2-5 M parameters at the defaults) in pixel space ([-1, 1]), input 7 channels = [z_t (3), masked image
-(3, 0 in the hole), hole mask (1)], output v (or eps) for the SD schedule of :mod:`.schedule`, so the
-sampler of :mod:`.sampling` drives it exactly as it drives SD2 (including energy guidance).
+1.5 M parameters at the default base 32, 3.4 M at 48; base 32 because a training step of 16 64x64
+patches takes 0.7 s on 2 cores against 1.4 s at 48) in pixel space ([-1, 1]), input 7 channels =
+[z_t (3), masked image (3, 0 in the hole), hole mask (1)], output v (or eps) for the SD schedule of
+:mod:`.schedule`, so the sampler of :mod:`.sampling` drives it exactly as it drives SD2 (including
+energy guidance).
 
 Training data: random square patches of the scene's images at a few scales (side P s for
 s in ``scales``, area-averaged down to P so the model also works on crops larger than P); synthetic
@@ -58,11 +60,11 @@ class ScenePriorConfig:
     """
 
     patch: int = 64
-    base: int = 48
+    base: int = 32
     scales: tuple[int, ...] = (1, 2, 4)
     batch: int = 16
     lr: float = 1e-3
-    train_seconds: float = 120.0
+    train_seconds: float = 300.0
     max_steps: int | None = None
     hole_weight: float = 4.0
     prediction_type: str = "v"
@@ -97,7 +99,7 @@ class InpaintUNet(nn.Module):
     H and W must be multiples of 4. Two residual blocks per level, a dilated middle block for context.
     """
 
-    def __init__(self, base: int = 48) -> None:
+    def __init__(self, base: int = 32) -> None:
         super().__init__()
         if base % 8:
             raise ValueError(f"base must be a multiple of 8 (GroupNorm), got {base}")
