@@ -179,12 +179,15 @@ class ScenePrior(Denoiser):
                 cfg: SamplerConfig | None = None, energy: EnergyFn | None = None,
                 generator: torch.Generator | None = None) -> torch.Tensor:
         """Sample a fill of image (B, 3, H, W) [0, 1] under mask (B, 1, H, W); returns (B, 3, H, W) in
-        [0, 1] (whole crop; H, W multiples of 4, ideally the working size P)."""
+        [0, 1] (whole crop; H, W multiples of 4, ideally the working size P): the final x0 prediction."""
         cfg = cfg or SamplerConfig(num_steps=50, discretization="uniform", eta=0.0)
         cond = self.make_condition(image, mask, prompt)
         z = torch.randn(image.shape, generator=generator)
         res = DDIMSampler(self, cfg).sample(z, cond, None, energy=energy, generator=generator)
-        return self.decode(res.z).clamp(0, 1)
+        # the last step's clean x0 prediction, not z at alpha_bar_0: in pixel space the latter keeps
+        # sqrt(1 - alpha_bar_0) of predicted noise, which an undertrained prior makes visible (measured
+        # on the SPIn-NeRF holes after 1 minute: HF ratio 2.0 -> 1.75, GMSD 0.221 -> 0.218)
+        return self.decode(res.x0).clamp(0, 1)
 
 
 # ----------------------------------------------------------------------------------------------------

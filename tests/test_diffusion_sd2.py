@@ -97,6 +97,13 @@ def test_inpaint_paste_back_keeps_outside(tiny_sd2):
     assert np.isfinite(out).all() and out.dtype == np.float32
     assert np.array_equal(out[~mask], img[~mask])
     assert not np.array_equal(out[mask], img[mask])
+    # guided (energy on the decoded crop pulls the fill toward white): still only the mask changes
+    gcfg = InpaintConfig(sd_crop=64, sampler_sd=SamplerConfig(num_steps=3, guidance_scale=0.5))
+    gout, _ = inpaint_image(img, mask, sd2=den, cfg=gcfg, seed=0, energy=lambda x: ((x - 1) ** 2).mean())
+    uout, _ = inpaint_image(img, mask, sd2=den, cfg=InpaintConfig(sd_crop=64, sampler_sd=SamplerConfig(
+        num_steps=3)), seed=0)
+    assert np.isfinite(gout).all() and np.array_equal(gout[~mask], img[~mask])
+    assert gout[mask].mean() > uout[mask].mean()  # the energy's direction
 
 
 def test_missing_file_is_named(tiny_sd2, tmp_path, monkeypatch):
