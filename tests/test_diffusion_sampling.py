@@ -1,34 +1,13 @@
 """DDIM sampler and energy guidance on the analytic Gaussian model (exact denoiser, known answer)."""
 
-import numpy as np
 import pytest
 import torch
 
 from diffusion.analytic import GaussianDenoiser
 from diffusion.sampling import DDIMSampler, FunctionDenoiser, SamplerConfig
-from diffusion.schedule import alphas_cumprod, ddim_timesteps
 
 MU = torch.tensor([1.0, -0.5, 0.3, 2.0], dtype=torch.float64)
 STD = torch.tensor([0.5, 1.0, 1.5, 0.8], dtype=torch.float64)
-
-
-def test_schedule_matches_stable_diffusion():
-    acp = alphas_cumprod()
-    betas = np.linspace(0.00085**0.5, 0.012**0.5, 1000) ** 2
-    np.testing.assert_allclose(acp.numpy(), np.cumprod(1 - betas), rtol=1e-12)
-    assert abs(float(acp[-1]) - 0.0047) < 1e-4  # SD's terminal alpha_bar
-
-
-def test_timesteps_uniform_and_quad():
-    u = ddim_timesteps(50, "uniform")
-    assert u[0] == 1 and u[-1] == 981 and np.all(np.diff(u) == 20)
-    u3 = ddim_timesteps(3, "uniform")
-    assert list(u3) == [1, 334, 667]  # S not dividing T: still S steps, all in range
-    q = ddim_timesteps(200, "quad")
-    assert len(q) == 200 and q[0] == 1 and q[-1] == 801
-    assert np.all(np.diff(q) >= 0) and np.diff(q)[-1] > np.diff(q)[10]  # denser near t = 0
-    with pytest.raises(ValueError, match="discretization"):
-        ddim_timesteps(10, "cosine")
 
 
 @pytest.mark.parametrize("disc", ["uniform", "quad"])
