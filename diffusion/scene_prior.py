@@ -256,9 +256,7 @@ class _PatchSampler:
 def cache_key(images: list[np.ndarray], exclude: list[np.ndarray], cfg: ScenePriorConfig) -> str:
     """sha256 (hex, 24 chars) of the images, the excluded masks and the settings."""
     h = hashlib.sha256(f"scene-prior-v{_VERSION}".encode())
-    d = asdict(cfg)
-    d.pop("max_steps", None) if cfg.max_steps is None else None
-    h.update(repr(sorted(d.items())).encode())
+    h.update(repr(sorted(asdict(cfg).items())).encode())
     for im, ex in zip(images, exclude):
         h.update(np.ascontiguousarray(im, dtype=np.float32).tobytes())
         h.update(np.packbits(np.asarray(ex, bool)).tobytes())
