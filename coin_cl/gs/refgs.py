@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from coin_cl import constants as cst
+from coin_cl.engine import constants as cst
 from coin_cl.gs.optim import ExpSchedule
 
 log = logging.getLogger(__name__)
