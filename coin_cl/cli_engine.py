@@ -248,6 +248,11 @@ def run_doctor(args: argparse.Namespace) -> int:
             f"{runtime._INSTALL_HINT}"
         )
         return 1
+    print("2D models (paper model, or the embedded default that replaces it):")
+    from coin_cl.diffusion import available_models
+
+    for name, info in available_models().items():
+        print(f"  {name}: {'available' if info['available'] else 'not available'} ({info['reason']})")
     request = os.environ.get("COIN_CL_DEVICE")
     try:
         rt = runtime.get_runtime()

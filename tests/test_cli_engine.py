@@ -31,6 +31,8 @@ def test_doctor_lists_the_device(capsys):
     out = capsys.readouterr().out
     assert "OpenCL devices (probe" in out and "probe: works" in out
     assert f"default device: {get_runtime().name} (" in out
+    for model in ("sd2", "dino", "scene_prior"):
+        assert f"  {model}: " in out
 
 
 def test_doctor_working_lists_usable_devices(capsys):

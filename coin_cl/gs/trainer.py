@@ -306,7 +306,9 @@ class Trainer:
             raise FileNotFoundError(f"no checkpoint at {path}")
         state = torch.load(path, weights_only=False)
         msd = state["model"]
+        device = self.model.device  # the device is the caller's choice, not the checkpoint's
         self.model = model_from_state(msd)
+        self.model.device = device
         t = state["trainer"]
         # Checkpoints from before the strategy / sampler split kept these in the model and trainer.
         legacy_cfg = {**msd.get("cfg", {}), **msd.get("cfg", {}).get("densify", {})}

@@ -1,0 +1,186 @@
+"""The stage runner: CoIn as a chain of stages, each a function from files to files.
+
+A stage reads the folders of the stages before it and writes its own, `OUT/<stage name>/`. After it
+finishes the runner writes `OUT/<stage>/manifest.json`: the stage's *key* (a hash of its settings
+and of the manifests of the stages it reads) and a hash of every file it wrote. On the next run a
+stage is skipped when its manifest is there, its key is the same and its files still hash the
+same: a manifest decides, never the mere existence of files. Consequences:
+
+- changing a setting reruns that stage; the stages after it rerun only if its outputs changed
+  (their key includes its output hashes);
+- a run killed inside a stage leaves no manifest for it; the next run calls the stage again in the
+  same folder, so a stage that checkpoints (training) or writes per-view files resumes where it
+  stopped. A folder left by a killed run with *other* settings (`started.json` says which) is
+  cleared first, so nothing stale is resumed;
+- `OUT/run.json` names the scene the folder belongs to; another scene is a clear error.
+
+Every stage decision (ran, skipped and why, resumed, cleared) is logged and recorded in
+`OUT/log.json` with the stage's result (a JSON-able dict: settings, which models were used,
+timings, figures).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+STARTED = "started.json"
+
+
+class OutputFolderError(ValueError):
+    """The output folder belongs to another scene (or is not a pipeline folder)."""
+
+
+@dataclass
+class StageContext:
+    """What a stage function sees: its own folder, the folders of the stages it reads, the shared
+    objects the runner was given (`shared`, e.g. the loaded scene) and a log of notes."""
+
+    name: str
+    out: Path
+    inputs: dict[str, Path]
+    settings: dict[str, Any]
+    shared: dict[str, Any]
+    notes: list[str] = field(default_factory=list)
+
+    def note(self, msg: str) -> None:
+        """Log a decision (a view skipped, a default model used) and keep it in the run log."""
+        log.info("[%s] %s", self.name, msg)
+        self.notes.append(msg)
+
+
+@dataclass
+class Stage:
+    """name: folder name (e.g. "2_refgs"); fn(ctx) -> dict does the work; reads: names of the
+    stages whose folders it reads; settings: JSON-able values its output depends on; skip: a
+    reason to leave it out (logged), or None."""
+
+    name: str
+    fn: Callable[[StageContext], dict]
+    reads: Sequence[str] = ()
+    settings: dict[str, Any] = field(default_factory=dict)
+    skip: str | None = None
+
+
+def _json(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, default=str)
+
+
+def hash_files(folder: Path) -> dict[str, str]:
+    """{relative path: sha256} of every file under `folder` except the runner's own."""
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        if p.is_file() and p.name not in (MANIFEST, STARTED) and not p.name.startswith(".tmp"):
+            h = hashlib.sha256()
+            with p.open("rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
+            out[str(p.relative_to(folder))] = h.hexdigest()
+    return out
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".tmp-{path.name}")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str))
+    tmp.replace(path)
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def check_output_folder(out: Path, scene_id: dict[str, Any]) -> None:
+    """Claim `out` for the scene `scene_id` (JSON-able: path, content hash); refuse another's."""
+    out.mkdir(parents=True, exist_ok=True)
+    run = out / "run.json"
+    have = _read_json(run)
+    if have is None:
+        if any(p.name[0].isdigit() for p in out.iterdir()):
+            raise OutputFolderError(
+                f"{out} holds stage folders but no run.json: not a coin-cl run; pick another --out"
+            )
+        _write_json(run, {"scene": scene_id})
+        return
+    if _json(have.get("scene")) != _json(scene_id):
+        raise OutputFolderError(
+            f"{out} holds a run of another scene ({have.get('scene')}), not {scene_id}: "
+            "pick another --out (or delete that folder)"
+        )
+
+
+def run_stages(
+    out: Path,
+    stages: Sequence[Stage],
+    shared: dict[str, Any] | None = None,
+    force: Sequence[str] = (),
+) -> dict[str, dict]:
+    """Run `stages` in order under `out`; returns {stage name: record} (also in OUT/log.json).
+
+    A record holds status ("ran", "skipped: up to date", "skipped: <reason>"), seconds, the
+    stage's result and notes. `force` names stages to rerun regardless of their manifest.
+    """
+    shared = shared or {}
+    records: dict[str, dict] = {}
+    manifests: dict[str, dict] = {}
+    log_path = out / "log.json"
+    for st in stages:
+        folder = out / st.name
+        if st.skip:
+            log.info("[%s] skipped: %s", st.name, st.skip)
+            records[st.name] = {"status": f"skipped: {st.skip}"}
+            continue
+        missing = [r for r in st.reads if r not in manifests]
+        if missing:
+            raise RuntimeError(f"stage {st.name} reads {missing}, which did not run before it")
+        key = hashlib.sha256(
+            _json(
+                {"settings": st.settings, "inputs": {r: manifests[r]["outputs"] for r in st.reads}}
+            ).encode()
+        ).hexdigest()
+        man = _read_json(folder / MANIFEST)
+        if (
+            st.name not in force
+            and man is not None
+            and man.get("key") == key
+            and folder.is_dir()
+            and hash_files(folder) == man.get("outputs")
+        ):
+            log.info("[%s] skipped: up to date (manifest key and output hashes match)", st.name)
+            manifests[st.name] = man
+            records[st.name] = {"status": "skipped: up to date", "result": man.get("result", {})}
+            continue
+        started = _read_json(folder / STARTED)
+        if folder.exists() and (started is None or started.get("key") != key or st.name in force):
+            why = "forced" if st.name in force else "settings or inputs changed"
+            log.info("[%s] clearing %s (%s)", st.name, folder, why)
+            shutil.rmtree(folder)
+        elif folder.exists():
+            log.info("[%s] resuming an interrupted run in %s", st.name, folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / MANIFEST).unlink(missing_ok=True)
+        _write_json(folder / STARTED, {"key": key, "settings": st.settings})
+        ctx = StageContext(st.name, folder, {r: out / r for r in st.reads}, dict(st.settings), shared)
+        t0 = time.perf_counter()
+        result = st.fn(ctx) or {}
+        seconds = time.perf_counter() - t0
+        man = {"key": key, "settings": st.settings, "outputs": hash_files(folder), "result": result}
+        _write_json(folder / MANIFEST, man)
+        manifests[st.name] = man
+        records[st.name] = {"status": "ran", "seconds": seconds, "result": result, "notes": ctx.notes}
+        log.info("[%s] done in %.1f s", st.name, seconds)
+        _write_json(log_path, {"stages": records})
+    _write_json(log_path, {"stages": records})
+    return records

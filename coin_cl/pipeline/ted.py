@@ -1,0 +1,185 @@
+"""TE-D, the texture-enhancing discriminator (paper 4.4, 5.1): the fine stage.
+
+Starting from the Ref-GS scene it trains in two phases, each a resumable `Trainer` run in its own
+folder:
+
+1. fine-tune: the photometric loss against the CLG images I~_n (I^_n where CLG skipped a view);
+2. adversarial: L = L_R(R_n, I~_n) + lambda_gen L_gen(R_n, I^_n) (+ any extra terms the caller
+   passes, e.g. Ref-GS's reference depth term, the paper's lambda_D L_D), where L_gen is the
+   non-saturating generator loss of a PatchGAN (`coin_cl.diffusion.discriminator`) on 64x64
+   patches drawn near the view's mask: "real" = patches of the initial inpaint I^_n, "fake" = the
+   same windows of the render R_n. The discriminator takes one Adam step (pix2pix's lr 2e-4,
+   betas (0.5, 0.999)) after every GS step, on the fake patches of that step, detached: a 1:1
+   ratio, as pix2pix.
+
+The primitives are fixed in this stage (no densification): it refines the appearance of the coarse
+structure Ref-GS built. The paper runs 10k + 10k iterations; `TEDConfig.iters_*` are scaled by the
+pipeline's budget.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from coin_cl.diffusion.discriminator import (
+    PatchDiscriminator,
+    PatchGANConfig,
+    crop_patches,
+    d_loss,
+    g_loss,
+    sample_patch_corners,
+)
+from coin_cl.gs.strategy import Strategy
+from coin_cl.gs.terms import LossContext, LossTerm, PhotometricLoss
+from coin_cl.gs.trainer import TrainConfig, Trainer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TEDConfig:
+    """iters_finetune / iters_adversarial: steps of the two phases (paper 10k + 10k).
+    lambda_gen: weight of the generator loss (paper 0.01). patch: patch side (paper 64; smaller
+    images use their shorter side rounded down to a multiple of 8, at least 32). n_patches: patches
+    per step. margin / p_near: the sampler's band around the mask and the probability of drawing a
+    patch centre from it (1.0: every patch near the mask, so the term only touches pixels near
+    the inpainted region). lr_d, betas_d: the discriminator's Adam (pix2pix). seed: patch RNG."""
+
+    iters_finetune: int = 10_000
+    iters_adversarial: int = 10_000
+    lambda_gen: float = 0.01
+    patch: int = 64
+    n_patches: int = 4
+    margin: int = 32
+    p_near: float = 1.0
+    lr_d: float = 2e-4
+    betas_d: tuple[float, float] = (0.5, 0.999)
+    seed: int = 0
+
+
+def patch_size(cfg: TEDConfig, height: int, width: int) -> int:
+    """The patch side for an image: cfg.patch, or the largest multiple of 8 that fits (>= 32)."""
+    p = min(cfg.patch, (min(height, width) // 8) * 8)
+    if p < 32:
+        raise ValueError(f"image {width}x{height} is too small for TE-D's patches (at least 32x32 needed)")
+    return p
+
+
+class AdversarialTerm(LossTerm):
+    """lambda_gen * L_gen on patches of the render near the view's mask; trains its discriminator in
+    `step_after`. Views whose `meta` has no 'real' image or an empty 'mask' contribute zero.
+
+    View.meta needs 'real' [H, W, 3] (I^_n) and 'mask' [H, W] bool (the inpainting mask).
+    """
+
+    name = "adversarial"
+
+    def __init__(self, cfg: TEDConfig, disc_cfg: PatchGANConfig | None = None):
+        self.cfg = cfg
+        self.weight = cfg.lambda_gen
+        with torch.random.fork_rng():  # seeded init without touching the caller's global RNG
+            torch.manual_seed(cfg.seed)
+            self.disc = PatchDiscriminator(disc_cfg)
+        self.disc.train()  # BatchNorm in training mode (eval-mode statistics broke it, see its tests)
+        self.opt = torch.optim.Adam(self.disc.parameters(), lr=cfg.lr_d, betas=cfg.betas_d)
+        self.rng = np.random.default_rng(cfg.seed)
+        self._pending: tuple[Tensor, Tensor] | None = None
+        self.last: dict[str, Any] = {}
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        zero = ctx.out.image.sum() * 0.0  # keeps a graph when the term is the only one
+        real_img, mask = ctx.view.meta.get("real"), ctx.view.meta.get("mask")
+        self._pending = None
+        if real_img is None or mask is None or not bool(np.asarray(mask).any()):
+            return zero
+        H, W = ctx.out.image.shape[:2]
+        p = patch_size(self.cfg, H, W)
+        corners = sample_patch_corners(
+            np.asarray(mask, bool), self.cfg.n_patches, p, self.cfg.p_near, self.cfg.margin, self.rng
+        )
+        fake = crop_patches(ctx.out.image.permute(2, 0, 1), corners, p)
+        real = crop_patches(torch.as_tensor(real_img).permute(2, 0, 1), corners, p)
+        loss = g_loss(self.disc(fake))
+        self._pending = (real.detach(), fake.detach())
+        self.last = {"corners": corners, "patch": p}
+        ctx.log["gen"] = float(loss.detach())
+        return loss
+
+    def step_after(self, ctx: LossContext) -> None:
+        if self._pending is None:
+            return
+        real, fake = self._pending
+        self._pending = None
+        # The generator's backward went through the discriminator: clear what it left there.
+        self.opt.zero_grad(set_to_none=True)
+        loss = d_loss(self.disc(real), self.disc(fake))
+        loss.backward()
+        self.opt.step()
+        ctx.log["disc"] = float(loss)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "disc": self.disc.state_dict(),
+            "opt": self.opt.state_dict(),
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        if not sd:
+            return
+        self.disc.load_state_dict(sd["disc"])
+        self.opt.load_state_dict(sd["opt"])
+        self.rng.bit_generator.state = sd["rng"]
+
+
+def _train_phase(model, views, test, cfg: TrainConfig, out: Path, terms: list[LossTerm]):
+    """One resumable phase; returns (its result, the trained model: a checkpoint load replaces it)."""
+    tr = Trainer(model, views, test, cfg, out, strategy=Strategy(), terms=terms)
+    if tr.ckpt_path is not None and tr.ckpt_path.is_file():
+        tr.load_checkpoint()
+        log.info("TE-D: resumed %s at step %d", out.name, tr.step)
+    return tr.train(), tr.model
+
+
+def run_ted(
+    model,
+    views: list,
+    test_views: list,
+    out_dir: Path,
+    cfg: TEDConfig,
+    train_cfg: TrainConfig | None = None,
+    extra_terms: list[LossTerm] = (),
+) -> tuple[dict, Any]:
+    """Run both TE-D phases from `model` (the Ref-GS scene).
+
+    Args:
+        model: a `coin_cl.gs` model (Scaffold-GS or 3DGS) holding the Ref-GS result.
+        views: training `View`s whose image is I~_n and whose meta holds 'real' (I^_n [H, W, 3])
+            and 'mask' ([H, W] bool).
+        test_views: held-out views for the trainers' evaluation (may be empty).
+        out_dir: the stage folder; phases write `finetune/` and `adversarial/` (checkpoints, logs).
+        extra_terms: more loss terms for both phases (e.g. the reference depth term).
+    Returns:
+        (a JSON-able record: the config and both phases' results, the final model).
+    """
+    out_dir = Path(out_dir)
+    base = train_cfg or TrainConfig()
+    res: dict[str, Any] = {"config": asdict(cfg)}
+    for phase, iters, terms in (
+        ("finetune", cfg.iters_finetune, [PhotometricLoss(), *extra_terms]),
+        ("adversarial", cfg.iters_adversarial, [PhotometricLoss(), AdversarialTerm(cfg), *extra_terms]),
+    ):
+        if iters <= 0:
+            res[phase] = {"skipped": "0 iterations"}
+            log.info("TE-D: %s phase skipped (0 iterations)", phase)
+            continue
+        pcfg = replace(base, iters=iters, export_ply=phase == "adversarial")
+        res[phase], model = _train_phase(model, views, test_views, pcfg, out_dir / phase, terms)
+    return res, model

@@ -1,0 +1,129 @@
+"""The stage runner: manifests decide what reruns; killed stages resume; folders belong to a scene."""
+
+import json
+
+import pytest
+
+from coin_cl.pipeline.runner import OutputFolderError, Stage, check_output_folder, run_stages
+
+
+class Calls:
+    def __init__(self):
+        self.n = {}
+
+    def stage(self, name, content_fn):
+        def fn(ctx):
+            self.n[name] = self.n.get(name, 0) + 1
+            for r, folder in ctx.inputs.items():  # reads its inputs, as a real stage does
+                assert (folder / "out.txt").is_file(), r
+            (ctx.out / "out.txt").write_text(content_fn(ctx))
+            ctx.note(f"{name} wrote out.txt")
+            return {"value": content_fn(ctx)}
+
+        return fn
+
+
+def chain(calls, a_setting=1, b_setting="x", b_content=None):
+    return [
+        Stage("1_a", calls.stage("a", lambda ctx: f"a{ctx.settings['k']}"), settings={"k": a_setting}),
+        Stage("2_b", calls.stage("b", b_content or (lambda ctx: f"b{ctx.settings['k']}")), reads=["1_a"],
+              settings={"k": b_setting}),
+        Stage("3_c", calls.stage("c", lambda ctx: "c"), reads=["2_b"]),
+    ]  # fmt: skip
+
+
+def test_second_run_skips_everything(tmp_path):
+    calls = Calls()
+    rec1 = run_stages(tmp_path, chain(calls))
+    assert calls.n == {"a": 1, "b": 1, "c": 1} and all(r["status"] == "ran" for r in rec1.values())
+    rec2 = run_stages(tmp_path, chain(calls))
+    assert calls.n == {"a": 1, "b": 1, "c": 1}
+    assert all(r["status"] == "skipped: up to date" for r in rec2.values())
+    assert rec2["2_b"]["result"] == {"value": "bx"}
+    logged = json.loads((tmp_path / "log.json").read_text())["stages"]
+    assert set(logged) == {"1_a", "2_b", "3_c"}
+
+
+def test_changed_setting_reruns_that_stage_and_the_ones_after(tmp_path):
+    calls = Calls()
+    run_stages(tmp_path, chain(calls))
+    run_stages(tmp_path, chain(calls, b_setting="y"))
+    assert calls.n == {"a": 1, "b": 2, "c": 2}  # b's output changed, so c reran; a did not
+    assert (tmp_path / "2_b" / "out.txt").read_text() == "by"
+
+
+def test_rerun_with_identical_output_leaves_later_stages_alone(tmp_path):
+    calls = Calls()
+    same = lambda ctx: "constant"  # noqa: E731
+    run_stages(tmp_path, chain(calls, b_content=same))
+    run_stages(tmp_path, chain(calls, b_setting="y", b_content=same))
+    assert calls.n == {"a": 1, "b": 2, "c": 1}
+
+
+def test_tampered_output_reruns_the_stage(tmp_path):
+    calls = Calls()
+    run_stages(tmp_path, chain(calls))
+    (tmp_path / "1_a" / "out.txt").write_text("edited by hand")
+    run_stages(tmp_path, chain(calls))
+    assert calls.n["a"] == 2 and (tmp_path / "1_a" / "out.txt").read_text() == "a1"
+
+
+def test_killed_stage_resumes_in_place_and_loses_nothing(tmp_path):
+    calls = Calls()
+
+    def resumable(ctx):
+        # Two units of work; the first run is killed after the first one.
+        done = sorted(p.name for p in ctx.out.glob("part*"))
+        for part in ("part1", "part2"):
+            if part in done:
+                continue
+            if calls.n.get("kill") is None and part == "part2":
+                calls.n["kill"] = 1
+                raise KeyboardInterrupt
+            calls.n[part] = calls.n.get(part, 0) + 1
+            (ctx.out / part).write_text(part)
+        (ctx.out / "out.txt").write_text("done")
+        return {}
+
+    stages = [Stage("1_a", calls.stage("a", lambda ctx: "a")), Stage("2_r", resumable, reads=["1_a"])]
+    with pytest.raises(KeyboardInterrupt):
+        run_stages(tmp_path, stages)
+    assert not (tmp_path / "2_r" / "manifest.json").exists()
+    rec = run_stages(tmp_path, stages)
+    assert rec["1_a"]["status"] == "skipped: up to date" and rec["2_r"]["status"] == "ran"
+    assert calls.n["part1"] == 1 and calls.n["part2"] == 1  # part1 was not redone
+
+
+def test_interrupted_folder_with_other_settings_is_cleared(tmp_path):
+    calls = Calls()
+    run_stages(tmp_path, chain(calls))
+    (tmp_path / "2_b" / "manifest.json").unlink()  # as if killed
+    (tmp_path / "2_b" / "stale.bin").write_bytes(b"x")
+    run_stages(tmp_path, chain(calls, b_setting="z"))
+    assert not (tmp_path / "2_b" / "stale.bin").exists()
+
+
+def test_skipped_stage_is_logged_with_its_reason(tmp_path):
+    calls = Calls()
+    stages = [Stage("1_a", calls.stage("a", lambda ctx: "a")), Stage("2_b", calls.stage("b", lambda c: "b"),
+              skip="no view has a mask")]  # fmt: skip
+    rec = run_stages(tmp_path, stages)
+    assert rec["2_b"]["status"] == "skipped: no view has a mask" and "b" not in calls.n
+
+
+def test_force_reruns(tmp_path):
+    calls = Calls()
+    run_stages(tmp_path, chain(calls))
+    run_stages(tmp_path, chain(calls), force=["1_a"])
+    assert calls.n["a"] == 2 and calls.n["b"] == 1  # same output: b stays
+
+
+def test_output_folder_of_another_scene_is_refused(tmp_path):
+    check_output_folder(tmp_path, {"scene": "/data/a", "hash": "1"})
+    check_output_folder(tmp_path, {"scene": "/data/a", "hash": "1"})
+    with pytest.raises(OutputFolderError, match="another scene"):
+        check_output_folder(tmp_path, {"scene": "/data/b", "hash": "2"})
+    other = tmp_path / "other"
+    (other / "2_refgs").mkdir(parents=True)
+    with pytest.raises(OutputFolderError, match="not a coin-cl run"):
+        check_output_folder(other, {"scene": "x"})
