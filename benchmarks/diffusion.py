@@ -41,6 +41,8 @@ from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, opencv_inp
 from coin_cl.diffusion.sampling import DDIMSampler, SamplerConfig  # noqa: E402
 from coin_cl.diffusion.scene_prior import PriorCondition, ScenePriorConfig, train_scene_prior  # noqa: E402
 
+from coin_cl import metrics  # noqa: E402
+
 
 def cpu_model() -> str:
     try:
@@ -141,14 +143,12 @@ def place_holes(
 
 
 def gmsd(ref: np.ndarray, img: np.ndarray) -> float:
-    v, _ = cv2.quality.QualityGMSD_compute((ref * 255).astype(np.float64), (img * 255).astype(np.float64))
-    return float(v[0])
+    return metrics.gmsd(img, ref)
 
 
-def grad_energy(img: np.ndarray, m: np.ndarray) -> float:
-    g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-    gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)
-    return float((gx**2 + gy**2)[m].mean())
+def hf_energy_ratio(img: np.ndarray, truth: np.ndarray, m: np.ndarray) -> float:
+    """Gradient energy in the hole, fill over truth (issue 9's high-frequency ratio)."""
+    return metrics.hf_ratio(img, truth, m, power=2)
 
 
 def score(truth: np.ndarray, out: np.ndarray, hole: np.ndarray, box: tuple[slice, slice]) -> dict:
@@ -156,7 +156,7 @@ def score(truth: np.ndarray, out: np.ndarray, hole: np.ndarray, box: tuple[slice
     return {
         "mpsnr": -10 * np.log10(max(mse, 1e-12)),
         "gmsd": gmsd(truth[box], out[box]),
-        "hf": grad_energy(out, hole) / max(grad_energy(truth, hole), 1e-12),
+        "hf": hf_energy_ratio(out, truth, hole),
     }
 
 

@@ -20,6 +20,7 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
+import cv2
 import numpy as np
 from skimage.metrics import structural_similarity
 
@@ -116,6 +117,42 @@ def bbox_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, data_range:
         return {"bbox_psnr": math.nan, "bbox_ssim": math.nan}
     p, g = np.asarray(pred)[crop], np.asarray(gt)[crop]
     return {"bbox_psnr": psnr(p, g, data_range), "bbox_ssim": ssim(p, g, data_range)}
+
+
+def gmsd(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Gradient magnitude similarity deviation (Xue et al. 2014; OpenCV's `quality` module) of two
+    (H, W, 3) float [0, 1] images: 0 is identical structure, larger is worse. Images are scaled to
+    [0, 255] first, the range OpenCV's constant assumes."""
+    p, g = _check_pair(pred, gt)
+    v, _ = cv2.quality.QualityGMSD_compute((g * 255).astype(np.float64), (p * 255).astype(np.float64))
+    return float(v[0])
+
+
+def bbox_gmsd(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """GMSD on the crop to the mask's bounding box (NaN for an empty mask)."""
+    crop = bbox_crop(mask)
+    return math.nan if crop is None else gmsd(np.asarray(pred)[crop], np.asarray(gt)[crop])
+
+
+def _grad_mag(img: np.ndarray) -> np.ndarray:
+    g = cv2.cvtColor(np.asarray(img, np.float32), cv2.COLOR_RGB2GRAY)
+    gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)
+    return np.sqrt(gx * gx + gy * gy)
+
+
+def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, power: int = 1) -> float:
+    """High-frequency ratio inside `mask`: mean Sobel gradient magnitude (power=1; power=2: gradient
+    energy) of the prediction over that of the ground truth. 1 is right, below 1 is blur (a smear
+    where an object was), above 1 is texture stronger than the truth's. NaN for an empty mask or a
+    flat ground truth there. What PSNR does not see: a sharp wrong guess and a blur can score the
+    same PSNR but not the same ratio."""
+    p, g = _check_pair(pred, gt)
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return math.nan
+    num = float((_grad_mag(p)[m] ** power).mean())
+    den = float((_grad_mag(g)[m] ** power).mean())
+    return num / den if den > 0 else math.nan
 
 
 # ----------------------------------------------------------------------------------------------
@@ -514,13 +551,16 @@ def fid_scores(
 def evaluate_view(
     pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None, lpips_model=None
 ) -> dict[str, float | None]:
-    """All metrics of one view: psnr, ssim, m_psnr, m_ssim, bbox_psnr, bbox_ssim, lpips, m_lpips
-    (None when LPIPS is unavailable; NaN masked metrics for an empty or absent mask)."""
+    """All metrics of one view: psnr, ssim, m_psnr, m_ssim, bbox_psnr, bbox_ssim, hf_ratio (in the
+    mask), bbox_gmsd, lpips, m_lpips (None when LPIPS is unavailable; NaN masked metrics for an
+    empty or absent mask)."""
     out: dict[str, float | None] = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
     m = np.zeros(gt.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     out["m_psnr"] = masked_psnr(pred, gt, m)
     out["m_ssim"] = masked_ssim(pred, gt, m)
     out.update(bbox_metrics(pred, gt, m))
+    out["hf_ratio"] = hf_ratio(pred, gt, m)
+    out["bbox_gmsd"] = bbox_gmsd(pred, gt, m)
     if lpips_model is None:
         out["lpips"] = out["m_lpips"] = None
     else:

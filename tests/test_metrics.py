@@ -3,6 +3,7 @@
 import json
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -309,3 +310,23 @@ def test_eval_with_weight_files_reports_lpips_and_fid(eval_scene, tmp_path, monk
     assert doc["lpips"] == "available" and doc["fid"] == "available"
     assert mean["lpips"] > 0 and mean["m_lpips"] > 0
     assert math.isfinite(mean["fid"]) and math.isfinite(mean["m_fid"])
+
+
+def test_hf_ratio_and_gmsd_see_blur():
+    rng = np.random.default_rng(3)
+    gt = rng.random((64, 64, 3)).astype(np.float32)
+    blur = cv2.GaussianBlur(gt, (0, 0), 2.0)
+    mask = np.zeros((64, 64), bool)
+    mask[16:48, 16:48] = True
+    assert M.hf_ratio(gt, gt, mask) == pytest.approx(1.0)
+    assert M.hf_ratio(blur, gt, mask) < 0.5  # a smear
+    assert M.hf_ratio(gt, blur, mask) > 2.0  # stronger texture than the truth
+    assert M.hf_ratio(blur, gt, mask, power=2) < M.hf_ratio(blur, gt, mask)
+    assert math.isnan(M.hf_ratio(gt, gt, np.zeros((64, 64), bool)))
+    flat = np.full((64, 64, 3), 0.5, np.float32)
+    assert math.isnan(M.hf_ratio(gt, flat, mask))
+    assert M.gmsd(gt, gt) == pytest.approx(0.0, abs=1e-9)
+    assert M.bbox_gmsd(blur, gt, mask) > 0.05
+    assert math.isnan(M.bbox_gmsd(gt, gt, np.zeros((64, 64), bool)))
+    v = M.evaluate_view(blur, gt, mask)
+    assert v["hf_ratio"] < 0.5 and v["bbox_gmsd"] > 0.05
