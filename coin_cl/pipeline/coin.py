@@ -1,0 +1,417 @@
+"""CoIn end to end: `inpaint(scene, ...)` runs the paper's four stages on the stage runner.
+
+    0_scene    the scene with the chosen masks (seg / bbox / scribble), in coin-cl's own layout
+    1_inpaint  initial 2D inpaints I^_n                                  (paper 4.1; inpaint2d.py)
+    2_refgs    Ref-GS: the reference-adaptive coarse Scaffold-GS          (paper 4.2; refgs.py)
+    3_clg      consistency loss guidance: guided images I~_n             (paper 4.3; clg.py)
+    4_ted      TE-D: fine-tune + texture-enhancing discriminator         (paper 4.4; ted.py)
+    eval       renders of the test views, PLY, orbit GIF; metrics where ground truth exists
+
+Every stage is a function from files to files under `out/` (see `runner`): rerunning skips what is
+up to date, a killed run resumes, and `out/log.json` records each stage's settings, the models
+used (Stable Diffusion 2 or the embedded scene prior, DINO or the analytic features, the depth
+prior's source), timings and figures. The ablations of the paper's Table 4 are settings:
+`skip=("refgs",)` trains the coarse stage without Ref-GS's pieces, `skip=("clg",)` / `("ted",)`
+leave those stages out (the next stage then reads the one before), and `RefGSConfig` switches
+adaptive weights, attention and the depth loss one by one.
+
+Budget: the paper's iteration counts (10k Ref-GS, 200 CLG steps, 10k + 10k TE-D) are far beyond
+2 CPU cores; `budget_minutes` scales them by a throughput estimate in one place
+(`STEPS_PER_MINUTE` at a reference pixel count), so runs are deterministic in their iteration
+counts (a time cap would make resumed runs differ) and the log records the time really spent.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, read_inpaints, run_inpaint2d
+from coin_cl.pipeline.runner import Stage, StageContext, check_output_folder, run_stages
+from coin_cl.pipeline.ted import TEDConfig
+
+log = logging.getLogger(__name__)
+
+# Measured on the project's 2-core machine kind (docs/RESULTS.md): Scaffold-GS steps per minute at
+# 504x283 pixels; other sizes scale by pixel count.
+STEPS_PER_MINUTE = 150.0
+REF_PIXELS = 504 * 283
+# Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
+# (CLG is counted in sampling steps, not minutes).
+BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
+STAGES = ("0_scene", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
+
+
+@dataclass
+class CoInConfig:
+    """mask: "seg" | "bbox" | "scribble" (derived from the scene's segmentation masks).
+    ref: reference view (index or name); None chooses by `coin_cl.gs.refgs.choose_reference`.
+    prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
+    resolution: image scale (0.5 = half). sd_path / dino_path: local weights (else the embedded
+    defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
+    iters_*: explicit iteration counts (override the budget rule). seed, device: as everywhere."""
+
+    mask: str = "seg"
+    mask_dilate: int = 0
+    ref: int | str | None = None
+    prompt: str = ""
+    budget_minutes: float = 30.0
+    resolution: float = 1.0
+    sd_path: str | None = None
+    dino_path: str | None = None
+    skip: tuple[str, ...] = ()
+    seed: int = 0
+    device: str | None = None
+    iters_refgs: int | None = None
+    iters_ted_finetune: int | None = None
+    iters_ted_adversarial: int | None = None
+    prior_seconds: float | None = None
+    inpaint2d: Inpaint2DConfig = field(default_factory=Inpaint2DConfig)
+    ted: TEDConfig = field(default_factory=TEDConfig)
+    refgs: Any = None  # coin_cl.gs.refgs.RefGSConfig (default built on use)
+    clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
+
+    def iterations(self, width: int, height: int) -> dict[str, int | float]:
+        """Iteration counts (and the prior's seconds) from the budget rule, explicit values winning."""
+        rate = STEPS_PER_MINUTE * REF_PIXELS / max(1, width * height)
+        b = {k: v * self.budget_minutes for k, v in BUDGET_SHARES.items()}
+        return {
+            "prior_seconds": self.prior_seconds if self.prior_seconds is not None else 60.0 * b["prior"],
+            "refgs": self.iters_refgs if self.iters_refgs is not None else max(1, round(rate * b["refgs"])),
+            "ted_finetune": self.iters_ted_finetune
+            if self.iters_ted_finetune is not None
+            else round(rate * b["ted_finetune"]),
+            "ted_adversarial": self.iters_ted_adversarial
+            if self.iters_ted_adversarial is not None
+            else round(rate * b["ted_adversarial"]),
+        }
+
+
+@dataclass
+class CoInResult:
+    """out: the run folder; ply: the final Gaussians (standard 3DGS layout); renders: test-view
+    images; metrics: the evaluation document (None without ground truth); model: the final model;
+    stages: the runner's records."""
+
+    out: Path
+    ply: Path | None
+    renders: Path | None
+    metrics: dict | None
+    model: Any
+    stages: dict[str, dict]
+
+
+def _jsonable(obj: Any) -> Any:
+    if hasattr(obj, "__dataclass_fields__"):
+        return _jsonable(asdict(obj))
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    return obj if isinstance(obj, str | int | float | bool | type(None)) else str(obj)
+
+
+def scene_id(scene) -> dict[str, Any]:
+    """What names a scene for the output folder check: its path and a hash of its pixels."""
+    h = hashlib.sha256()
+    for img in scene.images:
+        h.update(np.ascontiguousarray(img[::7, ::7]).tobytes())
+    return {
+        "path": str(scene.path) if scene.path else None,
+        "n_views": len(scene),
+        "pixels": h.hexdigest()[:16],
+    }
+
+
+def _train_masks(scene, cfg: CoInConfig) -> list[np.ndarray]:
+    from coin_cl.scene.masks import derive_mask
+
+    out = []
+    for i, m in enumerate(scene.masks):
+        if i in scene.train_idx and m.any():
+            out.append(derive_mask(m, cfg.mask, seed=cfg.seed + i, dilate=cfg.mask_dilate))
+        else:
+            out.append(np.asarray(m, bool))
+    return out
+
+
+def inpaint(
+    scene,
+    out: str | Path,
+    *,
+    masks: str | list[np.ndarray] | None = None,
+    reference: int | str | None = None,
+    prompt: str | None = None,
+    budget: float | None = None,
+    config: CoInConfig | None = None,
+    device: Any = None,
+    force: tuple[str, ...] = (),
+) -> CoInResult:
+    """Remove (or, with a prompt and SD2 weights, insert) the masked object in a captured scene.
+
+    Args:
+        scene: a `coin_cl.scene.Scene` or a folder `load_scene` reads.
+        out: the run folder (created; a rerun resumes and skips what is up to date).
+        masks: "seg" | "bbox" | "scribble", or per-view (H, W) bool arrays replacing the scene's.
+        reference: the reference view (index or name; default: chosen by rule).
+        prompt: text for insertion (needs Stable Diffusion 2 weights: `config.sd_path`).
+        budget: minutes of training to aim at (default `config.budget_minutes`).
+        config: everything else (`CoInConfig`). device: the OpenCL device (Runtime or name).
+    Returns:
+        `CoInResult` (paths, metrics, final model).
+    """
+    from coin_cl.scene import load_scene
+
+    cfg = config or CoInConfig()
+    if isinstance(masks, str):
+        cfg = replace(cfg, mask=masks)
+    if reference is not None:
+        cfg = replace(cfg, ref=reference)
+    if prompt is not None:
+        cfg = replace(cfg, prompt=prompt)
+    if budget is not None:
+        cfg = replace(cfg, budget_minutes=float(budget))
+    if device is not None:
+        cfg = replace(cfg, device=device if isinstance(device, str) else getattr(device, "name", None))
+    if isinstance(scene, str | Path):
+        scene = load_scene(scene)
+    if isinstance(masks, list):
+        if len(masks) != len(scene):
+            raise ValueError(f"masks has {len(masks)} entries for a scene of {len(scene)} views")
+        for i, m in enumerate(masks):
+            if tuple(np.shape(m)) != tuple(scene.masks[i].shape):
+                raise ValueError(f"mask {i} has shape {np.shape(m)}, the view is {scene.masks[i].shape}")
+        scene = replace(scene, masks=[np.asarray(m, bool) for m in masks])
+    if cfg.prompt and not cfg.sd_path:
+        raise ValueError(
+            "a text prompt needs Stable Diffusion 2 inpainting weights: pass sd_path / --sd-path or set "
+            "COIN_SD2_PATH to a diffusers-format folder (the embedded scene prior has no text input)"
+        )
+    if cfg.resolution != 1.0:
+        scene = scene.resized(cfg.resolution)
+    if not any(scene.masks[i].any() for i in scene.train_idx):
+        raise ValueError(
+            f"scene {scene.path} has no training view with a mask: nothing to inpaint "
+            "(give masks, e.g. a label/ or masks/ folder)"
+        )
+    out = Path(out)
+    check_output_folder(out, scene_id(scene))
+    return _run(scene, out, cfg, force)
+
+
+def _run(scene, out: Path, cfg: CoInConfig, force: tuple[str, ...]) -> CoInResult:
+    from coin_cl.gs.refgs import RefGSConfig, choose_reference
+
+    masks = _train_masks(scene, cfg)
+    train = list(scene.train_idx)
+    ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
+    cam = scene.cameras[train[0]]
+    iters = cfg.iterations(cam.width, cam.height)
+    refgs_cfg = cfg.refgs or RefGSConfig()
+    shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters}
+    log.info(
+        "CoIn: %d training views (%d with a mask), reference view %d (%s), %s masks, iterations %s",
+        len(train), sum(masks[i].any() for i in train), ref, scene.cameras[ref].name, cfg.mask, iters,
+    )  # fmt: skip
+    base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask, "dilate": cfg.mask_dilate}
+    stages = [
+        Stage("0_scene", _stage_scene, settings=base),
+        Stage("1_inpaint", _stage_inpaint, ["0_scene"],
+              {"cfg": _jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"],
+               "sd": cfg.sd_path, "prompt": cfg.prompt}),
+        Stage("2_refgs", _stage_refgs, ["0_scene", "1_inpaint"],
+              {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"],
+               "plain": "refgs" in cfg.skip}),
+        Stage("3_clg", _stage_clg, ["0_scene", "1_inpaint", "2_refgs"],
+              {"cfg": _jsonable(cfg.clg), "ref": ref, "dino": cfg.dino_path},
+              skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
+        Stage("4_ted", _stage_ted,
+              ["0_scene", "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
+              {"cfg": _jsonable(cfg.ted), "iters": [iters["ted_finetune"], iters["ted_adversarial"]]},
+              skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
+    ]  # fmt: skip
+    final = "2_refgs" if "ted" in cfg.skip else "4_ted"
+    stages.append(Stage("eval", _stage_eval, ["0_scene", final], {"final": final}))
+    records = run_stages(out, stages, shared, force)
+    ev = records["eval"].get("result", {})
+    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+
+    model = _load_model(out / final, CKPT_NAME, model_from_state)
+    return CoInResult(
+        out=out,
+        ply=out / "eval" / "point_cloud.ply",
+        renders=out / "eval" / "renders",
+        metrics=ev.get("metrics"),
+        model=model,
+        stages=records,
+    )
+
+
+def _load_model(folder: Path, ckpt_name: str, model_from_state):
+    import torch
+
+    cands = sorted(folder.rglob(ckpt_name), key=lambda p: p.stat().st_mtime)
+    if not cands:
+        raise FileNotFoundError(f"no {ckpt_name} under {folder}")
+    state = torch.load(cands[-1], weights_only=False)
+    return model_from_state(state["model"])
+
+
+# -- stages -----------------------------------------------------------------------------------------
+
+
+def _stage_scene(ctx: StageContext) -> dict:
+    from coin_cl.scene import save_scene
+
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    save_scene(replace(scene, masks=masks), ctx.out / "scene")
+    empty = [scene.cameras[i].name for i in scene.train_idx if not masks[i].any()]
+    if empty:
+        ctx.note(f"{len(empty)} training views have no mask and are kept as captured: {empty[:5]}...")
+    area = [float(masks[i].mean()) for i in scene.train_idx]
+    return {"views": len(scene), "train": len(scene.train_idx), "test": len(scene.test_idx),
+            "mask": ctx.shared["cfg"].mask, "mean_mask_area": float(np.mean(area))}  # fmt: skip
+
+
+def _scene_views(ctx: StageContext):
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    return scene, masks, list(scene.train_idx)
+
+
+def _sd2(cfg: CoInConfig):
+    if not cfg.sd_path:
+        return None
+    from coin_cl.diffusion.sd2 import SD2Denoiser
+
+    return SD2Denoiser.from_pretrained(cfg.sd_path)
+
+
+def _stage_inpaint(ctx: StageContext) -> dict:
+    scene, masks, train = _scene_views(ctx)
+    cfg: CoInConfig = ctx.shared["cfg"]
+    icfg = cfg.inpaint2d
+    icfg = replace(
+        icfg, prior=replace(icfg.prior, train_seconds=ctx.shared["iters"]["prior_seconds"], seed=cfg.seed)
+    )
+    ctx.shared["inpaint_cfg"] = icfg
+    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask, sd2=_sd2(cfg), prompt=cfg.prompt)
+    for s in res["sources"]:
+        ctx.note(f"initial inpainting source: {s}")
+    return res
+
+
+def _targets(ctx: StageContext, folder: Path) -> dict[int, np.ndarray]:
+    scene, masks, train = _scene_views(ctx)
+    from coin_cl.gs.refgs import composite_targets
+
+    inp = read_inpaints(scene, folder, train)
+    # Outside the mask the captured image is the truth (paper 5.1).
+    return {i: composite_targets(inp[i], scene.images[i], masks[i]) for i in train}
+
+
+def _stage_refgs(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.refgs import run_refgs
+
+    scene, masks, train = _scene_views(ctx)
+    cfg: CoInConfig = ctx.shared["cfg"]
+    targets = _targets(ctx, ctx.inputs["1_inpaint"])
+    rcfg = ctx.shared["cfg"].refgs
+    if "refgs" in cfg.skip:
+        from coin_cl.gs.refgs import RefGSConfig
+
+        rcfg = RefGSConfig(
+            adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False
+        )
+        ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
+    scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
+    full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
+    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
+                     device=cfg.device, seed=cfg.seed)  # fmt: skip
+
+
+def _stage_clg(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.clg import stage_clg
+
+    return stage_clg(ctx)
+
+
+def _stage_ted(ctx: StageContext) -> dict:
+    import torch
+
+    from coin_cl.gs.data import views_from_scene
+    from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, model_from_state
+    from coin_cl.pipeline.ted import run_ted
+    from coin_cl.scene.io import read_image
+
+    scene, masks, train = _scene_views(ctx)
+    cfg: CoInConfig = ctx.shared["cfg"]
+    inp = _targets(ctx, ctx.inputs["1_inpaint"])
+    guided = dict(inp)
+    if "3_clg" in ctx.inputs:
+        for i in train:
+            p = ctx.inputs["3_clg"] / "images" / (Path(scene.cameras[i].name).stem + ".png")
+            if p.is_file():
+                guided[i] = read_image(p)
+    else:
+        ctx.note("w/o CLG: TE-D fine-tunes on the initial inpaints I^_n")
+    views = views_from_scene(scene, train, [guided.get(i, scene.images[i]) for i in range(len(scene))])
+    for v, i in zip(views, train, strict=True):
+        v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i])
+    model = _load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
+    model.device = cfg.device
+    it = ctx.shared["iters"]
+    tcfg = replace(
+        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
+    )
+    res, _ = run_ted(
+        model, views, [], ctx.out, tcfg, TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True)
+    )
+    return _jsonable(res)
+
+
+def _stage_eval(ctx: StageContext) -> dict:
+    import torch
+
+    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+    from coin_cl.scene.io import to_uint8, write_png
+
+    scene = ctx.shared["scene"]
+    cfg: CoInConfig = ctx.shared["cfg"]
+    final = ctx.settings["final"]
+    folder = [p for n, p in ctx.inputs.items() if n == final][0]
+    model = _load_model(folder, CKPT_NAME, model_from_state)
+    model.device = cfg.device
+    rdir = ctx.out / "renders"
+    rdir.mkdir(parents=True, exist_ok=True)
+    from coin_cl.gs.data import Camera
+
+    for i in list(scene.test_idx) + list(scene.train_idx):
+        with torch.no_grad():
+            r = model.render(Camera.from_any(scene.cameras[i]), 10**9)
+        write_png(rdir / (Path(scene.cameras[i].name).stem + ".png"), to_uint8(r.image.clamp(0, 1).numpy()))
+    from coin_cl.gs.trainer import write_model_ply
+
+    ply = ctx.out / "point_cloud.ply"
+    centers = torch.stack([Camera.from_any(scene.cameras[i]).center for i in scene.train_idx])
+    write_model_ply(model, ply, centers.mean(0))
+    result: dict[str, Any] = {"final_stage": final, "ply": str(ply)}
+    gt_ok = scene.test_idx and all(scene.masks[i].any() for i in scene.test_idx)
+    if gt_ok:
+        from coin_cl.evaluation import evaluate_folder
+
+        doc = evaluate_folder(rdir, ctx.inputs["0_scene"] / "scene", ctx.out / "metrics")
+        result["metrics"] = doc["mean"]
+    else:
+        ctx.note("no ground-truth test views with masks: metrics skipped")
+    return _jsonable(result)
+
+
+def summary(out: Path) -> dict:
+    """The run log (`out/log.json`) as a dict."""
+    return json.loads((Path(out) / "log.json").read_text())
