@@ -4,6 +4,8 @@ Public engine API (differentiable torch ops, OpenCL underneath; `coin_cl.engine`
     rasterize, project, bin_tiles, rasterize_to_pixels, Gaussians, get_runtime
 Scenes and evaluation:
     load_scene, metrics
+CoIn (the whole method; coin_cl.pipeline):
+    inpaint, CoInConfig
 """
 
 import os
@@ -25,6 +27,8 @@ _LAZY = {
     "NoDeviceError": "coin_cl.engine",
     "warp_features": "coin_cl.engine",
     "load_scene": "coin_cl.scene",
+    "inpaint": "coin_cl.pipeline.coin",
+    "CoInConfig": "coin_cl.pipeline.coin",
 }
 
 
