@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "coin_cl.cli_engine",  # demo, doctor
     "coin_cl.cli_scene",  # make-scene, eval
     "coin_cl.cli_train",  # train, render
+    "coin_cl.cli_run",  # run (CoIn end to end)
 ]
 
 
