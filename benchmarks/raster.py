@@ -24,14 +24,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from common import cpu_model, git_commit  # noqa: E402
 
 from coin_cl.engine import ops, reference  # noqa: E402
 from coin_cl.engine.runtime import Runtime, get_runtime  # noqa: E402
@@ -161,23 +160,6 @@ class Case:
         gr = torch.autograd.grad(out_r[:3], [means, quats, scales], cot)
         gk = torch.autograd.grad(out_k[:3], f32, [c.float() for c in cot])
         return fwd, max(rel_err(a, b) for a, b in zip(gk, gr))
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], text=True).strip()
-    except Exception:
-        return "unknown"
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def devices(request: str | None) -> list[Runtime]:

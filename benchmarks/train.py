@@ -18,7 +18,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see coin_cl
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -28,6 +27,8 @@ import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from common import git_commit  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
 from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config  # noqa: E402
@@ -43,14 +44,6 @@ def default_data() -> Path:
     env = os.environ.get("COIN_DATA")
     base = Path(env) if env else ROOT.parent / "shared" / "data"
     return base / "spinnerf_scene1"
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.check_output(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                                       stderr=subprocess.DEVNULL, text=True).strip()  # fmt: skip
-    except (subprocess.CalledProcessError, FileNotFoundError):
-        return "uncommitted"
 
 
 def run_recon(scene, kind: str, minutes: float, iters: int | None, out: Path, backend: str) -> dict:

@@ -26,15 +26,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from common import cpu_model, git_commit  # noqa: E402
 
 from coin_cl.engine import reference_warp as warp_reference
 from coin_cl.engine.ops import warp  # noqa: E402
@@ -135,20 +133,6 @@ def rel(a, e, sel=None) -> float:
     return float((a - e).abs().max() / e.abs().max().clamp_min(1e-30))
 
 
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
-
-
-def commit() -> str:
-    try:
-        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], text=True).strip()
-    except Exception:
-        return "unknown"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
@@ -156,7 +140,7 @@ def main() -> None:
     args = ap.parse_args()
     rt = get_runtime()
     print(f"# coin-cl warp benchmark: {rt.name}; CPU {cpu_model()}, {os.cpu_count()} cores; "
-          f"commit {commit()}; {time.strftime('%Y-%m-%d %H:%M')}")  # fmt: skip
+          f"commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}")  # fmt: skip
     print(f"# {W}x{H}, medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (twin)")
     print()
     print("| points | C | valid | fwd s | fwd+bwd s | err feat | err weighted | err grad | bytes copied |")
@@ -228,7 +212,7 @@ def main() -> None:
                   f"{np.percentile(err, 99):.4f} |", flush=True)  # fmt: skip
             res[f"knob_{fp}_{tol}_mean_err"] = round(float(err.mean()), 5)
     print()
-    print(json.dumps({"device": rt.name, "cpu": cpu_model(), "commit": commit(), **res}))
+    print(json.dumps({"device": rt.name, "cpu": cpu_model(), "commit": git_commit(), **res}))
 
 
 if __name__ == "__main__":

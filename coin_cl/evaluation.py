@@ -56,6 +56,7 @@ def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None
     """Score PRED_DIR's test-view images against SCENE_DIR; writes metrics.json, metrics.md and
     grids/<view>.png under out_dir (default PRED_DIR/eval). Returns the metrics document."""
     from coin_cl import metrics as M
+    from coin_cl.nets import inception_from_env, lpips_from_env
     from coin_cl.scene import load_scene
     from coin_cl.scene.io import read_image, write_png, write_text
 
@@ -77,7 +78,7 @@ def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None
             f"{pred_dir} lacks predictions for test views {missing}; write one image per test "
             f"view, named as the view (e.g. {missing[0]})"
         )
-    model, reason = M.lpips_from_env()
+    model, reason = lpips_from_env()
     if model is None:
         log.info(reason)
     per_view: dict[str, dict] = {}
@@ -98,7 +99,7 @@ def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None
             inp = np.where(m[..., None], 0.5, gt).astype(np.float32)
         write_png(out / "grids" / f"{Path(cam.name).stem}.png", comparison_grid(inp, m, pred, gt))
     mean = M.aggregate(list(per_view.values()))
-    inception, fid_reason = M.inception_from_env()
+    inception, fid_reason = inception_from_env()
     if inception is not None and len(per_view) >= 2:
         idx = scene.test_idx
         preds = [read_image(_find_pred(pred_dir, scene.cameras[i].name)) for i in idx]

@@ -4,9 +4,10 @@
 - m-PSNR: PSNR of the pixels inside the ground-truth mask; m-SSIM: the SSIM map averaged inside it;
 - bbox-PSNR / bbox-SSIM / m-LPIPS: the metric on the crop to the mask's bounding box (SPIn-NeRF's
   way of scoring the masked region with a metric that needs a whole image);
-- LPIPS (AlexNet or VGG16 backbone + LPIPS linear heads) only from local weight files the user names;
-  FID / m-FID (FID of the bounding-box crops) with pytorch-fid's Inception-v3 from a local file.
-  Nothing is ever computed with random weights: an unavailable metric is None with a reason.
+- LPIPS (AlexNet or VGG16 backbone + LPIPS linear heads) and FID / m-FID (FID of the bounding-box
+  crops, pytorch-fid's Inception-v3): the networks and their weights live in `coin_cl.nets` (local
+  files named by environment variables, never downloaded). Nothing is ever computed with random
+  weights: an unavailable metric is None with a reason.
 
 Images are (H, W, 3) float in [0, 1]; masks (H, W) bool, True = the region to score.
 """
@@ -15,10 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import re
 from collections.abc import Sequence
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -29,11 +27,6 @@ log = logging.getLogger(__name__)
 SSIM_KW = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
 SSIM_MIN_SIDE = 11  # the Gaussian window for sigma 1.5 is 11 x 11 pixels
 LPIPS_MIN_SIDE = 32  # AlexNet's first stride-4 conv + pools need a few tens of pixels
-FID_ENV = "COIN_FID_WEIGHTS"
-FID_UNAVAILABLE = (
-    "FID unavailable: set COIN_FID_WEIGHTS to pytorch-fid's pt_inception-2015-12-05-6726825d.pth; "
-    "no weights are downloaded"
-)
 
 
 def _check_pair(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -156,145 +149,7 @@ def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, power: int = 1)
 
 
 # ----------------------------------------------------------------------------------------------
-# LPIPS in plain torch (torchvision cannot be imported beside the pinned CPU torch).
-
-ALEX_TAPS = (1, 4, 7, 9, 11)  # ReLU outputs after conv1..conv5 in torchvision's alexnet.features
-VGG_TAPS = (3, 8, 15, 22, 29)  # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3 in vgg16.features
-LPIPS_ENV = ("COIN_LPIPS_BACKBONE", "COIN_LPIPS_HEADS")
-
-
-def _features(net: str):
-    """torchvision-compatible `features` Sequential (same indices, so its state_dict loads)."""
-    from torch import nn
-
-    if net == "alex":
-        return (
-            nn.Sequential(
-                nn.Conv2d(3, 64, 11, 4, 2),
-                nn.ReLU(),
-                nn.MaxPool2d(3, 2),
-                nn.Conv2d(64, 192, 5, 1, 2),
-                nn.ReLU(),
-                nn.MaxPool2d(3, 2),
-                nn.Conv2d(192, 384, 3, 1, 1),
-                nn.ReLU(),
-                nn.Conv2d(384, 256, 3, 1, 1),
-                nn.ReLU(),
-                nn.Conv2d(256, 256, 3, 1, 1),
-                nn.ReLU(),
-                nn.MaxPool2d(3, 2),
-            ),
-            ALEX_TAPS,
-            (64, 192, 384, 256, 256),
-        )
-    if net == "vgg":
-        layers: list = []
-        cin = 3
-        for v in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"):
-            if v == "M":
-                layers.append(nn.MaxPool2d(2, 2))
-            else:
-                layers += [nn.Conv2d(cin, v, 3, 1, 1), nn.ReLU()]
-                cin = v
-        return nn.Sequential(*layers), VGG_TAPS, (64, 128, 256, 512, 512)
-    raise ValueError(f"unknown LPIPS backbone {net!r}; use 'alex' or 'vgg'")
-
-
-def _lpips_module():
-    import torch
-    from torch import nn
-
-    class LPIPS(nn.Module):
-        """LPIPS (Zhang et al. 2018): unit-normalised backbone features, squared differences,
-        learned 1x1 channel weights, spatial mean, summed over five layers."""
-
-        def __init__(self, net: str = "alex"):
-            super().__init__()
-            self.net = net
-            self.features, self.taps, chans = _features(net)
-            self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in chans)
-            self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1))
-            self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
-
-        def _taps(self, x):
-            out = []
-            for i, layer in enumerate(self.features):
-                x = layer(x)
-                if i in self.taps:
-                    out.append(x)
-                    if len(out) == len(self.taps):
-                        break
-            return out
-
-        def forward(self, a, b):
-            """a, b: (B, 3, H, W) in [0, 1] -> (B,) distances."""
-            a = (a * 2 - 1 - self.shift) / self.scale
-            b = (b * 2 - 1 - self.shift) / self.scale
-            total = 0
-            for lin, fa, fb in zip(self.lins, self._taps(a), self._taps(b), strict=True):
-                fa = fa / (fa.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-                fb = fb / (fb.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-                total = total + lin((fa - fb) ** 2).mean(dim=(2, 3))
-            return total[:, 0]
-
-    return LPIPS
-
-
-def _load_state(path: Path) -> dict:
-    import torch
-
-    if not path.is_file():
-        raise FileNotFoundError(f"LPIPS weight file {path} not found")
-    try:
-        sd = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ValueError(f"{path} is not a torch state_dict file ({exc})") from exc
-    if isinstance(sd, dict) and "state_dict" in sd:
-        sd = sd["state_dict"]
-    if not isinstance(sd, dict):
-        raise ValueError(f"{path} does not hold a state_dict")
-    return sd
-
-
-def load_lpips(backbone: str | Path, heads: str | Path, net: str = "alex"):
-    """An LPIPS module from local files: `backbone` is torchvision's alexnet/vgg16 state_dict
-    (e.g. alexnet-owt-7be5be79.pth; keys `features.N.weight`), `heads` the LPIPS linear layers
-    (e.g. lpips' weights/v0.1/alex.pth; keys `linK.model.1.weight`). Errors name the file."""
-    LPIPS = _lpips_module()
-    model = LPIPS(net)
-    bpath, hpath = Path(backbone), Path(heads)
-    sd = _load_state(bpath)
-    feats = {k[len("features.") :]: v for k, v in sd.items() if k.startswith("features.")}
-    if not feats:  # a bare `features` state_dict
-        feats = {k: v for k, v in sd.items() if re.match(r"^\d+\.", k)}
-    try:
-        model.features.load_state_dict(feats, strict=True)
-    except RuntimeError as exc:
-        raise ValueError(f"{bpath} does not match the {net} backbone ({exc})") from exc
-    hd = _load_state(hpath)
-    lins = {}
-    for k, v in hd.items():
-        m = re.match(r"^lin(\d)\..*weight$", k)
-        if m:
-            lins[f"{m.group(1)}.weight"] = v
-    try:
-        model.lins.load_state_dict(lins, strict=True)
-    except RuntimeError as exc:
-        raise ValueError(f"{hpath} does not hold the {net} LPIPS heads lin0..lin4 ({exc})") from exc
-    return model.eval()
-
-
-def lpips_from_env(net: str = "alex"):
-    """(module, None) when $COIN_LPIPS_BACKBONE and $COIN_LPIPS_HEADS name weight files,
-    else (None, reason). Never falls back to random weights."""
-    b, h = (os.environ.get(k) for k in LPIPS_ENV)
-    if not b or not h:
-        return None, (
-            "LPIPS unavailable: set COIN_LPIPS_BACKBONE (torchvision alexnet/vgg16 .pth) and "
-            "COIN_LPIPS_HEADS (lpips v0.1 alex.pth/vgg.pth); no weights are downloaded"
-        )
-    net = os.environ.get("COIN_LPIPS_NET", net)
-    return load_lpips(b, h, net), None
+# LPIPS with a network from `coin_cl.nets.lpips` (load_lpips / lpips_from_env).
 
 
 def lpips(model, pred: np.ndarray, gt: np.ndarray) -> float:
@@ -311,175 +166,7 @@ def lpips(model, pred: np.ndarray, gt: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------------------------
-# FID: pytorch-fid's Inception-v3 (the TF FID graph ported to torch), plain torch.
-
-
-def _inception_module():
-    import torch
-    import torch.nn.functional as F
-    from torch import nn
-
-    class Conv(nn.Module):
-        # torchvision's BasicConv2d: conv without bias, BN (eps 1e-3), ReLU; same key names.
-        def __init__(self, cin, cout, k, stride=1, padding=0):
-            super().__init__()
-            self.conv = nn.Conv2d(cin, cout, k, stride=stride, padding=padding, bias=False)
-            self.bn = nn.BatchNorm2d(cout, eps=0.001)
-
-        def forward(self, x):
-            return F.relu(self.bn(self.conv(x)))
-
-    def avg(x):
-        # The FID graph averages without the zero padding (count_include_pad=False).
-        return F.avg_pool2d(x, 3, stride=1, padding=1, count_include_pad=False)
-
-    class A(nn.Module):
-        def __init__(self, cin, pool):
-            super().__init__()
-            self.branch1x1 = Conv(cin, 64, 1)
-            self.branch5x5_1 = Conv(cin, 48, 1)
-            self.branch5x5_2 = Conv(48, 64, 5, padding=2)
-            self.branch3x3dbl_1 = Conv(cin, 64, 1)
-            self.branch3x3dbl_2 = Conv(64, 96, 3, padding=1)
-            self.branch3x3dbl_3 = Conv(96, 96, 3, padding=1)
-            self.branch_pool = Conv(cin, pool, 1)
-
-        def forward(self, x):
-            b5 = self.branch5x5_2(self.branch5x5_1(x))
-            b3 = self.branch3x3dbl_3(self.branch3x3dbl_2(self.branch3x3dbl_1(x)))
-            return torch.cat([self.branch1x1(x), b5, b3, self.branch_pool(avg(x))], 1)
-
-    class B(nn.Module):
-        def __init__(self, cin):
-            super().__init__()
-            self.branch3x3 = Conv(cin, 384, 3, stride=2)
-            self.branch3x3dbl_1 = Conv(cin, 64, 1)
-            self.branch3x3dbl_2 = Conv(64, 96, 3, padding=1)
-            self.branch3x3dbl_3 = Conv(96, 96, 3, stride=2)
-
-        def forward(self, x):
-            b3 = self.branch3x3dbl_3(self.branch3x3dbl_2(self.branch3x3dbl_1(x)))
-            return torch.cat([self.branch3x3(x), b3, F.max_pool2d(x, 3, stride=2)], 1)
-
-    class C(nn.Module):
-        def __init__(self, cin, c7):
-            super().__init__()
-            self.branch1x1 = Conv(cin, 192, 1)
-            self.branch7x7_1 = Conv(cin, c7, 1)
-            self.branch7x7_2 = Conv(c7, c7, (1, 7), padding=(0, 3))
-            self.branch7x7_3 = Conv(c7, 192, (7, 1), padding=(3, 0))
-            self.branch7x7dbl_1 = Conv(cin, c7, 1)
-            self.branch7x7dbl_2 = Conv(c7, c7, (7, 1), padding=(3, 0))
-            self.branch7x7dbl_3 = Conv(c7, c7, (1, 7), padding=(0, 3))
-            self.branch7x7dbl_4 = Conv(c7, c7, (7, 1), padding=(3, 0))
-            self.branch7x7dbl_5 = Conv(c7, 192, (1, 7), padding=(0, 3))
-            self.branch_pool = Conv(cin, 192, 1)
-
-        def forward(self, x):
-            b7 = self.branch7x7_3(self.branch7x7_2(self.branch7x7_1(x)))
-            d = x
-            for i in range(1, 6):
-                d = getattr(self, f"branch7x7dbl_{i}")(d)
-            return torch.cat([self.branch1x1(x), b7, d, self.branch_pool(avg(x))], 1)
-
-    class D(nn.Module):
-        def __init__(self, cin):
-            super().__init__()
-            self.branch3x3_1 = Conv(cin, 192, 1)
-            self.branch3x3_2 = Conv(192, 320, 3, stride=2)
-            self.branch7x7x3_1 = Conv(cin, 192, 1)
-            self.branch7x7x3_2 = Conv(192, 192, (1, 7), padding=(0, 3))
-            self.branch7x7x3_3 = Conv(192, 192, (7, 1), padding=(3, 0))
-            self.branch7x7x3_4 = Conv(192, 192, 3, stride=2)
-
-        def forward(self, x):
-            b3 = self.branch3x3_2(self.branch3x3_1(x))
-            b7 = x
-            for i in range(1, 5):
-                b7 = getattr(self, f"branch7x7x3_{i}")(b7)
-            return torch.cat([b3, b7, F.max_pool2d(x, 3, stride=2)], 1)
-
-    class E(nn.Module):
-        def __init__(self, cin, max_pool):
-            super().__init__()
-            self.max_pool = max_pool  # the last block of the FID graph pools with max, not mean
-            self.branch1x1 = Conv(cin, 320, 1)
-            self.branch3x3_1 = Conv(cin, 384, 1)
-            self.branch3x3_2a = Conv(384, 384, (1, 3), padding=(0, 1))
-            self.branch3x3_2b = Conv(384, 384, (3, 1), padding=(1, 0))
-            self.branch3x3dbl_1 = Conv(cin, 448, 1)
-            self.branch3x3dbl_2 = Conv(448, 384, 3, padding=1)
-            self.branch3x3dbl_3a = Conv(384, 384, (1, 3), padding=(0, 1))
-            self.branch3x3dbl_3b = Conv(384, 384, (3, 1), padding=(1, 0))
-            self.branch_pool = Conv(cin, 192, 1)
-
-        def forward(self, x):
-            b3 = self.branch3x3_1(x)
-            b3 = torch.cat([self.branch3x3_2a(b3), self.branch3x3_2b(b3)], 1)
-            d = self.branch3x3dbl_2(self.branch3x3dbl_1(x))
-            d = torch.cat([self.branch3x3dbl_3a(d), self.branch3x3dbl_3b(d)], 1)
-            p = F.max_pool2d(x, 3, stride=1, padding=1) if self.max_pool else avg(x)
-            return torch.cat([self.branch1x1(x), b3, d, self.branch_pool(p)], 1)
-
-    class FIDInception(nn.Module):
-        """Inception-v3 as in pytorch-fid (keys as torchvision's Inception3); forward gives the
-        (B, 2048) pool features of (B, 3, H, W) images in [0, 1], resized to 299 x 299."""
-
-        def __init__(self):
-            super().__init__()
-            self.Conv2d_1a_3x3 = Conv(3, 32, 3, stride=2)
-            self.Conv2d_2a_3x3 = Conv(32, 32, 3)
-            self.Conv2d_2b_3x3 = Conv(32, 64, 3, padding=1)
-            self.Conv2d_3b_1x1 = Conv(64, 80, 1)
-            self.Conv2d_4a_3x3 = Conv(80, 192, 3)
-            self.Mixed_5b = A(192, 32)
-            self.Mixed_5c = A(256, 64)
-            self.Mixed_5d = A(288, 64)
-            self.Mixed_6a = B(288)
-            self.Mixed_6b = C(768, 128)
-            self.Mixed_6c = C(768, 160)
-            self.Mixed_6d = C(768, 160)
-            self.Mixed_6e = C(768, 192)
-            self.Mixed_7a = D(768)
-            self.Mixed_7b = E(1280, max_pool=False)
-            self.Mixed_7c = E(2048, max_pool=True)
-            self.fc = nn.Linear(2048, 1008)  # unused; present so the file's keys all load
-
-        def forward(self, x):
-            x = F.interpolate(x, size=(299, 299), mode="bilinear", align_corners=False)
-            x = 2 * x - 1
-            x = self.Conv2d_2b_3x3(self.Conv2d_2a_3x3(self.Conv2d_1a_3x3(x)))
-            x = F.max_pool2d(x, 3, stride=2)
-            x = F.max_pool2d(self.Conv2d_4a_3x3(self.Conv2d_3b_1x1(x)), 3, stride=2)
-            for name in ("5b", "5c", "5d", "6a", "6b", "6c", "6d", "6e", "7a", "7b", "7c"):
-                x = getattr(self, f"Mixed_{name}")(x)
-            return x.mean(dim=(2, 3))
-
-    return FIDInception
-
-
-def load_inception(path: str | Path):
-    """pytorch-fid's Inception-v3 from a local state_dict file; errors name the file."""
-    model = _inception_module()()
-    path = Path(path)
-    sd = _load_state(path)
-    sd = {k: v for k, v in sd.items() if not k.startswith("AuxLogits.")}
-    missing, unexpected = model.load_state_dict(sd, strict=False)
-    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
-    if missing or unexpected:
-        raise ValueError(
-            f"{path} does not match pytorch-fid's Inception-v3 (missing {missing[:3]}, "
-            f"unexpected {unexpected[:3]}); use pt_inception-2015-12-05-6726825d.pth"
-        )
-    return model.eval()
-
-
-def inception_from_env():
-    """(module, None) when $COIN_FID_WEIGHTS names a file, else (None, reason)."""
-    p = os.environ.get(FID_ENV)
-    if not p:
-        return None, FID_UNAVAILABLE
-    return load_inception(p), None
+# FID with pytorch-fid's Inception-v3 from `coin_cl.nets.inception` (load_inception / inception_from_env).
 
 
 def inception_features(model, images: Sequence[np.ndarray], batch: int = 8) -> np.ndarray:

@@ -31,3 +31,50 @@ def small_mode() -> bool:
     return (
         os.environ.get("COIN_CL_SMALL") == "1" or "oclgrind" in os.environ.get("COIN_CL_DEVICE", "").lower()
     )
+
+
+# ---------------------------------------------------------------- network weight files (random values)
+
+
+def random_lpips_files(tmp_path, net, seed=0):
+    """Random weights under the real file layouts (torchvision backbone, lpips heads)."""
+    import torch
+
+    from coin_cl.nets.lpips import backbone as lpips_backbone
+
+    torch.manual_seed(seed)
+    feats, _, chans = lpips_backbone(net)
+    backbone = {f"features.{k}": v for k, v in feats.state_dict().items()}
+    backbone["classifier.1.weight"] = torch.zeros(3, 3)  # real files carry the classifier too
+    heads = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(chans)}
+    b, h = tmp_path / f"{net}_backbone.pth", tmp_path / f"{net}_heads.pth"
+    torch.save(backbone, b)
+    torch.save(heads, h)
+    return b, h, backbone, heads
+
+
+@pytest.fixture
+def lpips_files():
+    """`random_lpips_files(tmp_path, net, seed=0) -> (backbone, heads, backbone_sd, heads_sd)`."""
+    return random_lpips_files
+
+
+@pytest.fixture(scope="module")
+def inception_file(tmp_path_factory):
+    """pytorch-fid's state_dict layout with random weights (BN statistics made non-trivial)."""
+    import torch
+
+    from coin_cl.nets.inception import FIDInception
+
+    torch.manual_seed(0)
+    model = FIDInception()
+    sd = model.state_dict()
+    for k, v in sd.items():
+        if k.endswith("running_var"):
+            sd[k] = torch.rand_like(v) + 0.5
+        elif k.endswith("running_mean"):
+            sd[k] = torch.randn_like(v) * 0.1
+    sd = {k: v for k, v in sd.items() if not k.endswith("num_batches_tracked")}  # as the real file
+    p = tmp_path_factory.mktemp("fid") / "pt_inception.pth"
+    torch.save(sd, p)
+    return p, sd

@@ -1,4 +1,5 @@
-"""Metrics: agreement with scikit-image, masked variants by hand, LPIPS loading, `coin-cl eval`."""
+"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance, `coin-cl eval`
+(the LPIPS and Inception networks and their weight loading: tests/test_nets.py)."""
 
 import json
 import math
@@ -6,10 +7,11 @@ import math
 import cv2
 import numpy as np
 import pytest
-import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from coin_cl import metrics as M
+from coin_cl.nets.inception import FID_ENV
+from coin_cl.nets.lpips import LPIPS_ENV
 
 
 def _pair(seed, H=40, W=48):
@@ -92,70 +94,6 @@ def test_aggregate_handles_inf_nan_none():
     assert M.jsonable({"a": [math.inf, math.nan, 1.0]}) == {"a": ["inf", "nan", 1.0]}
 
 
-# ---------------------------------------------------------------- LPIPS
-
-
-def _random_lpips_files(tmp_path, net, seed=0):
-    """Random weights under the real file layouts (torchvision backbone, lpips heads)."""
-    torch.manual_seed(seed)
-    feats, _, chans = M._features(net)
-    backbone = {f"features.{k}": v for k, v in feats.state_dict().items()}
-    backbone["classifier.1.weight"] = torch.zeros(3, 3)  # real files carry the classifier too
-    heads = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(chans)}
-    b, h = tmp_path / f"{net}_backbone.pth", tmp_path / f"{net}_heads.pth"
-    torch.save(backbone, b)
-    torch.save(heads, h)
-    return b, h, backbone, heads
-
-
-@pytest.mark.parametrize("net", ["alex", "vgg"])
-def test_lpips_loads_through_real_loader(tmp_path, net):
-    b, h, backbone, heads = _random_lpips_files(tmp_path, net)
-    model = M.load_lpips(b, h, net)
-    torch.testing.assert_close(model.features[0].weight, backbone["features.0.weight"])
-    torch.testing.assert_close(model.lins[4].weight, heads["lin4.model.1.weight"])
-    pred, gt = _pair(3, 40, 40)
-    d = M.lpips(model, pred, gt)
-    assert d > 0
-    assert M.lpips(model, gt, gt) == pytest.approx(0.0, abs=1e-7)
-    assert M.lpips(model, gt, pred) == pytest.approx(d, rel=1e-5)
-    further = np.clip(gt + np.random.default_rng(4).normal(0, 0.3, gt.shape), 0, 1)
-    assert M.lpips(model, further, gt) > d
-
-
-def test_lpips_bad_files_name_the_file(tmp_path):
-    b, h, _, _ = _random_lpips_files(tmp_path, "alex")
-    with pytest.raises(ValueError, match="alex_backbone.pth.*vgg"):
-        M.load_lpips(b, h, "vgg")
-    with pytest.raises(ValueError, match="alex_backbone.pth.*heads"):
-        M.load_lpips(b, b, "alex")
-    with pytest.raises(FileNotFoundError, match="absent.pth"):
-        M.load_lpips(tmp_path / "absent.pth", h)
-
-
-def test_lpips_unavailable_without_weights(monkeypatch):
-    for k in M.LPIPS_ENV:
-        monkeypatch.delenv(k, raising=False)
-    model, reason = M.lpips_from_env()
-    assert model is None and "COIN_LPIPS_BACKBONE" in reason
-    pred, gt = _pair(5)
-    out = M.evaluate_view(pred, gt, np.ones(gt.shape[:2], bool))
-    assert out["lpips"] is None and out["m_lpips"] is None
-
-
-def test_lpips_from_env(tmp_path, monkeypatch):
-    b, h, _, _ = _random_lpips_files(tmp_path, "alex", seed=1)
-    monkeypatch.setenv("COIN_LPIPS_BACKBONE", str(b))
-    monkeypatch.setenv("COIN_LPIPS_HEADS", str(h))
-    model, reason = M.lpips_from_env()
-    assert reason is None
-    pred, gt = _pair(6, 48, 48)
-    mask = np.zeros((48, 48), bool)
-    mask[10:20, 10:20] = True
-    out = M.evaluate_view(pred, gt, mask, model)
-    assert out["lpips"] > 0 and out["m_lpips"] > 0
-
-
 # ---------------------------------------------------------------- FID
 
 
@@ -187,43 +125,6 @@ def test_frechet_distance_by_hand():
     assert narrow == pytest.approx(d @ d + np.trace(s1) + np.trace(s2) - 2 * tr, rel=1e-6)
 
 
-@pytest.fixture(scope="module")
-def inception_file(tmp_path_factory):
-    """pytorch-fid's state_dict layout with random weights (BN statistics made non-trivial)."""
-    torch.manual_seed(0)
-    model = M._inception_module()()
-    sd = model.state_dict()
-    for k, v in sd.items():
-        if k.endswith("running_var"):
-            sd[k] = torch.rand_like(v) + 0.5
-        elif k.endswith("running_mean"):
-            sd[k] = torch.randn_like(v) * 0.1
-    sd = {k: v for k, v in sd.items() if not k.endswith("num_batches_tracked")}  # as the real file
-    p = tmp_path_factory.mktemp("fid") / "pt_inception.pth"
-    torch.save(sd, p)
-    return p, sd
-
-
-def test_inception_loads_through_real_loader(inception_file, tmp_path):
-    path, sd = inception_file
-    model = M.load_inception(path)
-    torch.testing.assert_close(model.Mixed_7c.branch_pool.conv.weight, sd["Mixed_7c.branch_pool.conv.weight"])
-    rng = np.random.default_rng(10)
-    imgs = [rng.uniform(0, 1, (40, 56, 3)) for _ in range(3)]
-    f = M.inception_features(model, imgs)
-    assert f.shape == (3, 2048) and np.isfinite(f).all() and f.std() > 0
-    bad = {k: v for k, v in sd.items() if not k.startswith("Mixed_7c")}
-    torch.save(bad, tmp_path / "bad.pth")
-    with pytest.raises(ValueError, match="bad.pth.*Mixed_7c"):
-        M.load_inception(tmp_path / "bad.pth")
-
-
-def test_fid_unavailable_without_weights(monkeypatch):
-    monkeypatch.delenv(M.FID_ENV, raising=False)
-    model, reason = M.inception_from_env()
-    assert model is None and "COIN_FID_WEIGHTS" in reason
-
-
 # ---------------------------------------------------------------- coin-cl eval
 
 
@@ -246,7 +147,7 @@ def test_eval_ground_truth_against_itself(eval_scene, tmp_path, monkeypatch):
     from coin_cl.cli import main
     from coin_cl.scene.io import read_image
 
-    for k in (*M.LPIPS_ENV, M.FID_ENV):
+    for k in (*LPIPS_ENV, FID_ENV):
         monkeypatch.delenv(k, raising=False)
     pred = tmp_path / "pred"
     pred.mkdir()
@@ -293,14 +194,16 @@ def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
         evaluate_folder(pred, eval_scene)
 
 
-def test_eval_with_weight_files_reports_lpips_and_fid(eval_scene, tmp_path, monkeypatch, inception_file):
+def test_eval_with_weight_files_reports_lpips_and_fid(
+    eval_scene, tmp_path, monkeypatch, inception_file, lpips_files
+):
     # Wiring only: the weights are random, so the values mean nothing beyond "computed, finite".
     from coin_cl.evaluation import evaluate_folder
 
-    b, h, _, _ = _random_lpips_files(tmp_path, "alex", seed=2)
+    b, h, _, _ = lpips_files(tmp_path, "alex", seed=2)
     monkeypatch.setenv("COIN_LPIPS_BACKBONE", str(b))
     monkeypatch.setenv("COIN_LPIPS_HEADS", str(h))
-    monkeypatch.setenv(M.FID_ENV, str(inception_file[0]))
+    monkeypatch.setenv(FID_ENV, str(inception_file[0]))
     pred = tmp_path / "pred"
     pred.mkdir()
     for n in ("view_000.png", "view_001.png"):

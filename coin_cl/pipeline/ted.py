@@ -122,7 +122,7 @@ class AdversarialTerm(LossTerm):
         loss = d_loss(self.disc(real), self.disc(fake))
         loss.backward()
         self.opt.step()
-        ctx.log["disc"] = float(loss)
+        ctx.log["disc"] = float(loss.detach())
 
     def state_dict(self) -> dict[str, Any]:
         return {

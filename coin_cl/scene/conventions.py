@@ -107,6 +107,22 @@ def invert_rigid(M: np.ndarray) -> np.ndarray:
     return out
 
 
+def look_at(eye, target, up) -> np.ndarray:
+    """(4, 4) float64 world-to-camera, OpenCV axes (x right, y down, z forward), for a camera at
+    `eye` looking at `target`; `up` is the world's up direction (it need not be orthogonal to the
+    view direction, only not parallel to it). The one look-at of the code base."""
+    eye = np.asarray(eye, dtype=np.float64).reshape(3)
+    f = np.asarray(target, dtype=np.float64).reshape(3) - eye
+    f = f / np.linalg.norm(f)
+    r = np.cross(f, np.asarray(up, dtype=np.float64).reshape(3))
+    r = r / np.linalg.norm(r)
+    dn = np.cross(f, r)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([r, dn, f], axis=1)
+    c2w[:3, 3] = eye
+    return invert_rigid(c2w)
+
+
 def llff_to_camtoworld(poses_bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """LLFF `poses_bounds.npy` (N, 17) -> camtoworld (N, 4, 4) OpenCV axes, hwf (N, 3), bounds (N, 2).
 

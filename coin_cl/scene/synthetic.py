@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .colmap import ColmapCamera, write_model
-from .conventions import camtoworld_to_llff, intrinsics_matrix, invert_rigid
+from .conventions import camtoworld_to_llff, intrinsics_matrix, look_at
 from .io import write_npy, write_png, write_text
 from .masks import write_mask
 from .types import Camera
@@ -198,19 +198,6 @@ def default_room(seed: int = 0) -> list[Box]:
     return [room, table, crate, obj]
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """(4, 4) world-to-camera, OpenCV axes, camera at `eye` looking at `target` with z-up world."""
-    f = target - eye
-    f = f / np.linalg.norm(f)
-    r = np.cross(f, up)
-    r = r / np.linalg.norm(r)
-    dn = np.cross(f, r)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([r, dn, f], axis=1)
-    c2w[:3, 3] = eye
-    return invert_rigid(c2w)
-
-
 def arc_cameras(
     n_views: int,
     coverage: int,
@@ -236,7 +223,8 @@ def arc_cameras(
         h = 1.35 + rng.uniform(-0.12, 0.12)
         eye = np.array([r * np.cos(a), r * np.sin(a), h])
         tgt = target + rng.uniform(-0.04, 0.04, 3)
-        cams.append(Camera(K=K, viewmat=look_at(eye, tgt), width=width, height=height, name=f"{i}"))
+        vm = look_at(eye, tgt, up=(0.0, 0.0, 1.0))  # z-up world
+        cams.append(Camera(K=K, viewmat=vm, width=width, height=height, name=f"{i}"))
     return cams
 
 

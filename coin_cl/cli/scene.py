@@ -4,10 +4,7 @@ test views against a scene's object-absent ground truth)."""
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
-
-log = logging.getLogger(__name__)
 
 
 def add_commands(subparsers) -> None:
@@ -29,7 +26,7 @@ def add_commands(subparsers) -> None:
 
 
 def cmd_make_scene(args: argparse.Namespace) -> int:
-    from .scene.synthetic import write_synthetic
+    from coin_cl.scene.synthetic import write_synthetic
 
     out = write_synthetic(
         args.out_dir,

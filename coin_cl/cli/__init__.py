@@ -1,6 +1,8 @@
-"""The `coin-cl` command line. Each subcommand lives in the module that owns its work.
+"""The `coin-cl` command line: thin parsers over the Python API (`coin_cl.demo`, `coin_cl.evaluation`,
+`coin_cl.gs.trainer`, `coin_cl.render_utils`, `coin_cl.scene`).
 
-A module joins the CLI by defining `add_commands(subparsers)`; the list below names them.
+A module of this package joins the CLI by defining `add_commands(subparsers)`; the list below names
+them. Nothing outside `coin_cl.cli` imports it.
 """
 
 from __future__ import annotations
@@ -16,10 +18,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # Modules that register subcommands. A module that is missing is skipped with a log line, so a
 # partial checkout still gives a working CLI for what is there.
 COMMAND_MODULES = [
-    "coin_cl.cli_engine",  # demo, doctor
-    "coin_cl.cli_scene",  # make-scene, eval
-    "coin_cl.cli_train",  # train, render
-    "coin_cl.cli_run",  # run (CoIn end to end)
+    "coin_cl.cli.engine",  # demo, doctor
+    "coin_cl.cli.scene",  # make-scene, eval
+    "coin_cl.cli.train",  # train, render
+    "coin_cl.cli.run",  # run (CoIn end to end)
 ]
 
 

@@ -1,0 +1,491 @@
+"""Image-folder layouts: SPIn-NeRF / LLFF (`load_spinnerf_folder`) and plain COLMAP
+(`load_colmap_folder`). Both are an image folder plus poses (a COLMAP model, else LLFF
+`poses_bounds.npy`); they differ in the default split, where masks are looked for first and what
+`scene.meta["layout"]` says. docs/SCENES.md has the user-facing rules; `load_scene` picks the loader.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .colmap import (
+    ColmapCamera,
+    Undistorter,
+    find_model_dir,
+    has_images,
+    pinhole_for,
+    read_cameras,
+    read_model,
+    read_points3d,
+)
+from .conventions import invert_rigid, llff_to_camtoworld, scale_intrinsics
+from .io import read_image
+from .masks import check_mask, dilate_mask, read_mask
+from .ply import read_points_ply
+from .types import Camera, Scene
+
+log = logging.getLogger(__name__)
+
+SPINNERF_N_TEST = 40
+
+
+# ---------------------------------------------------------------------------------------------- the folder
+
+
+@dataclass
+class ImageFolder:
+    """What every image-folder layout starts from: the scene root, its image folder and files,
+    `views.txt` (stem -> (view index, split)) when present, each file's view index among all views
+    of the capture (LLFF row; SPIn-NeRF test-label number) and the COLMAP model folder if any."""
+
+    root: Path
+    imgdir: Path
+    files: list[Path]
+    views: dict[str, tuple[int, str]] | None
+    vindex: list[int]
+    model_dir: Path | None
+
+    @property
+    def names(self) -> list[str]:
+        return [f.name for f in self.files]
+
+
+def image_dir(root: Path, images: str | None) -> Path:
+    """`root/images` when named, else images_4/, images/, the first images_N/."""
+    if images is not None:
+        d = root / images
+        if not d.is_dir():
+            raise FileNotFoundError(f"image folder {d} not found; check the `images` argument")
+        return d
+    for name in ("images_4", "images"):
+        if (root / name).is_dir():
+            return root / name
+    others = sorted(root.glob("images_*"))
+    if others:
+        return others[0]
+    raise FileNotFoundError(f"no image folder in {root}: expected images_4/ (SPIn-NeRF) or images/ (COLMAP)")
+
+
+def read_views_txt(path: Path) -> dict[str, tuple[int, str]]:
+    """views.txt -> stem -> (view index among all views, split)."""
+    out = {}
+    for line in path.read_text().splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        t = line.split()
+        out[Path(t[1]).stem] = (int(t[0]), t[2])
+    return out
+
+
+def open_folder(root: Path, imgdir: Path, files: list[Path]) -> ImageFolder:
+    """The `ImageFolder` of `root` (views.txt checked against the images)."""
+    names = [f.name for f in files]
+    views = read_views_txt(root / "views.txt") if (root / "views.txt").is_file() else None
+    if views is not None:
+        unknown = [n for n in names if Path(n).stem not in views]
+        if unknown:
+            raise ValueError(
+                f"{root / 'views.txt'} does not list {unknown[:3]}; add them or remove the images"
+            )
+    vindex = [views[Path(n).stem][0] if views else i for i, n in enumerate(names)]
+    return ImageFolder(root, imgdir, files, views, vindex, find_model_dir(root))
+
+
+def find_file(folder: Path, name: str) -> Path | None:
+    """The file for image `name` in `folder`: same name, COLMAP's `<name>.png`, else the same stem
+    with .png/.jpg."""
+    for p in (folder / name, folder / f"{name}.png"):
+        if p.is_file():
+            return p
+    for ext in (".png", ".jpg", ".jpeg", ".JPG"):
+        q = folder / (Path(name).stem + ext)
+        if q.is_file():
+            return q
+    return None
+
+
+# ---------------------------------------------------------------------------------------------- poses
+
+
+@dataclass
+class Poses:
+    """World-to-camera per view, COLMAP camera ids and cameras, sparse points (None: look in the
+    model folder), LLFF near/far bounds per view, and whether to undistort."""
+
+    viewmats: list[np.ndarray]
+    cam_ids: list[int]
+    cameras: dict[int, ColmapCamera]
+    points: np.ndarray | None
+    colors: np.ndarray | None
+    bounds: np.ndarray | None
+    source: str
+    undistort: bool
+
+
+def colmap_poses(folder: ImageFolder, undistort: bool | None) -> Poses:
+    """Poses of every image from the COLMAP model (by name, else by stem); undistort by default."""
+    model_dir = folder.model_dir
+    model = read_model(model_dir)
+    by_stem = {Path(k).stem: v for k, v in model.images.items()}
+    poses, cam_ids = [], []
+    for n in folder.names:
+        entry = model.images.get(n) or by_stem.get(Path(n).stem)
+        if entry is None:
+            raise ValueError(
+                f"image {folder.imgdir / n} has no pose in the COLMAP model {model_dir}; "
+                "remove the image or re-run COLMAP mapping with it"
+            )
+        cam_ids.append(entry[0])
+        poses.append(entry[1])
+    stems = {Path(n).stem for n in folder.names}
+    extra = [k for k in model.images if Path(k).stem not in stems]
+    if extra:
+        log.info(
+            "%s: %d posed images have no file in %s and are not loaded (e.g. %s)",
+            model_dir,
+            len(extra),
+            folder.imgdir,
+            extra[0],
+        )
+    return Poses(
+        poses, cam_ids, model.cameras, model.points, model.colors, None, f"COLMAP model {model_dir}",
+        True if undistort is None else undistort,
+    )  # fmt: skip
+
+
+def llff_poses(folder: ImageFolder, pb_path: Path, undistort: bool | None) -> Poses:
+    """Poses from LLFF `poses_bounds.npy` (row = view index), one shared camera (the model's
+    cameras file, else the file's H, W, focal); no undistortion by default (as LLFF loaders)."""
+    names, vindex, model_dir = folder.names, folder.vindex, folder.model_dir
+    c2w, hwf, bnds = llff_to_camtoworld(np.load(pb_path))
+    if folder.views is None and len(c2w) != len(names):
+        raise ValueError(
+            f"{pb_path} has {len(c2w)} poses but {folder.imgdir} holds {len(names)} images; with a "
+            "subset of the views add views.txt (index name split) mapping names to rows"
+        )
+    if max(vindex) >= len(c2w):
+        raise ValueError(f"view index {max(vindex)} has no pose: {pb_path} has only {len(c2w)} rows")
+    if len(c2w) > len(names):
+        log.info(
+            "%s: %d of its %d poses have no image in %s (subset of the capture)",
+            pb_path,
+            len(c2w) - len(names),
+            len(c2w),
+            folder.imgdir,
+        )
+    if model_dir is not None:
+        cams = read_cameras(model_dir)
+    else:
+        h, w, f = hwf[0]
+        cams = {1: ColmapCamera("SIMPLE_PINHOLE", int(w), int(h), np.array([f, w / 2, h / 2]))}
+    if len(cams) != 1:
+        raise ValueError(f"{model_dir}: LLFF poses need a single shared camera, found {len(cams)}")
+    return Poses(
+        [invert_rigid(c2w[k]) for k in vindex], [next(iter(cams))] * len(names), cams, None, None,
+        bnds[vindex], str(pb_path), False if undistort is None else undistort,
+    )  # fmt: skip
+
+
+def read_poses(folder: ImageFolder, undistort: bool | None) -> Poses:
+    """A COLMAP model with images wins; else LLFF poses_bounds.npy; else an error saying what to run."""
+    if folder.model_dir is not None and has_images(folder.model_dir):
+        return colmap_poses(folder, undistort)
+    pb_path = folder.root / "poses_bounds.npy"
+    if pb_path.is_file():
+        return llff_poses(folder, pb_path, undistort)
+    raise FileNotFoundError(
+        f"no camera poses in {folder.root}: expected sparse/0/images.bin (or images.txt) from COLMAP, "
+        "or LLFF poses_bounds.npy; run COLMAP on the images first"
+    )
+
+
+def sparse_points(folder: ImageFolder, poses: Poses) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (N, 3) and colours (N, 3) float32 in [0, 1] or None: the model's, else points3D.bin/txt,
+    else points3D.ply in the model folder; empty (with a warning) when there are none."""
+    pts, cols, model_dir = poses.points, poses.colors, folder.model_dir
+    if pts is None and model_dir is not None:
+        got = read_points3d(model_dir)
+        if got is not None:
+            pts, cols = got
+        elif (model_dir / "points3D.ply").is_file():
+            p, c = read_points_ply(model_dir / "points3D.ply")
+            pts, cols = p.astype(np.float64), None if c is None else (c * 255).round().astype(np.uint8)
+    if pts is None or len(pts) == 0:
+        log.warning("%s: no sparse points (points3D.bin/.txt/.ply); scene.points is empty", folder.root)
+        pts = np.zeros((0, 3))
+    return pts, None if cols is None else np.asarray(cols, np.float32) / 255.0
+
+
+# ---------------------------------------------------------------------------------------------- split
+
+
+# A layout's default split when neither n_test, views.txt nor sparse/0/test.txt decides.
+DefaultSplit = Callable[[int], tuple[list[bool], str]]
+
+
+def split_views(folder: ImageFolder, n_test: int | None, default: DefaultSplit) -> tuple[list[bool], str]:
+    """Which views are test views, and where that came from: n_test (first by name), views.txt,
+    sparse/0/test.txt, else the layout's default."""
+    names = folder.names
+    test_txt = folder.model_dir / "test.txt" if folder.model_dir is not None else None
+    if n_test is not None:
+        return [i < n_test for i in range(len(names))], f"n_test={n_test}"
+    if folder.views is not None:
+        return [folder.views[Path(n).stem][1] == "test" for n in names], str(folder.root / "views.txt")
+    if test_txt is not None and test_txt.is_file():
+        stems = {Path(s.strip()).stem for s in test_txt.read_text().split() if s.strip()}
+        return [Path(n).stem in stems for n in names], str(test_txt)
+    return default(len(names))
+
+
+def spinnerf_split(n: int) -> tuple[list[bool], str]:
+    """SPIn-NeRF: the first 40 views by name are the test views."""
+    return [i < SPINNERF_N_TEST for i in range(n)], f"SPIn-NeRF rule (first {SPINNERF_N_TEST} by name)"
+
+
+def no_test_views(n: int) -> tuple[list[bool], str]:
+    """A plain COLMAP capture has no held-out views unless told."""
+    return [False] * n, "plain COLMAP folder (no test views)"
+
+
+# ---------------------------------------------------------------------------------------------- views
+
+
+def view_mask(
+    folder: ImageFolder, i: int, f: Path, is_test: bool, shape
+) -> tuple[np.ndarray | None, Path | None]:
+    """The mask file of view `i` read at `shape`, and its path: a test view's from
+    `<images>/test_label/out_{k+1:05d}.png` (or masks/ in a plain COLMAP folder), a training view's
+    from `<images>/label/` else `masks/`. (None, None) when the folder has no mask for it."""
+    label_dir, test_label_dir = folder.imgdir / "label", folder.imgdir / "test_label"
+    masks_dir = folder.root / "masks"
+    if is_test:
+        mp = test_label_dir / f"out_{folder.vindex[i] + 1:05d}.png"
+        if not test_label_dir.is_dir() and masks_dir.is_dir():
+            # Plain COLMAP folder with held-out views: their masks live in masks/ too.
+            mp = find_file(masks_dir, f.name) or masks_dir / f.name
+            return (read_mask(mp, shape) if mp.is_file() else None), mp
+        if test_label_dir.is_dir():
+            if not mp.is_file():
+                raise FileNotFoundError(
+                    f"test mask {mp} for view {f.name} (view index {folder.vindex[i]}) not found; "
+                    "add it (name out_{index+1:05d}.png) or mark the view as train"
+                )
+            return read_mask(mp, shape), mp
+        return None, None
+    for d in (label_dir, masks_dir):
+        if d.is_dir():
+            mp = find_file(d, f.name)
+            if mp is None:
+                raise FileNotFoundError(
+                    f"mask for training view {f} not found in {d} (expected "
+                    f"{d / f.name}); add it or remove the image"
+                )
+            return read_mask(mp, shape), mp
+    return None, None
+
+
+def read_views(
+    folder: ImageFolder, poses: Poses, is_test: list[bool], mask_dilate: int
+) -> tuple[list[Camera], list[np.ndarray], list[np.ndarray], list[Undistorter | None]]:
+    """Cameras (K scaled to each image's size), images and masks (undistorted where asked), and
+    each view's undistorter (for the priors)."""
+    cameras: list[Camera] = []
+    imgs: list[np.ndarray] = []
+    masks: list[np.ndarray] = []
+    undistorters: dict[tuple, Undistorter | None] = {}
+    n_missing_masks = 0
+    view_und: list[Undistorter | None] = []
+    source = str(folder.model_dir or folder.root / "poses_bounds.npy")
+    for i, (f, V, cid) in enumerate(zip(folder.files, poses.viewmats, poses.cam_ids, strict=True)):
+        img = read_image(f)
+        H, W = img.shape[:2]
+        cc = poses.cameras.get(cid)
+        if cc is None:
+            raise ValueError(f"image {f} refers to camera {cid}, missing from {folder.model_dir}")
+        K0, dist, fisheye = pinhole_for(cc, source=source)
+        sx, sy = W / cc.width, H / cc.height
+        if abs(sx - sy) > 0.01 * sx:
+            log.warning(
+                "%s: image %dx%d vs camera %dx%d changes the aspect ratio", f, W, H, cc.width, cc.height
+            )
+        K = scale_intrinsics(K0, sx, sy)
+        und = None
+        if dist is not None:
+            key = (cid, W, H)
+            if poses.undistort:
+                if key not in undistorters:
+                    undistorters[key] = Undistorter(K, dist, fisheye, W, H)
+                und = undistorters[key]
+            elif key not in undistorters:
+                undistorters[key] = None
+                log.info(
+                    "%s: camera %d is %s with distortion %s; not undone (LLFF convention), "
+                    "pass undistort=True to undo it",
+                    folder.root,
+                    cid,
+                    cc.model,
+                    np.round(dist, 5),
+                )
+        view_und.append(und)
+        if und is not None:
+            img = und.image(img)
+        m, mp = view_mask(folder, i, f, is_test[i], (H, W))
+        if m is None:
+            n_missing_masks += 1
+            m = np.zeros((H, W), bool)
+        else:
+            if und is not None:
+                m = und.mask(m)
+            if mask_dilate and not is_test[i]:
+                m = dilate_mask(m, iterations=mask_dilate)
+            m = check_mask(m, source=str(mp))
+        cameras.append(Camera(K=K, viewmat=V, width=W, height=H, name=f.name))
+        imgs.append(img)
+        masks.append(m)
+    if n_missing_masks:
+        log.warning("%s: %d views have no mask file; their masks are empty", folder.root, n_missing_masks)
+    return cameras, imgs, masks, view_und
+
+
+def read_priors(
+    folder: ImageFolder, is_test: list[bool], imgs: list[np.ndarray], view_und: list[Undistorter | None]
+) -> dict[str, dict[int, np.ndarray]]:
+    """Per-view 2D priors shipped with the data (LaMa inpaints in SPIn-NeRF): `<images>/RGB_inpainted`
+    and `Depth_inpainted` for the training views."""
+    prior: dict[str, dict[int, np.ndarray]] = {}
+    for key, sub in (("rgb", "RGB_inpainted"), ("depth", "Depth_inpainted")):
+        d = folder.imgdir / sub
+        if not d.is_dir():
+            continue
+        got: dict[int, np.ndarray] = {}
+        for i, f in enumerate(folder.files):
+            if is_test[i]:
+                continue
+            p = find_file(d, f.name)
+            if p is None:
+                log.warning("%s: no %s prior for view %s", d, key, f.name)
+                continue
+            a = read_image(p)
+            if a.shape[:2] != imgs[i].shape[:2]:
+                raise ValueError(
+                    f"prior {p} is {a.shape[1]}x{a.shape[0]} but its image is "
+                    f"{imgs[i].shape[1]}x{imgs[i].shape[0]}; resize it to match"
+                )
+            if view_und[i] is not None:  # priors live in the same distorted pixels
+                a = view_und[i].image(a)
+            # The depth prior is disparity in an RGB PNG whose channels differ by a few levels.
+            got[i] = a.mean(axis=2) if key == "depth" else a
+        prior[key] = got
+    return prior
+
+
+def read_extras(folder: ImageFolder) -> dict[str, dict[int, np.ndarray]]:
+    """Extras written by the synthetic generator (ray-cast depth, object-absent/present renders)."""
+    root, names = folder.root, folder.names
+    extras: dict[str, dict[int, np.ndarray]] = {}
+    if (root / "depth").is_dir():
+        extras["depth"] = {
+            i: np.load(root / "depth" / (Path(n).stem + ".npy"))
+            for i, n in enumerate(names)
+            if (root / "depth" / (Path(n).stem + ".npy")).is_file()
+        }
+    for key, sub in (("object_absent", "absent"), ("object_present", "present")):
+        d = folder.imgdir / sub
+        if d.is_dir():
+            extras[key] = {i: read_image(p) for i, n in enumerate(names) if (p := find_file(d, n))}
+    return extras
+
+
+def _points_bounds(cam: Camera, pts: np.ndarray) -> tuple[float, float] | None:
+    """Near/far from the 0.5 / 99.5 depth percentiles of points seen by the camera (as LLFF)."""
+    if len(pts) == 0:
+        return None
+    uv, z = cam.project(pts)
+    ok = cam.in_image(uv) & (z > 0)
+    if ok.sum() < 10:
+        return None
+    return float(np.percentile(z[ok], 0.5)), float(np.percentile(z[ok], 99.5))
+
+
+def near_far(
+    bounds: np.ndarray | None, cameras: list[Camera], pts32: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per-view near/far: LLFF's bounds, else from the sparse points each camera sees."""
+    if bounds is not None:
+        return bounds[:, 0].copy(), bounds[:, 1].copy()
+    if len(pts32):
+        nf = [_points_bounds(c, pts32) for c in cameras]
+        if all(b is not None for b in nf):
+            return np.array([b[0] for b in nf]), np.array([b[1] for b in nf])
+    return None, None
+
+
+# ---------------------------------------------------------------------------------------------- layouts
+
+
+def _load_image_folder(
+    folder: ImageFolder,
+    layout: str,
+    default_split: DefaultSplit,
+    *,
+    undistort: bool | None,
+    n_test: int | None,
+    mask_dilate: int,
+    priors: bool,
+) -> Scene:
+    """The steps every image-folder layout shares, at the images' resolution."""
+    poses = read_poses(folder, undistort)
+    pts, colors = sparse_points(folder, poses)
+    is_test, split_source = split_views(folder, n_test, default_split)
+    log.info(
+        "%s: %d views, poses from %s, split from %s",
+        folder.root,
+        len(folder.files),
+        poses.source,
+        split_source,
+    )
+    cameras, imgs, masks, view_und = read_views(folder, poses, is_test, mask_dilate)
+    pts32 = np.asarray(pts, np.float32)
+    near, far = near_far(poses.bounds, cameras, pts32)
+    n = len(folder.files)
+    return Scene(
+        cameras=cameras,
+        images=imgs,
+        masks=masks,
+        points=pts32,
+        colors=colors,
+        train_idx=[i for i in range(n) if not is_test[i]],
+        test_idx=[i for i in range(n) if is_test[i]],
+        priors=read_priors(folder, is_test, imgs, view_und) if priors else {},
+        extras=read_extras(folder),
+        near=near,
+        far=far,
+        path=folder.root,
+        meta={
+            "layout": layout,
+            "poses": poses.source,
+            "split": split_source,
+            "undistorted": bool(poses.undistort),
+            "view_index": folder.vindex,
+        },
+    )
+
+
+def load_spinnerf_folder(folder: ImageFolder, **opts) -> Scene:
+    """SPIn-NeRF / LLFF: `images_4/` with `label/` (training masks), `test_label/out_{k+1:05d}.png`
+    (test masks), optional `RGB_inpainted/` and `Depth_inpainted/` priors; poses from sparse/0 or
+    `poses_bounds.npy`; without views.txt or test.txt the first 40 views by name are the test views.
+    `opts`: load_scene's undistort, n_test, mask_dilate, priors."""
+    return _load_image_folder(folder, "spinnerf", spinnerf_split, **opts)
+
+
+def load_colmap_folder(folder: ImageFolder, **opts) -> Scene:
+    """Plain COLMAP: `images/` + `sparse/0` (+ optional `masks/<name>`, `sparse/0/test.txt` or
+    views.txt); no test views unless told. `opts`: as `load_spinnerf_folder`."""
+    return _load_image_folder(folder, "colmap", no_test_views, **opts)

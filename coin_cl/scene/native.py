@@ -1,0 +1,121 @@
+"""coin-cl's own scene format: `save_scene` writes it, `load_native_folder` (through `load_scene`,
+which recognises a folder by its `scene.json`) reads it back."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .io import read_image, write_npy, write_png, write_text
+from .masks import check_mask, read_mask
+from .ply import read_points_ply, write_points_ply
+from .types import Camera, Scene
+
+
+def save_scene(scene: Scene, out_dir: str | Path) -> Path:
+    """Write a scene in the project's own format: scene.json + images/ + masks/ + points3D.ply
+    (+ priors/<kind>/ and extras/<kind>/ as .npy). `load_scene(out_dir)` reads it back exactly
+    for cameras and masks, and to 8-bit precision for images."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    views = []
+    for cam, img, m in zip(scene.cameras, scene.images, scene.masks, strict=True):
+        stem = Path(cam.name).stem
+        write_png(out / "images" / f"{stem}.png", img)
+        write_png(out / "masks" / f"{stem}.png", m.astype(np.uint8) * 255)
+        views.append(
+            {
+                "name": cam.name,
+                "image": f"images/{stem}.png",
+                "mask": f"masks/{stem}.png",
+                "width": cam.width,
+                "height": cam.height,
+                "K": cam.K.tolist(),
+                "viewmat": cam.viewmat.tolist(),
+            }
+        )
+    for group, data in (("priors", scene.priors), ("extras", scene.extras)):
+        for kind, per_view in data.items():
+            for i, a in per_view.items():
+                write_npy(out / group / kind / f"{Path(scene.cameras[i].name).stem}.npy", a)
+    write_points_ply(out / "points3D.ply", scene.points, scene.colors)
+    doc = {
+        "format": "coin-cl scene",
+        "version": 1,
+        "views": views,
+        "train_idx": scene.train_idx,
+        "test_idx": scene.test_idx,
+        "ref_view": scene.ref_view,
+        "near": None if scene.near is None else np.asarray(scene.near).tolist(),
+        "far": None if scene.far is None else np.asarray(scene.far).tolist(),
+        "points": "points3D.ply",
+        "meta": {k: v for k, v in scene.meta.items() if _jsonable(v)},
+    }
+    write_text(out / "scene.json", json.dumps(doc, indent=1))
+    return out
+
+
+def _jsonable(v) -> bool:
+    try:
+        json.dumps(v)
+        return True
+    except TypeError:
+        return False
+
+
+def load_native_folder(root: Path) -> Scene:
+    """A folder written by `save_scene` (scene.json + images/ + masks/ + points3D.ply + priors/ and
+    extras/ .npy), at its stored resolution."""
+    sj = root / "scene.json"
+    try:
+        doc = json.loads(sj.read_text())
+        views = doc["views"]
+    except (json.JSONDecodeError, KeyError) as exc:
+        raise ValueError(f"{sj} is not a coin-cl scene file ({exc}); re-create it with save_scene") from exc
+    cameras, imgs, masks = [], [], []
+    for v in views:
+        img = read_image(root / v["image"])
+        if img.shape[:2] != (v["height"], v["width"]):
+            raise ValueError(f"{root / v['image']} is not {v['width']}x{v['height']} as {sj} says")
+        cameras.append(
+            Camera(
+                K=np.array(v["K"]),
+                viewmat=np.array(v["viewmat"]),
+                width=v["width"],
+                height=v["height"],
+                name=v["name"],
+            )
+        )
+        imgs.append(img)
+        m = read_mask(root / v["mask"], img.shape[:2])
+        masks.append(check_mask(m, str(root / v["mask"])) if m.any() else m)
+    pts, cols = read_points_ply(root / doc.get("points", "points3D.ply"))
+    groups: dict[str, dict[str, dict[int, np.ndarray]]] = {"priors": {}, "extras": {}}
+    stems = [Path(c.name).stem for c in cameras]
+    for group in groups:
+        gdir = root / group
+        if gdir.is_dir():
+            for kdir in sorted(p for p in gdir.iterdir() if p.is_dir()):
+                groups[group][kdir.name] = {
+                    i: np.load(kdir / f"{s}.npy")
+                    for i, s in enumerate(stems)
+                    if (kdir / f"{s}.npy").is_file()
+                }
+    return Scene(
+        cameras=cameras,
+        images=imgs,
+        masks=masks,
+        points=pts,
+        colors=cols,
+        train_idx=list(doc.get("train_idx", [])),
+        test_idx=list(doc.get("test_idx", [])),
+        priors=groups["priors"],
+        extras=groups["extras"],
+        ref_view=doc.get("ref_view"),
+        near=None if doc.get("near") is None else np.array(doc["near"]),
+        far=None if doc.get("far") is None else np.array(doc["far"]),
+        path=root,
+        meta={**doc.get("meta", {}), "layout": "coin-cl"},
+    )
