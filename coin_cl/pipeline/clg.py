@@ -596,7 +596,7 @@ def run_clg(
         z = torch.randn(shape, generator=g)
         sbar = tqdm(total=n_steps, desc=f"  {stem} steps", leave=False, disable=not cfg.progress)
         res = DDIMSampler(denoiser, cfg.sampler(denoiser)).sample(
-            z, cond, uncond, energy=energy, generator=g, callback=lambda *_: sbar.update(1)
+            z, cond, uncond, energy=energy, generator=g, callback=lambda *_, b=sbar: b.update(1)
         )
         sbar.close()
         with torch.no_grad():
@@ -613,8 +613,8 @@ def run_clg(
         full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
         out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
         r_before, n_sup = consistency_residual(inp_n, inp_k, cam, cam_k, points, mask, depth_k, device)
-        r_after, _ = consistency_residual(to_uint8(out).astype(np.float32) / 255, inp_k, cam, cam_k, points, mask,
-                                          depth_k, device)  # fmt: skip
+        written = to_uint8(out).astype(np.float32) / 255  # the residual of what the PNG holds
+        r_after, _ = consistency_residual(written, inp_k, cam, cam_k, points, mask, depth_k, device)
         rec = {
             "view": n, "status": "guided" if cfg.guidance_scale else "unguided", "steps": n_steps,
             "energy_input": e_in, "energy_output": e_out, "energies": res.energies,
@@ -627,8 +627,8 @@ def run_clg(
         atomic_write(js, lambda p, r=rec: p.write_text(json.dumps(r, indent=1)))
         write_png(png, out)
         records[stem] = rec
-        log.info("CLG: view %d (%s): energy %.4f -> %.4f, residual %.4f -> %.4f, %.1f s", n, stem, e_in, e_out,
-                 r_before, r_after, rec["seconds"])  # fmt: skip
+        log.info("CLG: view %d (%s): energy %.4f -> %.4f, residual %.4f -> %.4f, %.1f s",
+                 n, stem, e_in, e_out, r_before, r_after, rec["seconds"])  # fmt: skip
     bar.close()
     status = [r["status"] for r in records.values()]
     return {
