@@ -230,12 +230,12 @@ def clg_part(args) -> dict:
     base = CLGConfig(progress=False)
     steps_list = [int(x) for x in args.clg_steps.split(",")]
     print()
-    print(f"CLG per view, {len(views)} views {views}, scene prior (work {prior.work_size} px), analytic features, "
+    print(f"CLG per view, {len(views)} views {views}, scene prior (work {prior.work_size} px), analytic features, "  # noqa: E501
           f"c = {base.guidance_scale}, window [{base.guidance_start}, {base.guidance_end}), 'quad'. "
           "residual = mean |I_n - warp(I^_k)| over the supported mask pixels ([0, 1] RGB):")  # fmt: skip
     print()
     print(
-        "| steps | guidance | s / view | residual I^_n (before) | residual output | energy I^_n | energy output |"
+        "| steps | guidance | s / view | residual I^_n (before) | residual output | energy I^_n | energy output |"  # noqa: E501
     )
     print("|---|---|---|---|---|---|---|")
     res: dict = {}
@@ -256,7 +256,8 @@ def clg_part(args) -> dict:
             ra = float(np.nanmean([v["residual_after"] for v in recs]))
             eb = float(np.mean([v["energy_input"] for v in recs]))
             ea = float(np.mean([v["energy_output"] for v in recs]))
-            print(f"| {steps} | {'c = ' + str(c) if c else 'none'} | {dt:.2f} | {rb:.4f} | {ra:.4f} | {eb:.4f} | "
+            guide = f"c = {c}" if c else "none"
+            print(f"| {steps} | {guide} | {dt:.2f} | {rb:.4f} | {ra:.4f} | {eb:.4f} | "
                   f"{ea:.4f} |", flush=True)  # fmt: skip
             res[f"clg_s_per_view_{steps}{'' if c else '_unguided'}"] = round(dt, 3)
             if steps == base.num_steps(prior):

@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 import torch
-
 from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, opencv_inpaint, train_scene_prior
-from coin_cl.pipeline.clg import CLGConfig, consistency_residual, reference_points, run_clg
+
+from coin_cl.pipeline.clg import CLGConfig, consistency_residual, reference_points, run_clg, stage_clg
 from coin_cl.scene.io import read_image, to_uint8
 from coin_cl.scene.synthetic import make_synthetic
 
@@ -79,19 +79,19 @@ def test_skips_reference_and_empty_mask(room, tmp_path):
     masks[empty] = np.zeros_like(masks[empty])
     res = _run(room, tmp_path, views=[k, empty, n], masks=masks)
     v = res["views"]
-    assert v["view_%03d" % k]["reason"] == "reference view"
-    assert v["view_%03d" % empty]["reason"] == "empty mask"
+    assert v[f"view_{k:03d}"]["reason"] == "reference view"
+    assert v[f"view_{empty:03d}"]["reason"] == "empty mask"
     assert res["n_skipped"] == 2 and res["n_guided"] == 1
     written = sorted(p.name for p in (tmp_path / "images").iterdir())
-    assert written == ["view_%03d.png" % n]
+    assert written == [f"view_{n:03d}.png"]
 
 
 def test_resume_does_not_redo(room, tmp_path):
     n = room["train"][2]
     res = _run(room, tmp_path, views=[n])
-    png = tmp_path / "images" / ("view_%03d.png" % n)
+    png = tmp_path / "images" / (f"view_{n:03d}.png")
     before = png.read_bytes()
-    assert res["views"]["view_%03d" % n]["status"] == "guided"
+    assert res["views"][f"view_{n:03d}"]["status"] == "guided"
 
     class Exploding:
         name = "must not run"
@@ -101,10 +101,10 @@ def test_resume_does_not_redo(room, tmp_path):
             raise AssertionError("a written view was redone")
 
     res2 = _run(room, tmp_path, views=[n], denoiser=Exploding(), guidance_scale=2.0)
-    rec = res2["views"]["view_%03d" % n]
+    rec = res2["views"][f"view_{n:03d}"]
     assert (
         rec["status"] == "resumed"
-        and rec["residual_after"] == res["views"]["view_%03d" % n]["residual_after"]
+        and rec["residual_after"] == res["views"][f"view_{n:03d}"]["residual_after"]
     )
     assert png.read_bytes() == before
     png.unlink()  # without its PNG the view is done again
@@ -116,7 +116,7 @@ def test_outside_mask_bit_identical(room, tmp_path):
     s = room["s"]
     n = room["train"][3]
     _run(room, tmp_path, views=[n])
-    out = to_uint8(read_image(tmp_path / "images" / ("view_%03d.png" % n)))
+    out = to_uint8(read_image(tmp_path / "images" / (f"view_{n:03d}.png")))
     orig = to_uint8(room["inp"][n])
     m = s.masks[n]
     assert np.array_equal(out[~m], orig[~m])
@@ -172,3 +172,43 @@ def test_guidance_lowers_energy_and_residual(room, tmp_path):
     assert len(rows) == 5
     assert e_g.mean() < 0.9 * e_p.mean() and (e_g < e_p).sum() >= 4
     assert r_g.mean() < 0.9 * r_p.mean() and (r_g < r_p).sum() >= 4
+
+
+def test_stage_clg_reads_the_stage_folders(tmp_path):
+    """`stage_clg` on the runner's layout: 1_inpaint/images, 2_refgs/renders + depths (no
+    reference_points.ply: P_k comes from the reference depth), writes 3_clg/images."""
+    from dataclasses import replace
+
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+    from coin_cl.pipeline.runner import StageContext
+    from coin_cl.scene import load_scene
+    from coin_cl.scene.io import write_png
+    from coin_cl.scene.synthetic import write_synthetic
+
+    scene = load_scene(write_synthetic(tmp_path / "scene", n_views=8, width=96, height=72, n_points=1000))
+    train = list(scene.train_idx)
+    k = train[0]
+    inp_dir, gs_dir = tmp_path / "1_inpaint", tmp_path / "2_refgs"
+    for i in train:
+        stem = scene.cameras[i].name.rsplit(".", 1)[0]
+        img = opencv_inpaint(scene.images[i], scene.masks[i])
+        write_png(inp_dir / "images" / f"{stem}.png", img)
+        write_png(gs_dir / "renders" / f"{stem}.png", img)
+        (gs_dir / "depths").mkdir(parents=True, exist_ok=True)
+        np.save(gs_dir / "depths" / f"{stem}.npy", scene.extras["depth"][i].astype(np.float32))
+    prior = ScenePriorConfig(patch=32, base=16, batch=4, max_steps=3)
+    cfg = CoInConfig(clg=CLGConfig(steps=2, progress=False), inpaint2d=Inpaint2DConfig(prior=prior))
+    masks = [np.asarray(m, bool) for m in scene.masks]
+    masks[train[1]] = np.zeros_like(masks[train[1]])
+    ctx = StageContext(
+        "3_clg", tmp_path / "3_clg", {"1_inpaint": inp_dir, "2_refgs": gs_dir}, {},
+        {"scene": replace(scene, masks=masks), "masks": masks, "ref": k, "cfg": cfg,
+         "iters": {"prior_seconds": 600.0}},
+    )  # fmt: skip
+    res = stage_clg(ctx)
+    written = sorted(p.stem for p in (ctx.out / "images").iterdir())
+    expect = sorted(scene.cameras[i].name.rsplit(".", 1)[0] for i in train[2:])
+    assert written == expect and res["n_guided"] == len(expect) and res["n_skipped"] == 2
+    assert any("P_k" in n for n in ctx.notes) and any("skipped" in n for n in ctx.notes)
+    assert not list(inp_dir.glob("scene_prior_*.pt"))  # nothing written into stage 1's folder
