@@ -14,7 +14,18 @@ analytic answer (the plane's homography, OpenCV warpPerspective), mean absolute 
 pixels. "bytes copied" is what a non-unified device (a discrete GPU) moves per forward+backward,
 measured on the copying code path; on PoCL buffers alias the tensors and nothing is copied.
 
-The last line printed is one JSON object (warp_fwd_bwd_s_500k, warp_max_rel_err, ...).
+CLG part (`--clg`, or `--clg-only` to skip the op rows): the CLG stage per view on the shared
+SPIn-NeRF scene (images_4 at --clg-scale, default 0.5 = 504x283). I^_n: the dataset's LaMa
+inpaints (RGB_inpainted/) composited with the capture outside the mask. R_n and depths: stand-in
+for Ref-GS (not merged yet): a short Scaffold-GS fit (--clg-gs-iters, default 300) on those
+inpaints via `coin_cl.gs.trainer.make_trainer`, rendered with depth; P_k: its reference depth
+unprojected by `coin_cl.pipeline.clg.reference_points` (the Ref-GS margin rule). Denoiser: the
+scene prior (fixed --clg-prior-steps optimizer steps, cached); features: the analytic default.
+Time per view against the number of DDIM steps; the consistency residual (mean |I_n - warp(I_k)|
+over the support of view n's mask through P_k, `consistency_residual`) of I^_n (before), of the
+unguided sample of the same seed and of the guided one (after).
+
+The last line printed is one JSON object (warp_fwd_bwd_s_500k, warp_max_rel_err, clg_*, ...).
 """
 
 from __future__ import annotations
@@ -28,13 +39,14 @@ import json  # noqa: E402
 import math  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from common import cpu_model, git_commit  # noqa: E402
 
-from coin_cl.engine import reference_warp as warp_reference
+from coin_cl.engine import reference_warp as warp_reference  # noqa: E402
 from coin_cl.engine.ops import warp  # noqa: E402
 from coin_cl.engine.runtime import Runtime, get_runtime  # noqa: E402
 from coin_cl.scene import Camera  # noqa: E402
@@ -133,12 +145,140 @@ def rel(a, e, sel=None) -> float:
     return float((a - e).abs().max() / e.abs().max().clamp_min(1e-30))
 
 
+def clg_part(args) -> dict:
+    """The CLG rows (see the module docstring); returns the clg_* figures."""
+    import logging
+    from dataclasses import replace
+
+    from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, train_scene_prior
+
+    from coin_cl.gs.data import Camera as GSCamera
+    from coin_cl.gs.refgs import choose_reference
+    from coin_cl.gs.trainer import TrainConfig, make_trainer
+    from coin_cl.pipeline.clg import CLGConfig, reference_points, run_clg
+    from coin_cl.scene import load_scene
+
+    logging.basicConfig(level=logging.WARNING)
+    data = Path(os.environ.get("COIN_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+    scene = load_scene(data / "spinnerf_scene1")
+    if args.clg_scale != 1.0:
+        scene = scene.resized(args.clg_scale)
+    work = Path(args.clg_work)
+    work.mkdir(parents=True, exist_ok=True)
+    train = [i for i in scene.train_idx if scene.masks[i].any()]
+    lama = scene.priors.get("rgb", {})
+    inp = [None] * len(scene)
+    for i in train:
+        m = scene.masks[i][..., None]
+        inp[i] = np.where(m, lama[i], scene.images[i]).astype(np.float32) if i in lama else scene.images[i]
+    k = choose_reference([scene.masks[i] for i in range(len(scene))], scene.cameras, train_idx=train)
+    cam = scene.cameras[k]
+    print(f"# CLG: {len(train)} masked training views at {cam.width}x{cam.height}, reference {k} "
+          f"({cam.name}); I^_n = LaMa ({len(lama)} views)")  # fmt: skip
+    t0 = time.perf_counter()
+    renders, depths = [None] * len(scene), [None] * len(scene)
+    cache = work / f"gs_{args.clg_gs_iters}_{args.clg_scale}.npz"
+    if cache.is_file():
+        z = np.load(cache)
+        for i in train:
+            renders[i], depths[i] = z[f"r{i}"], z[f"d{i}"]
+    else:
+        cfg = TrainConfig(iters=args.clg_gs_iters, progress=False, ckpt_every=0, export_ply=False, seed=0)
+        tr = make_trainer(
+            scene,
+            train,
+            [],
+            cfg,
+            out_dir=None,
+            train_images=[scene.images[i] if inp[i] is None else inp[i] for i in range(len(scene))],
+        )
+        tr.train()
+        for i in train:
+            with torch.no_grad():
+                r = tr.model.render(GSCamera.from_any(scene.cameras[i]), tr.step, return_depth=True)
+            renders[i] = r.image.clamp(0, 1).numpy().astype(np.float32)
+            depths[i] = np.where(r.alpha.numpy() > 0.5, r.depth.numpy(), np.nan).astype(np.float32)
+        np.savez(cache, **{f"r{i}": renders[i] for i in train}, **{f"d{i}": depths[i] for i in train})
+    t_gs = time.perf_counter() - t0
+    pk = reference_points(cam, depths[k], scene.masks[k])
+    print(f"# R_n / depth stand-in: Scaffold-GS, {args.clg_gs_iters} iterations on the inpaints, "
+          f"{t_gs:.0f} s; P_k: {len(pk)} points")  # fmt: skip
+    t0 = time.perf_counter()
+    pcfg = ScenePriorConfig(max_steps=args.clg_prior_steps, train_seconds=3600.0)
+    prior = train_scene_prior([scene.images[i] for i in train], [scene.masks[i] for i in train], pcfg,
+                              cache_dir=work, progress=False)  # fmt: skip
+    print(f"# scene prior: {prior.info.get('steps')} steps ({time.perf_counter() - t0:.0f} s here, "
+          f"cached: {prior.info.get('cached', False)})")  # fmt: skip
+    feats = AnalyticFeatures()
+    others = [i for i in train if i != k]
+    views = [others[j] for j in np.linspace(0, len(others) - 1, min(args.clg_views, len(others))).astype(int)]
+    base = CLGConfig(progress=False)
+    steps_list = [int(x) for x in args.clg_steps.split(",")]
+    print()
+    print(f"CLG per view, {len(views)} views {views}, scene prior (work {prior.work_size} px), analytic features, "  # noqa: E501
+          f"c = {base.guidance_scale}, window [{base.guidance_start}, {base.guidance_end}), 'quad'. "
+          "residual = mean |I_n - warp(I^_k)| over the supported mask pixels ([0, 1] RGB):")  # fmt: skip
+    print()
+    print(
+        "| steps | guidance | s / view | residual I^_n (before) | residual output | energy I^_n | energy output |"  # noqa: E501
+    )
+    print("|---|---|---|---|---|---|---|")
+    res: dict = {}
+    for steps in steps_list:
+        for c in (0.0, base.guidance_scale):
+            out = work / f"clg_{steps}_{c}"
+            import shutil
+
+            shutil.rmtree(out, ignore_errors=True)
+            cfg = replace(base, steps=steps, guidance_scale=c)
+            t0 = time.perf_counter()
+            r = run_clg(
+                k, views, scene.cameras, inp, renders, depths, scene.masks, pk, prior, feats, out, cfg
+            )
+            dt = (time.perf_counter() - t0) / len(views)
+            recs = [v for v in r["views"].values() if "residual_after" in v]
+            rb = float(np.nanmean([v["residual_before"] for v in recs]))
+            ra = float(np.nanmean([v["residual_after"] for v in recs]))
+            eb = float(np.mean([v["energy_input"] for v in recs]))
+            ea = float(np.mean([v["energy_output"] for v in recs]))
+            guide = f"c = {c}" if c else "none"
+            print(f"| {steps} | {guide} | {dt:.2f} | {rb:.4f} | {ra:.4f} | {eb:.4f} | "
+                  f"{ea:.4f} |", flush=True)  # fmt: skip
+            res[f"clg_s_per_view_{steps}{'' if c else '_unguided'}"] = round(dt, 3)
+            if steps == base.num_steps(prior):
+                key = "" if c else "_unguided"
+                res["clg_residual_before"] = round(rb, 5)
+                res[f"clg_residual_after{key}"] = round(ra, 5)
+                res[f"clg_energy_after{key}"] = round(ea, 5)
+                res["clg_energy_before"] = round(eb, 5)
+                if c:
+                    res["clg_s_per_view"] = round(dt, 3)
+    res["clg_steps_default"] = base.num_steps(prior)
+    res["clg_gs_stand_in_s"] = round(t_gs, 1)
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="100k only, no knob table")
+    ap.add_argument("--clg", action="store_true", help="also run the CLG part")
+    ap.add_argument("--clg-only", action="store_true", help="only the CLG part (no op rows)")
+    ap.add_argument("--clg-scale", type=float, default=0.5)
+    ap.add_argument("--clg-views", type=int, default=4, help="non-reference views guided")
+    ap.add_argument("--clg-steps", default="10,25,50", help="DDIM step counts timed")
+    ap.add_argument("--clg-gs-iters", type=int, default=300)
+    ap.add_argument("--clg-prior-steps", type=int, default=150)
+    ap.add_argument("--clg-work", default="/tmp/coin_cl_bench_clg", help="cache/output folder")
     args = ap.parse_args()
     rt = get_runtime()
+    if args.clg_only:
+        print(f"# coin-cl warp benchmark (CLG part): {rt.name}; CPU {cpu_model()}, {os.cpu_count()} cores; "
+              f"commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}")  # fmt: skip
+        res = clg_part(args)
+        print()
+        print(json.dumps({"device": rt.name, "cpu": cpu_model(), "commit": git_commit(), **res}))
+        return
     print(f"# coin-cl warp benchmark: {rt.name}; CPU {cpu_model()}, {os.cpu_count()} cores; "
           f"commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}")  # fmt: skip
     print(f"# {W}x{H}, medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (twin)")
@@ -211,6 +351,8 @@ def main() -> None:
             print(f"| {name} | {t_f:.3f} | {t_fb:.3f} | {cov.mean():.3f} | {err.mean():.4f} | "
                   f"{np.percentile(err, 99):.4f} |", flush=True)  # fmt: skip
             res[f"knob_{fp}_{tol}_mean_err"] = round(float(err.mean()), 5)
+    if args.clg:
+        res.update(clg_part(args))
     print()
     print(json.dumps({"device": rt.name, "cpu": cpu_model(), "commit": git_commit(), **res}))
 
