@@ -1,0 +1,1 @@
+"""CoIn's stages, one module per paper stage (`refgs`: the Ref-GS coarse stage)."""
