@@ -93,7 +93,9 @@ class ReferenceDepthTerm(LossTerm):
         self.prior = torch.as_tensor(np.asarray(prior, np.float32))
         self.mask = torch.as_tensor(np.asarray(mask, bool))
         if self.prior.shape != self.mask.shape or self.prior.dim() != 2:
-            raise ValueError(f"prior {tuple(self.prior.shape)} and mask {tuple(self.mask.shape)} must be [H, W]")
+            raise ValueError(
+                f"prior {tuple(self.prior.shape)} and mask {tuple(self.mask.shape)} must be [H, W]"
+            )
         self.weight = float(weight)
         self.disparity = bool(disparity)
         self.min_alpha = float(min_alpha)
@@ -109,7 +111,9 @@ class ReferenceDepthTerm(LossTerm):
         if ctx.index != self.ref_index:
             return zero
         if ctx.out.depth is None:
-            raise RuntimeError("reference depth term: the render returned no depth (before_render not honoured)")
+            raise RuntimeError(
+                "reference depth term: the render returned no depth (before_render not honoured)"
+            )
         valid = ctx.out.alpha.detach() > self.min_alpha
         if int(valid.sum()) < MIN_DEPTH_PIXELS:
             self.n_skipped += 1
@@ -159,7 +163,9 @@ class AnchorAttentionTerm(LossTerm):
         if not self.cfg.attention_active(step, self.iters):
             return {}
         if "features" not in model.optimizer.params:
-            raise ValueError(f"anchor attention needs a model with anchor features (Scaffold-GS), not {model.kind!r}")
+            raise ValueError(
+                f"anchor attention needs a model with anchor features (Scaffold-GS), not {model.kind!r}"
+            )
         # Gradients of the last applied step were consumed by its Adam step; start clean.
         self.opt.zero_grad(set_to_none=True)
         p = model.optimizer.params

@@ -120,8 +120,8 @@ def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed
     return d
 
 
-def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, cfg: RefGSConfig, iters: int, seed: int,
-                 backend: str, device: Any, gs_depth: np.ndarray | None, out: Path) -> DepthPrior:  # fmt: skip
+def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+                 device: Any, gs_depth: np.ndarray | None, out: Path) -> DepthPrior:  # fmt: skip
     """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it."""
     npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
     if npy.is_file() and meta.is_file():
@@ -132,7 +132,9 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, cfg: RefGSConfig,
     if gs_depth is None and not (getattr(scene, "priors", None) or {}).get("depth", {}).get(k) is not None:
         t = time.perf_counter()
         aux_iters = max(100, iters // 5)
-        log.info("no dataset depth prior for view %d: training a %d-step GS on the captured images", k, aux_iters)
+        log.info(
+            "no dataset depth prior for view %d: training a %d-step GS on the captured images", k, aux_iters
+        )
         gs_depth = _aux_gs_depth(scene, train_idx, k, aux_iters, seed, backend, device, out / "aux_gs")
         log.info("auxiliary GS for the depth prior: %.1f s", time.perf_counter() - t)
     prior = reference_depth_prior(scene, k, gs_depth=gs_depth, mask=np.asarray(scene.masks[k], bool))
@@ -214,7 +216,9 @@ def run_refgs(
     pts, cols = init_points(scene, views)
     n_removed = 0
     if cfg.prune_points:
-        pr = prune_points_in_masks(pts, [v.camera for v in views], masks, cfg.prune_min_fraction, cfg.prune_min_views)
+        pr = prune_points_in_masks(
+            pts, [v.camera for v in views], masks, cfg.prune_min_fraction, cfg.prune_min_views
+        )
         pts, cols, n_removed = pr.points, (None if cols is None else cols[pr.keep]), pr.n_removed
         log.info("pruned %d of %d SfM points inside the masks", n_removed, n_removed + len(pts))
     if len(pts) < 4:
@@ -222,7 +226,7 @@ def run_refgs(
 
     prior = None
     if cfg.depth_loss:
-        prior = _depth_prior(scene, train_idx, k, cfg, n_iters, seed, backend, device, gs_depth, out)
+        prior = _depth_prior(scene, train_idx, k, n_iters, seed, backend, device, gs_depth, out)
         log.info("reference depth prior: %s", prior.name)
 
     mcfg = scaled_model_config("scaffold", n_iters)
@@ -241,7 +245,9 @@ def run_refgs(
         tr.load_checkpoint()
         saved = tr.log.get("refgs", {}).get("config")
         if saved is not None and saved != cfg.to_dict():
-            log.warning("resuming with a different RefGSConfig than the checkpoint's: %s vs %s", cfg.to_dict(), saved)
+            log.warning(
+                "resuming with a different RefGSConfig than the checkpoint's: %s vs %s", cfg.to_dict(), saved
+            )
         log.info("Ref-GS resumed at step %d", tr.step)
     tr.log["refgs"] = {
         "config": cfg.to_dict(),
@@ -299,7 +305,9 @@ def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt
     ref = None
     for j, (v, i) in enumerate(zip(tr.train_views, train_idx, strict=True)):
         with torch.no_grad():
-            r = tr.model.render(v.camera, tr.step, backend=backend, background=tr.background, return_depth=True)
+            r = tr.model.render(
+                v.camera, tr.step, backend=backend, background=tr.background, return_depth=True
+            )
         img = r.image.clamp(0, 1).numpy()
         depth = r.depth.numpy().astype(np.float32)
         alpha = r.alpha.numpy().astype(np.float32)
