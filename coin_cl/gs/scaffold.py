@@ -162,8 +162,11 @@ class ScaffoldModel(Model):
         inside = ((x @ normals.T) > -r[:, None]).all(1)
         return inside & (x[:, 2] + r > cst.NEAR_PLANE)
 
-    def decode(self, cam_center: Tensor, vis: Tensor) -> dict[str, Tensor]:
+    def decode(self, cam_center: Tensor, vis: Tensor, features: Tensor | None = None) -> dict[str, Tensor]:
         """Neural Gaussians of the anchors in `vis` [A] bool, seen from `cam_center` [3].
+
+        `features` [A, feat_dim] replaces the feature parameter for this decode (Ref-GS's anchor
+        attention renders the current view with attended features; gradients flow through it).
 
         Returns means [M,3], quats [M,4], scales [M,3], opacities [M], colors [M,3] for the
         M drawn Gaussians (opacity > 0), plus 'neural_opacity' [V*k] (before the mask) and
@@ -172,7 +175,13 @@ class ScaffoldModel(Model):
         k = self.cfg.n_offsets
         p = self.p
         anchor = p["anchors"][vis]
-        feat = p["features"][vis]
+        if features is None:
+            features = p["features"]
+        elif tuple(features.shape) != tuple(p["features"].shape):
+            raise ValueError(
+                f"features override is {tuple(features.shape)}, the model's are {tuple(p['features'].shape)}"
+            )
+        feat = features[vis]
         scaling = torch.exp(p["scaling"][vis])
         ob_view = anchor - cam_center
         ob_view = ob_view / ob_view.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -205,9 +214,12 @@ class ScaffoldModel(Model):
         background: Tensor | None = None,
         return_depth: bool = False,
         training: bool = False,
+        features: Tensor | None = None,
     ) -> RenderOutput:
+        """Render `cam`; `features` [A, feat_dim] optionally overrides the anchor features
+        (see `decode`)."""
         vis = self.visible_anchors(cam)
-        g = self.decode(cam.center, vis)
+        g = self.decode(cam.center, vis, features)
         image, alpha, depth, meta = splat(
             cam, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             backend=backend, background=background, return_depth=return_depth, training=training,

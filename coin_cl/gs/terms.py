@@ -11,6 +11,9 @@ The protocol (duck-typed; `LossTerm` gives the defaults):
 - `weight: float` — multiplies the term's value (its lambda);
 - `__call__(ctx) -> Tensor` — a scalar, differentiable with respect to the model's parameters
   through `ctx.out`; it may add logged scalars to `ctx.log`;
+- `before_render(view, index, step, model) -> dict` — optional; extra keyword arguments for
+  `model.render` of this step (a depth loss asks `return_depth=True` on its view; Ref-GS's anchor
+  attention passes `features=`, the attended anchor features). Two terms may not set the same key;
 - `step_after(ctx)` — called after the model's optimiser step of every training step, before
   densification changes the primitives. A term with parameters of its own (an adversarial
   discriminator) updates them here with its own optimiser; the generator's backward may have
@@ -64,6 +67,10 @@ class LossTerm:
 
     def __call__(self, ctx: LossContext) -> Tensor:
         raise NotImplementedError
+
+    def before_render(self, view: View, index: int, step: int, model: Model) -> dict[str, Any]:
+        """Extra keyword arguments for this step's `model.render` (default none)."""
+        return {}
 
     def step_after(self, ctx: LossContext) -> None:
         """After the model's optimiser step (a term's own optimiser steps here)."""

@@ -213,7 +213,9 @@ def evaluate_views(
 class Trainer:
     """Train `model` on `train_views`, evaluating on `test_views`.
 
-    One step: `sampler.next()` picks a view; the model renders it; `strategy.step_pre_backward`;
+    One step: `sampler.next()` picks a view; every term's `before_render` may add keyword
+    arguments to the render (`return_depth`, a `features` override); the model renders it;
+    `strategy.step_pre_backward`;
     total = sum(term.weight * term(ctx)); backward; NaN guard; the model's optimiser step; every
     term's `step_after(ctx)`; `strategy.step_post_backward` (statistics, densification).
 
@@ -355,14 +357,29 @@ class Trainer:
             if not torch.isfinite(p.detach().sum()):
                 raise self._diverged(f"parameter {name}")
 
+    def _render_kwargs(self, view: View, idx: int, model: Model) -> dict[str, Any]:
+        """Extra `model.render` keyword arguments the terms ask for this step (`before_render`:
+        depth on a reference view, attended features); two terms may not set the same one."""
+        extra: dict[str, Any] = {}
+        for term in self.terms:
+            if not hasattr(term, "before_render"):
+                continue
+            kw = term.before_render(view, idx, self.step, model) or {}
+            clash = sorted(set(kw) & set(extra))
+            if clash:
+                raise ValueError(f"loss term {term.name!r} sets render arguments already set: {clash}")
+            extra.update(kw)
+        return extra
+
     def train_step(self) -> dict[str, float]:
         """One optimisation step on the next view; returns the loss parts and timings."""
         idx = self.sampler.next()
         view = self.train_views[idx]
         m = self.model
         t0 = time.perf_counter()
+        extra = self._render_kwargs(view, idx, m)
         out = m.render(view.camera, self.step, backend=self.cfg.backend,
-                       background=self.background, training=True)  # fmt: skip
+                       background=self.background, training=True, **extra)  # fmt: skip
         self.strategy.step_pre_backward(m, self.step, out)
         ctx = LossContext(view=view, index=idx, out=out, step=self.step, model=m)
         values: dict[str, float] = {}

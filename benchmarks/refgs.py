@@ -1,0 +1,196 @@
+"""Benchmark: the Ref-GS stage (issue 11) and its ablations on the shared SPIn-NeRF scene.
+
+Every row trains Scaffold-GS on the dataset's per-view LaMa inpaints (RGB_inpainted/) of the
+training views at half of images_4, with the same minute budget (`--minutes`, per row):
+    naive       plain training on the raw inpaints (no compositing, pruning, weights, attention, depth)
+    refgs       Ref-GS (all pieces, defaults)
+    no_weights  Ref-GS without adaptive view weights
+    no_attn     Ref-GS without anchor feature attention
+    no_depth    Ref-GS without the reference depth loss
+Scored on the object-absent test views (test_label/ masks): PSNR, SSIM, m-PSNR, m-SSIM
+(`coin_cl.metrics.evaluate_view`), the high-frequency ratio in the mask (mean Sobel gradient
+magnitude of the grey render over the ground truth's, per view, then the mean: 1 is right, below
+1 is blur) and the masked cross-view residual to the reference: for every other training view,
+its mask pixels are lifted with its own rendered depth (alpha > 0.5), projected into the
+reference, and where they land inside the reference's mask the render is compared with the
+reference's target (mean absolute RGB difference; occlusion is not tested).
+
+Ends with one JSON line: naive_mpsnr, naive_hf_ratio, refgs_mpsnr, refgs_hf_ratio, refgs_minutes,
+ablation {row: {m-PSNR, HF ratio}}. Usage:
+    python benchmarks/refgs.py [--minutes 4] [--rows naive,refgs,no_weights,no_attn,no_depth]
+"""
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see coin_cl/__init__.py
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from coin_cl import load_scene, metrics  # noqa: E402
+from coin_cl.gs.data import Camera  # noqa: E402
+from coin_cl.gs.refgs import RefGSConfig, composite_targets  # noqa: E402
+from coin_cl.gs.trainer import model_from_state  # noqa: E402
+from coin_cl.pipeline.refgs import run_refgs  # noqa: E402
+from coin_cl.scene.splits import inpainted_targets  # noqa: E402
+
+_OFF = dict(composite=False, prune_points=False, adaptive_weights=False, feature_attention=False,
+            depth_loss=False)  # fmt: skip
+ROWS = {
+    "naive": RefGSConfig(**_OFF),
+    "refgs": RefGSConfig(),
+    "no_weights": RefGSConfig(adaptive_weights=False),
+    "no_attn": RefGSConfig(feature_attention=False),
+    "no_depth": RefGSConfig(depth_loss=False),
+}
+
+
+def default_data() -> Path:
+    env = os.environ.get("COIN_DATA")
+    base = Path(env) if env else ROOT.parent / "shared" / "data"
+    return base / "spinnerf_scene1"
+
+
+def git_commit() -> str:
+    import subprocess
+
+    try:
+        return subprocess.check_output(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                                       stderr=subprocess.DEVNULL, text=True).strip()  # fmt: skip
+    except (subprocess.CalledProcessError, FileNotFoundError):
+        return "uncommitted"
+
+
+def grad_mag(img: np.ndarray) -> np.ndarray:
+    """[H, W] Sobel gradient magnitude of the grey image of `img` [H, W, 3] in [0, 1]."""
+    g = cv2.cvtColor(np.ascontiguousarray(img, np.float32), cv2.COLOR_RGB2GRAY)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    return np.sqrt(gx * gx + gy * gy)
+
+
+def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """Mean gradient magnitude inside `mask`, prediction over ground truth."""
+    m = np.asarray(mask, bool)
+    den = float(grad_mag(gt)[m].mean())
+    return float(grad_mag(pred)[m].mean()) / den if den > 0 else float("nan")
+
+
+def cross_view_residual(scene, res: dict, k: int, target_k: np.ndarray) -> float:
+    """Masked cross-view residual of the other training views' renders to the reference's target."""
+    from imageio.v2 import imread
+
+    out = Path(res["out_dir"])
+    ck = scene.cameras[k]
+    mk = np.asarray(scene.masks[k], bool)
+    errs = []
+    for i in scene.train_idx:
+        if i == k:
+            continue
+        stem = Path(scene.cameras[i].name).stem
+        depth = np.load(out / "depths" / f"{stem}.npy")
+        alpha = np.load(out / "alphas" / f"{stem}.npy")
+        m = np.asarray(scene.masks[i], bool) & (alpha > 0.5) & np.isfinite(depth)
+        ys, xs = np.nonzero(m)
+        if len(ys) == 0:
+            continue
+        pts = scene.cameras[i].unproject(np.stack([xs + 0.5, ys + 0.5], 1), depth[ys, xs])
+        uv, z = ck.project(pts)
+        ok = (z > 0) & ck.in_image(uv)
+        px = np.floor(uv[ok]).astype(int)
+        hit = mk[px[:, 1], px[:, 0]]
+        if not hit.any():
+            continue
+        r = imread(out / "renders" / f"{stem}.png").astype(np.float32) / 255
+        errs.append(np.abs(r[ys[ok][hit], xs[ok][hit]] - target_k[px[hit, 1], px[hit, 0]]).mean(1))
+    return float(np.concatenate(errs).mean()) if errs else float("nan")
+
+
+def score(scene, res: dict, backend: str) -> dict:
+    state = torch.load(res["checkpoint"], weights_only=False)
+    model = model_from_state(state["model"])
+    per_view = []
+    for i in scene.test_idx:
+        with torch.no_grad():
+            img = (
+                model.render(Camera.from_any(scene.cameras[i]), 0, backend=backend).image.clamp(0, 1).numpy()
+            )
+        gt = np.asarray(scene.images[i], np.float32)
+        mask = np.asarray(scene.masks[i], bool)
+        m = metrics.evaluate_view(img, gt, mask)
+        per_view.append({"psnr": m["psnr"], "ssim": m["ssim"], "m_psnr": m["m_psnr"], "m_ssim": m["m_ssim"],
+                         "hf_ratio": hf_ratio(img, gt, mask)})  # fmt: skip
+    return metrics.aggregate(per_view)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--data", type=Path, default=default_data())
+    ap.add_argument("--minutes", type=float, default=4.0, help="training budget per row")
+    ap.add_argument("--rows", default=",".join(ROWS))
+    ap.add_argument("--resolution", type=float, default=0.5)
+    ap.add_argument("--backend", default="opencl")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out" / "refgs")
+    args = ap.parse_args()
+
+    scene = load_scene(args.data, resolution=args.resolution)
+    targets = inpainted_targets(scene)
+    w, h = scene.cameras[0].width, scene.cameras[0].height
+    rows: dict[str, dict] = {}
+    for name in args.rows.split(","):
+        cfg = ROWS[name]
+        t = time.perf_counter()
+        res = run_refgs(scene, targets, args.out / name, cfg, budget_minutes=args.minutes, iters=None,
+                        backend=args.backend)  # fmt: skip
+        k = res["reference"]["index"]
+        tk = np.asarray(targets[k], np.float32)
+        tk = composite_targets(tk, np.asarray(scene.images[k], np.float32), scene.masks[k])
+        rows[name] = {**score(scene, res, args.backend), "residual": cross_view_residual(scene, res, k, tk),
+                      "minutes": res["train_minutes"], "steps": res["steps"], "iters": res["iters"],
+                      "wall_minutes": (time.perf_counter() - t) / 60, "reference": res["reference"]["name"],
+                      "depth_prior": res["depth_prior"], "n_removed": res["n_removed"],
+                      "mean_weight": res["mean_weight"]}  # fmt: skip
+        print(name, json.dumps(metrics.jsonable(rows[name]) if hasattr(metrics, "jsonable") else rows[name]),
+              file=sys.stderr, flush=True)  # fmt: skip
+
+    from coin_cl.engine import get_runtime
+
+    print(f"\nSPIn-NeRF scene 1 at {w}x{h}; commit {git_commit()}; {os.cpu_count()} cores; "
+          f"OpenCL device {get_runtime().name}; {args.minutes} min per row")  # fmt: skip
+    print("\n| row | PSNR | SSIM | m-PSNR | m-SSIM | HF ratio (mask) | residual to ref | minutes | steps |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, r in rows.items():
+        print(f"| {name} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['m_psnr']:.2f} | {r['m_ssim']:.4f} | "
+              f"{r['hf_ratio']:.3f} | {r['residual']:.4f} | {r['minutes']:.2f} | {r['steps']} |")  # fmt: skip
+    nv, rg = rows.get("naive", {}), rows.get("refgs", {})
+    result = {
+        "naive_mpsnr": nv.get("m_psnr"),
+        "naive_hf_ratio": nv.get("hf_ratio"),
+        "refgs_mpsnr": rg.get("m_psnr"),
+        "refgs_hf_ratio": rg.get("hf_ratio"),
+        "refgs_minutes": rg.get("minutes"),
+        "ablation": {n: {"m-PSNR": r["m_psnr"], "HF ratio": r["hf_ratio"]} for n, r in rows.items()},
+        "minutes_per_row": args.minutes,
+        "resolution": [w, h],
+        "commit": git_commit(),
+    }
+    if nv and rg:
+        result["floor_met"] = bool(rg["hf_ratio"] > nv["hf_ratio"] and rg["m_psnr"] >= nv["m_psnr"] - 0.5)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "result.json").write_text(json.dumps({"result": result, "rows": rows}, indent=1, default=str))
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,341 @@
+"""The Ref-GS stage (CoIn paper 4.2, issue 11): the coarse Scaffold-GS scene trained on the
+per-view inpaints I^_n, leaning toward one reference view k. CLG and TE-D stand on its outputs.
+
+`run_refgs(scene, targets, out_dir, cfg, ...)` writes into `out_dir`:
+
+    gs/ckpt.pt, gs/log.json, gs/cameras.json, gs/point_cloud.ply   the trainer's folder (resumable)
+    renders/<stem>.png          R_n of every training view (uint8 RGB)
+    depths/<stem>.npy           expected camera z of every training view [H, W] float32
+    alphas/<stem>.npy           rendered alpha [H, W] float32 (depth is meaningful where > 0.5)
+    reference_points.ply        P_k: the reference render's depth unprojected, with its colours
+    depth_prior.npy / .json     the reference's depth prior D_k and its source (when depth loss is on)
+    stage.json                  what `run_refgs` returns (paths and figures)
+
+The JSON log (gs/log.json) carries under "refgs": the config, the reference, the prior's name,
+the pruned point count; under "view_weights": the per-visit weight history and per-view summary.
+
+P_k margin: pixels of the reference's mask dilated by `pk_margin_px(mask)` = max(4, 10 % of the
+mask's bounding-box larger side) pixels, restricted to rendered alpha > 0.5; the margin carries
+the hole's rim, which TE-D's warps need to blend the filled region into its surroundings.
+
+Budget: `iters` wins; else `budget_minutes` sets iters = max(200, STEPS_PER_SECOND x seconds) and
+the trainer also stops when the budget's training time is spent; neither: the published 30k steps.
+Schedules (learning rates, densification, attention start and lr) are compressed to `iters` the
+way `scaled_model_config` / `scaled_strategy` do. A rerun with the same `out_dir` continues from
+the checkpoint with the first run's `iters` (a different request is logged and ignored).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from coin_cl.gs.data import Camera, View, scene_extent
+from coin_cl.gs.refgs import (
+    DepthPrior,
+    RefGSConfig,
+    choose_reference,
+    composite_targets,
+    inpaint_depth,
+    prune_points_in_masks,
+    reference_depth_prior,
+)
+from coin_cl.gs.refgs_terms import adaptive_weights_of, refgs_terms
+from coin_cl.gs.trainer import (
+    REFERENCE_ITERS,
+    TrainConfig,
+    Trainer,
+    build_model,
+    init_points,
+    scaled_model_config,
+    scaled_strategy,
+)
+
+log = logging.getLogger(__name__)
+
+# Scaffold-GS steps per second at 504x284 on the 2-core machine (benchmarks/train.py), used only to
+# turn a minute budget into a schedule length.
+STEPS_PER_SECOND = 1.25
+MONOCULAR_PRIOR = "monocular (Depth Anything V2 small, COIN_DEPTH_WEIGHTS)"
+STAGE_JSON = "stage.json"
+
+
+def pk_margin_px(mask: np.ndarray) -> int:
+    """Margin around the mask kept in P_k: max(4, 10 % of the bounding box's larger side) px."""
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return 4
+    ys, xs = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    return int(max(4, round(0.1 * max(ys[-1] - ys[0] + 1, xs[-1] - xs[0] + 1))))
+
+
+def plan_iters(budget_minutes: float | None, iters: int | None) -> int:
+    """Schedule length: `iters`, else from the minute budget, else the published 30k."""
+    if iters is not None:
+        if iters < 1:
+            raise ValueError(f"iters must be >= 1, got {iters}")
+        return int(iters)
+    if budget_minutes is not None:
+        if budget_minutes <= 0:
+            raise ValueError(f"budget_minutes must be > 0, got {budget_minutes}")
+        return max(200, int(STEPS_PER_SECOND * budget_minutes * 60))
+    return REFERENCE_ITERS
+
+
+def _stem(name: str, i: int) -> str:
+    return Path(name).stem if name else f"view_{i:03d}"
+
+
+def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+                  device: Any, out: Path) -> np.ndarray:  # fmt: skip
+    """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
+    (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
+    from coin_cl.gs.data import views_from_scene
+
+    views = views_from_scene(scene, train_idx)
+    pts, cols = init_points(scene, views)
+    model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed,
+                        scaled_model_config("scaffold", iters))  # fmt: skip
+    model.device = device
+    cfg = TrainConfig(iters=iters, backend=backend, seed=seed, progress=False, ckpt_every=0, export_ply=False)
+    tr = Trainer(model, views, [], cfg, out, strategy=scaled_strategy("scaffold", iters))
+    if tr.ckpt_path is not None and tr.ckpt_path.is_file():
+        tr.load_checkpoint()
+    tr.train()
+    cam = Camera.from_any(scene.cameras[k])
+    with torch.no_grad():
+        r = tr.model.render(cam, tr.step, backend=backend, return_depth=True)
+    d = r.depth.numpy().astype(np.float32)
+    d[r.alpha.numpy() <= 0.5] = np.nan  # inpaint_depth fills non-finite pixels too
+    return d
+
+
+def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+                 device: Any, gs_depth: np.ndarray | None, out: Path) -> DepthPrior:  # fmt: skip
+    """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it."""
+    npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
+    if npy.is_file() and meta.is_file():
+        return DepthPrior(np.load(npy), json.loads(meta.read_text())["name"])
+    if os.environ.get("COIN_DEPTH_WEIGHTS"):
+        # No Depth Anything port exists in this package yet; say so rather than silently skip.
+        log.warning("COIN_DEPTH_WEIGHTS is set but no monocular estimator is implemented; next prior")
+    if gs_depth is None and not (getattr(scene, "priors", None) or {}).get("depth", {}).get(k) is not None:
+        t = time.perf_counter()
+        aux_iters = max(100, iters // 5)
+        log.info(
+            "no dataset depth prior for view %d: training a %d-step GS on the captured images", k, aux_iters
+        )
+        gs_depth = _aux_gs_depth(scene, train_idx, k, aux_iters, seed, backend, device, out / "aux_gs")
+        log.info("auxiliary GS for the depth prior: %.1f s", time.perf_counter() - t)
+    prior = reference_depth_prior(scene, k, gs_depth=gs_depth, mask=np.asarray(scene.masks[k], bool))
+    if not np.isfinite(prior.prior).all():
+        prior = DepthPrior(inpaint_depth(prior.prior, ~np.isfinite(prior.prior)), prior.name)
+    np.save(npy, prior.prior)
+    meta.write_text(json.dumps({"name": prior.name, "view": k, "is_disparity": prior.is_disparity}))
+    return prior
+
+
+def _scene_targets(scene: Any, targets: Sequence[np.ndarray], train_idx: Sequence[int]) -> list[np.ndarray]:
+    """Targets per training view: `targets` aligned with the scene's views or with `train_idx`."""
+    if len(targets) == len(scene.cameras):
+        return [np.asarray(targets[i], np.float32) for i in train_idx]
+    if len(targets) == len(train_idx):
+        return [np.asarray(t, np.float32) for t in targets]
+    raise ValueError(
+        f"{len(targets)} targets: give one per scene view ({len(scene.cameras)}) or per training view "
+        f"({len(train_idx)})"
+    )
+
+
+def run_refgs(
+    scene: Any,
+    targets: list[np.ndarray],
+    out_dir: Path,
+    cfg: RefGSConfig,
+    *,
+    budget_minutes: float | None,
+    iters: int | None,
+    device: Any = None,
+    seed: int = 0,
+    backend: str = "opencl",
+    gs_depth: np.ndarray | None = None,
+    ckpt_every: int = 500,
+    callback: Callable[[Trainer, int], None] | None = None,
+) -> dict[str, Any]:
+    """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
+
+    Args:
+        scene: a loaded `Scene` (cameras, images, masks [H, W] bool, points, train_idx, priors).
+        targets: the initial inpaints I^_n [H, W, 3] float in [0, 1], one per scene view (as
+            `coin_cl.scene.splits.inpainted_targets`) or one per training view.
+        cfg: Ref-GS switches; `seed` overrides `cfg.seed`.
+        budget_minutes / iters: schedule length (module doc).
+        device: OpenCL device for the renders; backend: 'opencl' or 'torch'.
+        gs_depth: [H, W] depth of a GS trained on the unmasked scene for the reference view (used
+            when the scene ships no depth prior; otherwise a short one is trained here).
+        ckpt_every: steps between checkpoints; callback: the trainer's per-step callback.
+    Returns:
+        JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = replace(cfg, seed=seed)
+    train_idx = list(scene.train_idx) or list(range(len(scene.cameras)))
+    prev_stage = json.loads((out / STAGE_JSON).read_text()) if (out / STAGE_JSON).is_file() else None
+    n_iters = plan_iters(budget_minutes, iters)
+    if (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
+        log.warning("resuming a run planned for %d steps; ignoring the new request of %d",
+                    prev_stage["iters"], n_iters)  # fmt: skip
+        n_iters = int(prev_stage["iters"])
+    # Write the plan before training so an interrupted run resumes with the same schedule.
+    (out / STAGE_JSON).write_text(json.dumps({**(prev_stage or {}), "iters": n_iters}, indent=1))
+
+    # Reference view (scene index k, trainer index kt).
+    k = choose_reference(scene, train_idx=train_idx, ref=cfg.ref)
+    kt = train_idx.index(k)
+    masks = [np.asarray(scene.masks[i], bool) for i in train_idx]
+    inp = _scene_targets(scene, targets, train_idx)
+    tgt = [composite_targets(t, np.asarray(scene.images[i], np.float32), m) if cfg.composite else t
+           for t, i, m in zip(inp, train_idx, masks, strict=True)]  # fmt: skip
+    views = []
+    for j, i in enumerate(train_idx):
+        cam = Camera.from_any(scene.cameras[i], name=str(i))
+        views.append(View(cam, torch.as_tensor(np.ascontiguousarray(tgt[j][..., :3]))))
+
+    # Points: pruned inside the masks before the anchors are built.
+    pts, cols = init_points(scene, views)
+    n_removed = 0
+    if cfg.prune_points:
+        pr = prune_points_in_masks(
+            pts, [v.camera for v in views], masks, cfg.prune_min_fraction, cfg.prune_min_views
+        )
+        pts, cols, n_removed = pr.points, (None if cols is None else cols[pr.keep]), pr.n_removed
+        log.info("pruned %d of %d SfM points inside the masks", n_removed, n_removed + len(pts))
+    if len(pts) < 4:
+        raise ValueError(f"only {len(pts)} SfM points left after pruning; lower prune_min_fraction")
+
+    prior = None
+    if cfg.depth_loss:
+        prior = _depth_prior(scene, train_idx, k, n_iters, seed, backend, device, gs_depth, out)
+        log.info("reference depth prior: %s", prior.name)
+
+    mcfg = scaled_model_config("scaffold", n_iters)
+    model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed, mcfg)
+    model.device = device
+    terms = refgs_terms(cfg, kt, masks, n_iters, feat_dim=mcfg.feat_dim,
+                        depth_prior=None if prior is None else prior.prior,
+                        depth_is_disparity=bool(prior is not None and prior.is_disparity))  # fmt: skip
+    tcfg = TrainConfig(model="scaffold", iters=n_iters, backend=backend, seed=seed, ckpt_every=ckpt_every,
+                       max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else 0.0,
+                       progress=False, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
+    tr = Trainer(model, views, [], tcfg, out / "gs", callback, strategy=scaled_strategy("scaffold", n_iters),
+                 terms=terms)  # fmt: skip
+    resumed = tr.ckpt_path is not None and tr.ckpt_path.is_file()
+    if resumed:
+        tr.load_checkpoint()
+        saved = tr.log.get("refgs", {}).get("config")
+        if saved is not None and saved != cfg.to_dict():
+            log.warning(
+                "resuming with a different RefGSConfig than the checkpoint's: %s vs %s", cfg.to_dict(), saved
+            )
+        log.info("Ref-GS resumed at step %d", tr.step)
+    tr.log["refgs"] = {
+        "config": cfg.to_dict(),
+        "reference": {"index": k, "train_index": kt, "name": scene.cameras[k].name, "rule": "--ref" if
+                      cfg.ref is not None else "largest, most central mask (reference_score)"},
+        "depth_prior": None if prior is None else prior.name,
+        "n_removed": n_removed,
+        "n_points": int(len(pts)),
+        "iters": n_iters,
+    }  # fmt: skip
+    t0 = time.perf_counter()
+    res = tr.train()
+    weights = adaptive_weights_of(tr.terms)
+    assert weights is not None  # refgs_terms always builds the weight source
+    tr.log["view_weights"] = {
+        "keys": "trainer view index (refgs.reference.train_index is the reference)",
+        "history": weights.history,
+        "summary": {str(v): s for v, s in weights.summary().items()},
+    }
+    tr.log["refgs"]["terms"] = {t.name: t.state_dict() for t in tr.terms if t.name in ("ref_depth",)}
+    for t in tr.terms:
+        if t.name == "attention":
+            tr.log["refgs"]["attention"] = {"applied": t.n_applied, "skipped": t.n_skipped}
+    tr.save_log()
+
+    paths = _write_outputs(tr, scene, train_idx, k, kt, masks, out, backend)
+    result = {
+        "out_dir": str(out),
+        **paths,
+        "reference": {"index": k, "name": scene.cameras[k].name},
+        "depth_prior": None if prior is None else prior.name,
+        "n_removed": n_removed,
+        "iters": n_iters,
+        "steps": res["step"],
+        "train_minutes": res["train_seconds"] / 60,
+        "wall_minutes_this_call": (time.perf_counter() - t0) / 60,
+        "resumed": resumed,
+        "n_primitives": res["n"],
+        "mean_weight": {str(v): s["mean_weight"] for v, s in weights.summary().items()},
+        "config": cfg.to_dict(),
+    }
+    (out / STAGE_JSON).write_text(json.dumps(result, indent=1))
+    return result
+
+
+def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt: int,
+                   masks: Sequence[np.ndarray], out: Path, backend: str) -> dict[str, Any]:  # fmt: skip
+    """Renders, depths and alphas of every training view, and P_k."""
+    from coin_cl.scene.io import write_png
+    from coin_cl.scene.ply import write_points_ply
+
+    rdir, ddir, adir = out / "renders", out / "depths", out / "alphas"
+    for d in (rdir, ddir, adir):
+        d.mkdir(exist_ok=True)
+    ref = None
+    for j, (v, i) in enumerate(zip(tr.train_views, train_idx, strict=True)):
+        with torch.no_grad():
+            r = tr.model.render(
+                v.camera, tr.step, backend=backend, background=tr.background, return_depth=True
+            )
+        img = r.image.clamp(0, 1).numpy()
+        depth = r.depth.numpy().astype(np.float32)
+        alpha = r.alpha.numpy().astype(np.float32)
+        stem = _stem(scene.cameras[i].name, i)
+        write_png(rdir / f"{stem}.png", img)
+        np.save(ddir / f"{stem}.npy", depth)
+        np.save(adir / f"{stem}.npy", alpha)
+        if j == kt:
+            ref = (img, depth, alpha)
+    assert ref is not None
+    img, depth, alpha = ref
+    m = masks[kt]
+    margin = pk_margin_px(m)
+    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+    region = cv2.dilate(m.astype(np.uint8), ker).astype(bool)
+    sel = region & (alpha > 0.5) & np.isfinite(depth) & (depth > 0)
+    ys, xs = np.nonzero(sel)
+    uv = np.stack([xs + 0.5, ys + 0.5], 1).astype(np.float64)  # pixel centres at +0.5
+    pts = scene.cameras[k].unproject(uv, depth[ys, xs].astype(np.float64)).astype(np.float32)
+    pk = out / "reference_points.ply"
+    write_points_ply(pk, pts, img[ys, xs])
+    return {
+        "checkpoint": str(tr.ckpt_path),
+        "log": str(out / "gs" / "log.json"),
+        "renders": str(rdir),
+        "depths": str(ddir),
+        "alphas": str(adir),
+        "reference_points": str(pk),
+        "n_reference_points": int(len(pts)),
+        "pk_margin_px": margin,
+    }
