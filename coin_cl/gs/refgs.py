@@ -93,6 +93,9 @@ class RefGSConfig:
     # -- reference depth loss
     depth_loss: bool = True
     lambda_depth: float = 10.0  # supplement: lambda_D = 10
+    # Steps of the auxiliary GS trained on the captured images for the depth prior when the dataset
+    # ships none (None: max(min(100, iters), iters // 5): a smoke run with a few steps stays quick).
+    depth_prior_iters: int | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:

@@ -656,7 +656,7 @@ def stage_clg(ctx: Any) -> dict[str, Any]:
     from coin_cl.diffusion.features import make_feature_extractor
     from coin_cl.diffusion.scene_prior import cache_key
     from coin_cl.gs.refgs import composite_targets
-    from coin_cl.pipeline.inpaint2d import read_inpaints, stage_prior
+    from coin_cl.pipeline.inpaint2d import effective_config, read_inpaints, stage_prior
     from coin_cl.scene.io import read_image
 
     scene, masks = ctx.shared["scene"], ctx.shared["masks"]
@@ -694,9 +694,10 @@ def stage_clg(ctx: Any) -> dict[str, Any]:
 
         denoiser = SD2Denoiser.from_pretrained(ccfg.sd_path)
     else:
-        icfg = ccfg.inpaint2d
-        icfg = replace(icfg, prior=replace(icfg.prior, train_seconds=ctx.shared["iters"]["prior_seconds"],
-                                           seed=ccfg.seed))  # fmt: skip
+        cam = scene.cameras[train[0]]
+        icfg = effective_config(
+            ccfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], ccfg.seed, cam.width, cam.height
+        )
         folder = ctx.inputs["1_inpaint"]
         key = cache_key([scene.images[i] for i in train], [masks[i] for i in train], icfg.prior)
         if not (folder / f"scene_prior_{key}.pt").is_file():

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, read_inpaints, run_inpaint2d
+from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.runner import Stage, StageContext, check_output_folder, run_stages
 from coin_cl.pipeline.ted import TEDConfig
 
@@ -214,7 +214,7 @@ def _run(scene, out: Path, cfg: CoInConfig, force: tuple[str, ...]) -> CoInResul
     cam = scene.cameras[train[0]]
     iters = cfg.iterations(cam.width, cam.height)
     refgs_cfg = cfg.refgs or RefGSConfig()
-    shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters}
+    shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg}
     log.info(
         "CoIn: %d training views (%d with a mask), reference view %d (%s), %s masks, iterations %s",
         len(train), sum(masks[i].any() for i in train), ref, scene.cameras[ref].name, cfg.mask, iters,
@@ -295,11 +295,10 @@ def _sd2(cfg: CoInConfig):
 def _stage_inpaint(ctx: StageContext) -> dict:
     scene, masks, train = _scene_views(ctx)
     cfg: CoInConfig = ctx.shared["cfg"]
-    icfg = cfg.inpaint2d
-    icfg = replace(
-        icfg, prior=replace(icfg.prior, train_seconds=ctx.shared["iters"]["prior_seconds"], seed=cfg.seed)
+    cam = scene.cameras[train[0]]
+    icfg = effective_config(
+        cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
     )
-    ctx.shared["inpaint_cfg"] = icfg
     res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask, sd2=_sd2(cfg), prompt=cfg.prompt)
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
@@ -321,7 +320,7 @@ def _stage_refgs(ctx: StageContext) -> dict:
     scene, masks, train = _scene_views(ctx)
     cfg: CoInConfig = ctx.shared["cfg"]
     targets = _targets(ctx, ctx.inputs["1_inpaint"])
-    rcfg = ctx.shared["cfg"].refgs
+    rcfg = ctx.shared["refgs_cfg"]
     if "refgs" in cfg.skip:
         from coin_cl.gs.refgs import RefGSConfig
 

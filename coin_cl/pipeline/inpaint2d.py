@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,21 @@ class Inpaint2DConfig:
     seed: int = 0
 
 
+def effective_config(
+    cfg: Inpaint2DConfig, prior_seconds: float, seed: int, width: int, height: int
+) -> Inpaint2DConfig:
+    """The settings stage 1 really uses (and CLG must repeat to find its cached prior): the
+    pipeline's time budget and seed, and a working patch no larger than the images (the largest
+    multiple of 8 that fits, at least 16)."""
+    patch = max(16, min(cfg.prior.patch, (min(width, height) // 8) * 8))
+    if patch != cfg.prior.patch:
+        log.info(
+            "1_inpaint: scene prior patch %d -> %d to fit %dx%d images", cfg.prior.patch, patch, width, height
+        )
+    prior = replace(cfg.prior, train_seconds=prior_seconds, seed=seed, patch=patch)
+    return replace(cfg, prior=prior)
+
+
 def stage_prior(scene, masks: list[np.ndarray], views: list[int], cfg: Inpaint2DConfig, folder: Path):
     """The scene prior of this stage: trained on the pixels outside every mask of `views`, cached in
     `folder` by a hash of images, masks and settings (so CLG reloads the one stage 1 trained)."""
@@ -60,8 +75,8 @@ def run_inpaint2d(
 ) -> dict:
     """Inpaint `views` of `scene` in `masks`; writes `images/<name>.png` and `sources.json`.
 
-    Resumable: a view whose image exists is not redone. Returns {"sources": {name: source},
-    "prior": {...} or None}.
+    Resumable: a view whose image exists is not redone. Returns {"sources": the sources used (sorted
+    names; per view in `sources.json`), "prior": {...} or None}.
     """
     out_dir = Path(out_dir)
     img_dir = out_dir / "images"

@@ -121,7 +121,8 @@ def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed
 
 
 def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
-                 device: Any, gs_depth: np.ndarray | None, out: Path) -> DepthPrior:  # fmt: skip
+                 device: Any, gs_depth: np.ndarray | None, out: Path,
+                 aux_iters: int | None = None) -> DepthPrior:  # fmt: skip
     """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it."""
     npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
     if npy.is_file() and meta.is_file():
@@ -131,7 +132,7 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed:
         log.warning("COIN_DEPTH_WEIGHTS is set but no monocular estimator is implemented; next prior")
     if gs_depth is None and not (getattr(scene, "priors", None) or {}).get("depth", {}).get(k) is not None:
         t = time.perf_counter()
-        aux_iters = max(100, iters // 5)
+        aux_iters = max(min(100, iters), iters // 5) if aux_iters is None else aux_iters
         log.info(
             "no dataset depth prior for view %d: training a %d-step GS on the captured images", k, aux_iters
         )
@@ -226,7 +227,9 @@ def run_refgs(
 
     prior = None
     if cfg.depth_loss:
-        prior = _depth_prior(scene, train_idx, k, n_iters, seed, backend, device, gs_depth, out)
+        prior = _depth_prior(
+            scene, train_idx, k, n_iters, seed, backend, device, gs_depth, out, cfg.depth_prior_iters
+        )
         log.info("reference depth prior: %s", prior.name)
 
     mcfg = scaled_model_config("scaffold", n_iters)
