@@ -3,6 +3,8 @@ scripts (`python benchmarks/NAME.py`), so this folder is on sys.path and they `f
 
 from __future__ import annotations
 
+import json
+import os
 import platform
 import subprocess
 from pathlib import Path
@@ -29,3 +31,16 @@ def git_commit() -> str:
         ).strip()
     except (subprocess.CalledProcessError, FileNotFoundError):
         return "uncommitted"
+
+
+def default_data() -> Path:
+    """The shared SPIn-NeRF scene: `$COIN_DATA/spinnerf_scene1`, else `../shared/data/spinnerf_scene1`."""
+    env = os.environ.get("COIN_DATA")
+    return (Path(env) if env else ROOT.parent / "shared" / "data") / "spinnerf_scene1"
+
+
+def write_result(out: Path, result: dict, rows: dict) -> None:
+    """Keep the rows and the summary in `out/result.json`, then print the summary as the last line."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "result.json").write_text(json.dumps({"result": result, "rows": rows}, indent=1, default=str))
+    print(json.dumps(result))

@@ -40,6 +40,7 @@ from coin_cl.diffusion.features import AnalyticFeatures, DinoFeatures, DinoViT  
 from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, opencv_inpaint  # noqa: E402
 from coin_cl.diffusion.sampling import DDIMSampler, SamplerConfig  # noqa: E402
 from coin_cl.diffusion.scene_prior import PriorCondition, ScenePriorConfig, train_scene_prior  # noqa: E402
+from common import default_data  # noqa: E402
 
 from coin_cl import metrics  # noqa: E402
 
@@ -61,12 +62,6 @@ def git_commit() -> str:
         ).strip()
     except (subprocess.CalledProcessError, FileNotFoundError):
         return "uncommitted"
-
-
-def default_data() -> Path:
-    env = os.environ.get("COIN_DATA")
-    base = Path(env) if env else ROOT.parent / "shared" / "data"
-    return base / "spinnerf_scene1"
 
 
 def table(rows: list[dict], cols: list[str]) -> str:

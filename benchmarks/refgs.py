@@ -37,6 +37,8 @@ import torch  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from common import default_data, write_result  # noqa: E402
+
 from coin_cl import load_scene, metrics  # noqa: E402
 from coin_cl.gs.data import Camera  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig, composite_targets  # noqa: E402
@@ -53,12 +55,6 @@ ROWS = {
     "no_attn": RefGSConfig(feature_attention=False),
     "no_depth": RefGSConfig(depth_loss=False),
 }
-
-
-def default_data() -> Path:
-    env = os.environ.get("COIN_DATA")
-    base = Path(env) if env else ROOT.parent / "shared" / "data"
-    return base / "spinnerf_scene1"
 
 
 def git_commit() -> str:
@@ -186,9 +182,7 @@ def main() -> int:
     }
     if nv and rg:
         result["floor_met"] = bool(rg["hf_ratio"] > nv["hf_ratio"] and rg["m_psnr"] >= nv["m_psnr"] - 0.5)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "result.json").write_text(json.dumps({"result": result, "rows": rows}, indent=1, default=str))
-    print(json.dumps(result))
+    write_result(args.out, result, rows)
     return 0
 
 

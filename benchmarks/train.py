@@ -28,7 +28,7 @@ import torch  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import git_commit  # noqa: E402
+from common import default_data, git_commit  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
 from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config  # noqa: E402
@@ -38,12 +38,6 @@ from coin_cl.scene.splits import inpainted_targets, split_indices  # noqa: E402
 # only to size each model's schedule to the time budget.
 STEPS_PER_SECOND = {"scaffold": 1.25, "3dgs": 1.6}
 EVAL_MARKS_MIN = (0.5, 1, 2, 5, 10, 15, 20, 30)
-
-
-def default_data() -> Path:
-    env = os.environ.get("COIN_DATA")
-    base = Path(env) if env else ROOT.parent / "shared" / "data"
-    return base / "spinnerf_scene1"
 
 
 def run_recon(scene, kind: str, minutes: float, iters: int | None, out: Path, backend: str) -> dict:

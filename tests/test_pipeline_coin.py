@@ -39,6 +39,7 @@ def test_every_stage_runs_once_and_writes_its_outputs(first_run):
     out, res = first_run
     assert [r["status"] for r in res.stages.values()] == ["ran"] * 6
     assert res.ply.is_file() and (out / "eval" / "metrics" / "metrics.json").is_file()
+    assert (out / "eval" / "orbit.gif").is_file()
     assert set(res.metrics) >= {"psnr", "m_psnr", "hf_ratio", "bbox_gmsd"}
     assert np.isfinite(res.metrics["psnr"]) and res.metrics["psnr"] > 8
     assert res.model.n_primitives > 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 from pathlib import Path
@@ -12,12 +11,18 @@ from pathlib import Path
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
-        help="the engine and the current pipeline on embedded scenes (no data or download needed)",
+        help="the engine and CoIn on embedded scenes (no data or download needed)",
     )
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--frames", type=int, default=12, help="turntable frames")
     p.add_argument("--size", type=int, nargs=2, default=(480, 320), metavar=("W", "H"))
-    p.add_argument("--steps", type=int, default=400, help="training steps on the synthetic room")
+    p.add_argument("--budget", type=float, default=3.0, help="CoIn's training minutes on the synthetic room")
+    p.add_argument("--room-size", type=int, nargs=2, default=(192, 144), metavar=("W", "H"))
+    p.add_argument("--room-views", type=int, default=24, help="synthetic room views (1 in 4 for testing)")
+    p.add_argument(
+        "--iters", type=int, default=None, help="steps of each CoIn training stage (overrides --budget)"
+    )
+    p.add_argument("--steps", type=int, default=400, help="steps of the masked-reconstruction baseline")
     p.add_argument("--render-only", action="store_true", help="only the turntable (seconds)")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
     p.set_defaults(func=run_demo)
@@ -36,8 +41,13 @@ def run_demo(args: argparse.Namespace) -> int:
     from coin_cl.demo import run_demo as demo
 
     out = Path(args.out)
-    summary = demo(out, args.frames, tuple(args.size), args.steps, args.render_only, args.device)
-    print(json.dumps(summary))
+    summary = demo(
+        out, args.frames, tuple(args.size), args.steps, args.render_only, args.device,
+        budget=args.budget, room_size=tuple(args.room_size), iters=args.iters,
+        room_views=args.room_views,
+    )  # fmt: skip
+    if "room" in summary:
+        print((out / "room" / "results.md").read_text())
     print(f"wrote {out}/ (turntable/, room/, demo.json)")
     return 0
 

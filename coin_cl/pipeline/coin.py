@@ -38,10 +38,13 @@ from coin_cl.pipeline.ted import TEDConfig
 
 log = logging.getLogger(__name__)
 
-# Measured on the project's 2-core machine kind (docs/RESULTS.md): Scaffold-GS steps per minute at
-# 504x283 pixels; other sizes scale by pixel count.
+# Measured on the project's 2-core machine kind: Scaffold-GS steps per minute at 504x283 pixels
+# (docs/RESULTS.md), and 226 per minute at 192x144 (the demo room, 5.2x fewer pixels): the cost
+# follows the primitive count more than the pixel count, so the rate scales with the pixel ratio to
+# the power RATE_EXPONENT (fitted to those two points), not linearly.
 STEPS_PER_MINUTE = 150.0
 REF_PIXELS = 504 * 283
+RATE_EXPONENT = 0.25
 # Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
 # (CLG is counted in sampling steps, not minutes).
 BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
@@ -79,7 +82,7 @@ class CoInConfig:
 
     def iterations(self, width: int, height: int) -> dict[str, int | float]:
         """Iteration counts (and the prior's seconds) from the budget rule, explicit values winning."""
-        rate = STEPS_PER_MINUTE * REF_PIXELS / max(1, width * height)
+        rate = STEPS_PER_MINUTE * (REF_PIXELS / max(1, width * height)) ** RATE_EXPONENT
         b = {k: v * self.budget_minutes for k, v in BUDGET_SHARES.items()}
         return {
             "prior_seconds": self.prior_seconds if self.prior_seconds is not None else 60.0 * b["prior"],
@@ -396,6 +399,7 @@ def _stage_eval(ctx: StageContext) -> dict:
         write_png(rdir / (Path(scene.cameras[i].name).stem + ".png"), to_uint8(r.image.clamp(0, 1).numpy()))
     from coin_cl.gs.trainer import write_model_ply
 
+    orbit_gif(model, [Camera.from_any(scene.cameras[i]) for i in scene.train_idx], ctx.out / "orbit.gif")
     ply = ctx.out / "point_cloud.ply"
     centers = torch.stack([Camera.from_any(scene.cameras[i]).center for i in scene.train_idx])
     write_model_ply(model, ply, centers.mean(0))
@@ -409,6 +413,46 @@ def _stage_eval(ctx: StageContext) -> dict:
     else:
         ctx.note("no ground-truth test views with masks: metrics skipped")
     return _jsonable(result)
+
+
+def share_stages(
+    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "1_inpaint")
+) -> None:
+    """Start run folder `dst` from the `stages` folders of run `src` (and its scene record), so a
+    comparison row (a baseline, an ablation) reuses them instead of redoing them. Safe by
+    construction: the runner reruns any copied stage whose manifest does not match `dst`'s settings.
+    Existing folders in `dst` are left alone."""
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    dst.mkdir(parents=True, exist_ok=True)
+    if (src / "run.json").is_file() and not (dst / "run.json").exists():
+        shutil.copy2(src / "run.json", dst / "run.json")
+    for name in stages:
+        if (src / name / "manifest.json").is_file() and not (dst / name).exists():
+            shutil.copytree(src / name, dst / name)
+
+
+def orbit_gif(model, cameras: list, path: Path, frames: int = 36) -> None:
+    """Render `model` along the path through `cameras` (in the given order; slerped rotations,
+    interpolated centres: `coin_cl.scene.conventions.interpolate_pose`) into a looping GIF."""
+    import imageio.v3 as iio
+    import torch
+
+    from coin_cl.scene.conventions import interpolate_pose
+    from coin_cl.scene.io import atomic_write, to_uint8
+
+    if not cameras:
+        return
+    images = []
+    for j in range(frames):
+        u = j * max(1, len(cameras) - 1) / frames
+        a, b = cameras[min(int(u), len(cameras) - 1)], cameras[min(int(u) + 1, len(cameras) - 1)]
+        vm = interpolate_pose(a.viewmat.double(), b.viewmat.double(), u - int(u)).to(a.viewmat.dtype)
+        with torch.no_grad():
+            r = model.render(replace(a, viewmat=vm, name=f"orbit_{j:03d}"), 10**9)
+        images.append(to_uint8(r.image.clamp(0, 1).numpy()))
+    atomic_write(path, lambda p: iio.imwrite(p, images, extension=".gif", duration=80, loop=0))
 
 
 def summary(out: Path) -> dict:
