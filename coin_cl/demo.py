@@ -24,12 +24,14 @@ def run_demo(
     room_size: tuple[int, int] = (192, 144),
     iters: int | None = None,
     room_views: int = 24,
+    prior_seconds: float | None = None,
 ) -> dict:
     """Part 1: render a procedural Gaussian scene (the engine). Part 2: the synthetic room with
     ground truth, an object to remove: CoIn end to end (`coin_cl.inpaint`, `budget` minutes of
-    training) beside two baselines, scored on the object-absent test views (`room_table`).
+    training) beside two baselines, scored on the object-absent test views (`room`).
     Writes `out/demo.json` (the returned summary), `out/turntable/` and `out/room/`.
-    `device`: a runtime or an OpenCL device name; `iters` overrides every training stage's steps."""
+    `device`: a runtime or an OpenCL device name; `iters` / `prior_seconds` override every training
+    stage's steps / the scene prior's training time (both for smoke runs)."""
     from coin_cl.engine.runtime import resolve_device
     from coin_cl.scene.io import write_text
 
@@ -38,7 +40,9 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     summary = {"device": rt.name, "turntable": turntable(out / "turntable", frames, size, rt)}
     if not render_only:
-        summary["room"] = room(out / "room", budget, steps, room_size, iters, device, room_views)
+        summary["room"] = room(
+            out / "room", budget, steps, room_size, iters, device, room_views, prior_seconds
+        )
     write_text(out / "demo.json", json.dumps(summary, indent=2))
     return summary
 
@@ -101,6 +105,7 @@ def room(
     iters: int | None = None,
     device=None,
     n_views: int = 24,
+    prior_seconds: float | None = None,
 ) -> dict:
     """The synthetic room (`coin_cl.scene.synthetic`: `n_views` views on a 90-degree arc, one in four an
     object-absent test view with ground truth, the others showing the object) under three methods,
@@ -123,7 +128,9 @@ def room(
         # A 90-degree arc, forward-facing like SPIn-NeRF: part of what the object hides is seen by
         # no training view, so the region has to be inpainted, not just reconstructed.
         write_synthetic(scene_dir, coverage=90, n_views=n_views, width=size[0], height=size[1], seed=0)
-    cfg = CoInConfig(budget_minutes=budget, device=device if isinstance(device, str) else None)
+    cfg = CoInConfig(
+        budget_minutes=budget, device=device if isinstance(device, str) else None, prior_seconds=prior_seconds
+    )
     if iters is not None:
         cfg.iters_refgs = cfg.iters_ted_finetune = cfg.iters_ted_adversarial = iters
     rows = {}

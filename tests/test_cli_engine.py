@@ -18,7 +18,7 @@ def test_demo_turntable_writes_frames(tmp_path, capsys):
 
 def test_demo_room_runs_coin_and_baselines(tmp_path, capsys):
     args = ["demo", "--out", str(tmp_path), "--frames", "1", "--size", "32", "32", "--room-size", "64", "48",
-            "--room-views", "8", "--budget", "0.1", "--iters", "3", "--steps", "30"]  # fmt: skip
+            "--room-views", "8", "--prior-seconds", "1", "--iters", "3", "--steps", "30"]  # fmt: skip
     assert main(args) == 0
     room = json.loads((tmp_path / "demo.json").read_text())["room"]
     assert set(room["methods"]) == {"coin", "inpaint_then_gs", "masked_recon"}

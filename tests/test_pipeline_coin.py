@@ -73,9 +73,9 @@ def test_ablation_skips_stages_and_says_why(room, tmp_path):
 
 
 def test_cli_run(room, tmp_path, capsys):
-    # --budget 0.2 keeps the scene prior's training to seconds; --iters 3 every training stage.
+    # seconds of scene-prior training and 3 steps of every training stage: a smoke run
     rc = main(["run", str(room), "--out", str(tmp_path / "cli"), "--mask", "bbox", "--iters", "3",
-               "--budget", "0.2", "--skip-stage", "clg", "--skip-stage", "ted"])  # fmt: skip
+               "--prior-seconds", "2", "--skip-stage", "clg", "--skip-stage", "ted"])  # fmt: skip
     assert rc == 0
     out = capsys.readouterr().out
     assert "2_refgs: ran" in out and "3_clg: skipped" in out

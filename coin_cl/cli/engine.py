@@ -22,6 +22,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--iters", type=int, default=None, help="steps of each CoIn training stage (overrides --budget)"
     )
+    p.add_argument("--prior-seconds", type=float, default=None, help="scene prior training (smoke runs)")
     p.add_argument("--steps", type=int, default=400, help="steps of the masked-reconstruction baseline")
     p.add_argument("--render-only", action="store_true", help="only the turntable (seconds)")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
@@ -44,7 +45,7 @@ def run_demo(args: argparse.Namespace) -> int:
     summary = demo(
         out, args.frames, tuple(args.size), args.steps, args.render_only, args.device,
         budget=args.budget, room_size=tuple(args.room_size), iters=args.iters,
-        room_views=args.room_views,
+        room_views=args.room_views, prior_seconds=args.prior_seconds,
     )  # fmt: skip
     if "room" in summary:
         print((out / "room" / "results.md").read_text())

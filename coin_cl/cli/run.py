@@ -21,6 +21,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--iters", type=int, default=None, help="iterations of each training stage (overrides --budget)"
     )
+    p.add_argument(
+        "--prior-seconds",
+        type=float,
+        default=None,
+        help="training seconds of the embedded scene prior (overrides --budget; >= 120 to be useful)",
+    )
     p.add_argument("--sd-path", default=None, help="Stable Diffusion 2 inpainting folder (diffusers format)")
     p.add_argument("--dino-path", default=None, help="DINO ViT-S/16 checkpoint")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
@@ -34,7 +40,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
-        skip=tuple(args.skip_stage), seed=args.seed, device=args.device,
+        skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
     )  # fmt: skip
     if args.iters is not None:
         cfg.iters_refgs = cfg.iters_ted_finetune = cfg.iters_ted_adversarial = args.iters

@@ -48,6 +48,11 @@ RATE_EXPONENT = 0.25
 # Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
 # (CLG is counted in sampling steps, not minutes).
 BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
+# The scene prior's training time never drops below this under the budget rule: measured on 2
+# cores (docs/BENCHMARKS.md, "Diffusion"), 1 minute (27 steps) leaves it untrained (its fills are
+# noise) and 2 minutes (133 steps) gives textured fills. An explicit `prior_seconds` is obeyed
+# (with a warning below the floor), for smoke tests.
+PRIOR_MIN_SECONDS = 120.0
 STAGES = ("0_scene", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 
 
@@ -58,7 +63,8 @@ class CoInConfig:
     prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
     resolution: image scale (0.5 = half). sd_path / dino_path: local weights (else the embedded
     defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
-    iters_*: explicit iteration counts (override the budget rule). seed, device: as everywhere."""
+    iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (override
+    the budget rule; see PRIOR_MIN_SECONDS). seed, device: as everywhere."""
 
     mask: str = "seg"
     mask_dilate: int = 0
@@ -85,7 +91,9 @@ class CoInConfig:
         rate = STEPS_PER_MINUTE * (REF_PIXELS / max(1, width * height)) ** RATE_EXPONENT
         b = {k: v * self.budget_minutes for k, v in BUDGET_SHARES.items()}
         return {
-            "prior_seconds": self.prior_seconds if self.prior_seconds is not None else 60.0 * b["prior"],
+            "prior_seconds": self.prior_seconds
+            if self.prior_seconds is not None
+            else max(PRIOR_MIN_SECONDS, 60.0 * b["prior"]),
             "refgs": self.iters_refgs if self.iters_refgs is not None else max(1, round(rate * b["refgs"])),
             "ted_finetune": self.iters_ted_finetune
             if self.iters_ted_finetune is not None
@@ -216,6 +224,12 @@ def _run(scene, out: Path, cfg: CoInConfig, force: tuple[str, ...]) -> CoInResul
     ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
     iters = cfg.iterations(cam.width, cam.height)
+    if iters["prior_seconds"] < PRIOR_MIN_SECONDS and not cfg.sd_path:
+        log.warning(
+            "the scene prior gets %.0f s of training (prior_seconds); below %.0f s it is measured to be "
+            "untrained on 2 cores and its fills are noise: use this for smoke tests only",
+            iters["prior_seconds"], PRIOR_MIN_SECONDS,
+        )  # fmt: skip
     refgs_cfg = cfg.refgs or RefGSConfig()
     shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg}
     log.info(
