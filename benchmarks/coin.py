@@ -83,6 +83,9 @@ def main() -> int:
     ap.add_argument("--resolution", type=float, default=0.5)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out" / "coin")
     args = ap.parse_args()
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     names = args.rows.split(",")
     unknown = [n for n in names if n not in ROWS]
     if unknown:

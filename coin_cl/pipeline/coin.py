@@ -38,13 +38,14 @@ from coin_cl.pipeline.ted import TEDConfig
 
 log = logging.getLogger(__name__)
 
-# Measured on the project's 2-core machine kind: Scaffold-GS steps per minute at 504x283 pixels
-# (docs/RESULTS.md), and 226 per minute at 192x144 (the demo room, 5.2x fewer pixels): the cost
-# follows the primitive count more than the pixel count, so the rate scales with the pixel ratio to
-# the power RATE_EXPONENT (fitted to those two points), not linearly.
-STEPS_PER_MINUTE = 150.0
-REF_PIXELS = 504 * 283
-RATE_EXPONENT = 0.25
+# Steps per minute of the GS stages (Ref-GS, TE-D) on the project's 2-core machine kind, measured
+# in full CoIn runs (docs/RESULTS.md): 69 Ref-GS / 84 TE-D fine-tune / 68 TE-D adversarial steps per
+# minute on SPIn-NeRF at 504x284 (about 950k Scaffold primitives), 226 Ref-GS steps per minute on
+# the demo room at 192x144 (5.2x fewer pixels). The rate scales with the pixel ratio to the power
+# RATE_EXPONENT, fitted to those two points.
+STEPS_PER_MINUTE = 70.0
+REF_PIXELS = 504 * 284
+RATE_EXPONENT = 0.7
 # Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
 # (CLG is counted in sampling steps, not minutes).
 BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
