@@ -12,6 +12,9 @@ from pathlib import Path
 
 log = logging.getLogger("coin_cl.demo")
 
+# The figures of the room's table (keys of `coin_cl.evaluation`'s mean metrics).
+ROOM_METRICS = ("psnr", "m_psnr", "ssim", "hf_ratio", "bbox_gmsd")
+
 
 def run_demo(
     out: Path,
@@ -128,16 +131,13 @@ def room(
         # A 90-degree arc, forward-facing like SPIn-NeRF: part of what the object hides is seen by
         # no training view, so the region has to be inpainted, not just reconstructed.
         write_synthetic(scene_dir, coverage=90, n_views=n_views, width=size[0], height=size[1], seed=0)
-    cfg = CoInConfig(
-        budget_minutes=budget, device=device if isinstance(device, str) else None, prior_seconds=prior_seconds
-    )
-    if iters is not None:
-        cfg.iters_refgs = cfg.iters_ted_finetune = cfg.iters_ted_adversarial = iters
+    cfg = CoInConfig(budget_minutes=budget, prior_seconds=prior_seconds).with_iters(iters)
     rows = {}
     log.info("demo: CoIn on the synthetic room (%.1f min training budget)", budget)
     t = time.perf_counter()
     coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
-    rows["coin"] = _row(coin, time.perf_counter() - t, "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints")
+    what = "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints"
+    rows["coin"] = _row(coin.metrics, time.perf_counter() - t, what)
     # The baseline starts from CoIn's scene and stage-1 folders (the runner skips them: their
     # manifests match), so both methods fit the very same inpaints.
     naive = out / "inpaint_then_gs"
@@ -145,9 +145,8 @@ def room(
     log.info("demo: baseline, plain Scaffold-GS on the same stage-1 inpaints")
     t = time.perf_counter()
     res = inpaint(scene_dir, naive, config=replace(cfg, skip=("refgs", "clg", "ted")), device=device)
-    rows["inpaint_then_gs"] = _row(
-        res, time.perf_counter() - t, "plain Scaffold-GS on the same stage-1 inpaints (no Ref-GS, CLG, TE-D)"
-    )
+    what = "plain Scaffold-GS on the same stage-1 inpaints (no Ref-GS, CLG, TE-D)"
+    rows["inpaint_then_gs"] = _row(res.metrics, time.perf_counter() - t, what)
     rows["masked_recon"] = room_baseline(out / "masked_recon", scene_dir, steps, device)
     stage1 = coin.stages["1_inpaint"]["result"]
     model = (stage1.get("prior") or {}).get("name") or ", ".join(stage1.get("sources", []))
@@ -162,10 +161,10 @@ def room(
     return table
 
 
-def _row(res, seconds: float, what: str) -> dict:
-    m = res.metrics or {}
-    keys = ("psnr", "m_psnr", "ssim", "hf_ratio", "bbox_gmsd")
-    return {"what": what, "seconds": seconds, **{k: m.get(k) for k in keys}}
+def _row(metrics: dict | None, seconds: float, what: str) -> dict:
+    """One row of the room's table from an evaluation's mean metrics."""
+    m = metrics or {}
+    return {"what": what, "seconds": seconds, **{k: m.get(k) for k in ROOM_METRICS}}
 
 
 def room_markdown(table: dict) -> str:
@@ -222,9 +221,5 @@ def room_baseline(out: Path, scene_dir: Path, steps: int = 400, device=None) -> 
             r = trainer.model.render(view.camera, trainer.step)
         write_png(pred / view.camera.name, to_uint8(r.image.clamp(0, 1).numpy()))
     agg = evaluate_folder(pred, scene_dir, out / "eval")["mean"]
-    keys = ("psnr", "m_psnr", "ssim", "hf_ratio", "bbox_gmsd")
-    return {
-        "what": f"3DGS, {res['step']} steps, object pixels left out of the loss (no inpainting)",
-        "seconds": time.perf_counter() - t,
-        **{k: agg.get(k) for k in keys},
-    }
+    what = f"3DGS, {res['step']} steps, object pixels left out of the loss (no inpainting)"
+    return _row(agg, time.perf_counter() - t, what)

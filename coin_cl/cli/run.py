@@ -41,9 +41,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
-    )  # fmt: skip
-    if args.iters is not None:
-        cfg.iters_refgs = cfg.iters_ted_finetune = cfg.iters_ted_adversarial = args.iters
+    ).with_iters(args.iters)  # fmt: skip
     ref = int(args.ref) if args.ref is not None and args.ref.isdigit() else args.ref
     res = inpaint(args.scene, args.out, masks=args.mask, reference=ref, prompt=args.prompt or None,
                   budget=args.budget, config=cfg, force=tuple(args.force))  # fmt: skip

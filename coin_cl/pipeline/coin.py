@@ -87,6 +87,12 @@ class CoInConfig:
     refgs: Any = None  # coin_cl.gs.refgs.RefGSConfig (default built on use)
     clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
 
+    def with_iters(self, n: int | None) -> CoInConfig:
+        """This config with every GS training stage set to `n` steps (None: unchanged)."""
+        if n is None:
+            return self
+        return replace(self, iters_refgs=n, iters_ted_finetune=n, iters_ted_adversarial=n)
+
     def iterations(self, width: int, height: int) -> dict[str, int | float]:
         """Iteration counts (and the prior's seconds) from the budget rule, explicit values winning."""
         rate = STEPS_PER_MINUTE * (REF_PIXELS / max(1, width * height)) ** RATE_EXPONENT
