@@ -74,3 +74,50 @@ def test_tiny_scene_trains_scaffold():
     before = tr.evaluate()["psnr"]
     res = tr.train()
     assert res["psnr"] > 25.0 and res["psnr"] > before + 5.0
+
+
+def test_fused_decode_equals_masked_decode_values_and_gradients():
+    """The index-gather decode (default) and Scaffold-GS' boolean-mask decode give identical
+    Gaussians and the same gradients (up to summation order) for random cotangents."""
+    sc = tiny_scene(backend=BACKEND)
+    m = _randomised(np.random.default_rng(2).uniform(-4, 4, (2000, 3)))
+    cam = sc.views[0].camera
+    vis = m.visible_anchors(cam)
+    assert 0 < int(vis.sum()) < m.n_anchors
+    keys = ("means", "quats", "scales", "opacities", "colors")
+    gen = torch.Generator().manual_seed(3)
+    cot = None
+    results = {}
+    for fused in (False, True):
+        m.fused = fused
+        m.optimizer.zero_grad()
+        g = m.decode(cam.center, vis)
+        if cot is None:
+            cot = {k: torch.randn(g[k].shape, generator=gen) for k in keys}
+        sum((g[k] * cot[k]).sum() for k in keys).backward()
+        grads = {n: p.grad.clone() for n, p in m.p.items() if p.grad is not None}
+        results[fused] = ({k: g[k].detach() for k in (*keys, "selected", "neural_opacity")}, grads)
+    (v0, g0), (v1, g1) = results[False], results[True]
+    assert int(v0["selected"].sum()) > 0
+    for k, v in v0.items():
+        assert torch.equal(v, v1[k]), k
+    assert set(g0) == set(g1) and {"offsets", "features", "scaling"} <= set(g0)
+    for n in g0:
+        assert torch.allclose(g0[n], g1[n], rtol=1e-5, atol=1e-6), n
+
+
+def test_decode_with_no_visible_anchor_or_no_drawn_offset_is_empty_not_an_error():
+    m = _randomised(np.random.default_rng(4).uniform(-4, 4, (500, 3)))
+    cam = tiny_scene(backend=BACKEND).views[0].camera
+    none = torch.zeros(m.n_anchors, dtype=torch.bool)
+    for fused in (False, True):
+        m.fused = fused
+        g = m.decode(cam.center, none)
+        assert g["means"].shape == (0, 3) and g["colors"].shape == (0, 3) and g["opacities"].shape == (0,)
+    # Every offset's opacity negative (last opacity bias -10): nothing selected, empty render.
+    with torch.no_grad():
+        m.mlps["mlp_opacity"][2].bias.fill_(-10.0)
+    for fused in (False, True):
+        m.fused = fused
+        out = m.render(cam, 0, backend=BACKEND)
+        assert int(out.meta["selected"].sum()) == 0 and float(out.image.abs().max()) == 0.0

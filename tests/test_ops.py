@@ -1,5 +1,6 @@
 """OpenCL kernels (coin_cl.engine.ops) against their float64 torch twins (coin_cl.engine.reference)."""
 
+import numpy as np
 import pytest
 import torch
 from conftest import small_mode
@@ -157,6 +158,24 @@ def test_bins_are_depth_ordered_and_complete(rt):
     assert bins.n_pairs == bins.ids.numel()
 
 
+def test_stable_depth_order_is_a_stable_argsort_with_ties_signed_zeros_and_nan():
+    from coin_cl.engine.ops.bin import stable_depth_order
+
+    rng = np.random.default_rng(0)
+    neg_nan = np.array([0x7FC00000 | 0x80000000], np.uint32).view(np.float32)[0]
+    cases = [
+        rng.normal(size=2000).astype(np.float32),
+        np.round(rng.normal(size=3000), 1).astype(np.float32),  # many ties, -0.0 among them
+        np.array([0.0, -0.0, 1, 1, np.inf, -np.inf, np.nan, -1e-40, 1e-40, 2, neg_nan], np.float32),
+        np.full(5, 3.0, np.float32),
+        np.zeros(0, np.float32),
+    ]
+    for d in cases:
+        got = stable_depth_order(d)
+        assert got.dtype == np.int64
+        assert np.array_equal(got, np.argsort(d, kind="stable"))
+
+
 @pytest.mark.parametrize("seed", [13, 14])
 def test_bins_match_the_twin(rt, seed):
     """bin_tiles (kernels) and its twin give the same tile lists, pair slots and extents."""
@@ -191,7 +210,6 @@ def test_given_bins_give_the_same_image(rt):
 def test_cpu_kernel_exp_matches_float64():
     """The CPU rasterizer's operator-only exp (PoCL does not inline the built-in) is as accurate
     as the built-in: relative error under 2e-7 over the whole range compositing uses."""
-    import numpy as np
     import pyopencl as cl
 
     from coin_cl.engine.runtime import kernel_dir
@@ -232,7 +250,6 @@ def test_deterministic_backward_is_bit_reproducible(rt):
 def real_geometry(spinnerf_dir):
     """The shared scene's SfM points and the real camera of view 0 (K scaled to a smaller image),
     with seeded scales, rotations, opacities and colours as gsplat's tests do with its garden data."""
-    import numpy as np
 
     from coin_cl.scene.conventions import invert_rigid, llff_to_camtoworld
     from coin_cl.scene.ply import read_points_ply

@@ -149,6 +149,18 @@ def test_many_gaussians_stacked_on_one_tile():
         both(sub, width=16, height=16)
 
 
+def test_finite_rows_fast_path_never_hides_a_nonfinite_row_and_survives_overflow():
+    from coin_cl.engine.geometry import finite_rows
+
+    big = torch.full((4, 3), 3e38)  # every entry finite, but the sum overflows to inf
+    assert finite_rows(big, torch.ones(4)).all()
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        x = torch.zeros(6, 3)
+        x[4, 1] = bad
+        assert finite_rows(torch.ones(6, 2), x).tolist() == [True] * 4 + [False, True]
+    assert finite_rows(torch.zeros(0, 3)).shape == (0,)
+
+
 def test_nonfinite_inputs_are_culled_and_reported(caplog):
     gs = random_gaussians(50, seed=7, dtype=torch.float32)
     gs.means[0, 0] = float("nan")

@@ -34,6 +34,10 @@ def add_commands(subparsers) -> None:
     t.add_argument("--device", default=None, help="OpenCL device name substring (default: coin-cl doctor's)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out")
+    t.add_argument(
+        "--fused", choices=("on", "off"), default="on",
+        help="fused training path (default); 'off' runs the earlier unfused one (for comparisons)",
+    )  # fmt: skip
     t.set_defaults(func=cmd_train)
 
     r = subparsers.add_parser("render", help="render a trained model: images, depth maps, an orbit")
@@ -61,6 +65,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         eval_every=args.eval_every,
         ckpt_every=args.ckpt_every,
         max_seconds=60.0 * args.max_minutes,
+        fused=args.fused == "on",
     )
     tr = make_trainer(
         scene, tr_idx, te_idx, cfg, args.out, images,

@@ -76,6 +76,9 @@ class Model:
     optimizer: ParamOptimizer
     # The OpenCL device renders go to (a Runtime or a name; None: the default device).
     device: Any = None
+    # The fused training path (index gathers, fused kernels); False selects the earlier unfused
+    # path, kept so that `benchmarks/train.py --throughput` compares both in one run.
+    fused: bool = True
 
     def render(
         self,

@@ -113,12 +113,3 @@ def photometric_loss(
     # A zero weight must give an exactly zero gradient even if the view's loss is not finite.
     weighted = torch.where(weights != 0, weights * per_view, torch.zeros_like(per_view))
     return weighted.sum(), {"l1": l1.detach(), "ssim": ssim.detach(), "loss": per_view.detach()}
-
-
-def psnr(pred: Tensor, target: Tensor, exclude: Tensor | None = None) -> float:
-    """PSNR in dB of images in [0, 1] ([H, W, C]), optionally over non-excluded pixels only."""
-    se = ((pred.clamp(0, 1) - target) ** 2).mean(-1)
-    if exclude is not None:
-        se = se[~exclude.bool()]
-    mse = float(se.mean())
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

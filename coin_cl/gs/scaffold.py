@@ -171,16 +171,57 @@ class ScaffoldModel(Model):
         Returns means [M,3], quats [M,4], scales [M,3], opacities [M], colors [M,3] for the
         M drawn Gaussians (opacity > 0), plus 'neural_opacity' [V*k] (before the mask) and
         'selected' [V*k] bool (which of the visible anchors' offsets were drawn).
+
+        With `self.fused` (default) rows are gathered by integer index (`index_select`, whose
+        backward is a scatter-add) instead of boolean masks (whose backward is an accumulating
+        `index_put`, several times slower on CPU), and nothing is repeated per offset before the
+        selection; the values are identical, the gradients equal up to summation order.
         """
-        k = self.cfg.n_offsets
         p = self.p
-        anchor = p["anchors"][vis]
         if features is None:
             features = p["features"]
         elif tuple(features.shape) != tuple(p["features"].shape):
             raise ValueError(
                 f"features override is {tuple(features.shape)}, the model's are {tuple(p['features'].shape)}"
             )
+        if not self.fused:
+            return self._decode_masked(cam_center, vis, features)
+        k = self.cfg.n_offsets
+        vidx = vis.nonzero().squeeze(1)  # [V]
+        anchor = p["anchors"].index_select(0, vidx)
+        feat = features.index_select(0, vidx)
+        scaling = torch.exp(p["scaling"].index_select(0, vidx))
+        ob_view = anchor - cam_center
+        ob_view = ob_view / ob_view.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        x = torch.cat([feat, ob_view], -1)
+        opacity = self.mlps["mlp_opacity"](x).reshape(-1)  # [V*k]
+        sel = opacity > 0
+        sidx = sel.nonzero().squeeze(1)  # [M] into the V*k offsets
+        aidx = torch.div(sidx, k, rounding_mode="floor")  # [M] into the V visible anchors
+        color = self.mlps["mlp_color"](x).reshape(-1, 3).index_select(0, sidx)
+        cov = self.mlps["mlp_cov"](x).reshape(-1, 7).index_select(0, sidx)
+        sc = scaling.index_select(0, aidx)  # [M, 6]
+        # Row of each drawn offset in the [A*k, 3] offsets parameter.
+        flat = vidx.index_select(0, aidx) * k + (sidx - aidx * k)
+        offsets = p["offsets"].reshape(-1, 3).index_select(0, flat) * sc[:, :3]
+        quats = cov[:, 3:7]
+        quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return {
+            "means": anchor.index_select(0, aidx) + offsets,
+            "quats": quats,
+            "scales": sc[:, 3:] * torch.sigmoid(cov[:, :3]),
+            "opacities": opacity.index_select(0, sidx),
+            "colors": color,
+            "neural_opacity": opacity.detach(),
+            "selected": sel,
+        }
+
+    def _decode_masked(self, cam_center: Tensor, vis: Tensor, features: Tensor) -> dict[str, Tensor]:
+        """`decode` as Scaffold-GS writes it (boolean masks, per-offset repeats): the unfused path
+        that `benchmarks/train.py --throughput` compares against."""
+        k = self.cfg.n_offsets
+        p = self.p
+        anchor = p["anchors"][vis]
         feat = features[vis]
         scaling = torch.exp(p["scaling"][vis])
         ob_view = anchor - cam_center

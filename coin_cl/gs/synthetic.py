@@ -15,20 +15,7 @@ import torch
 from torch import Tensor
 
 from coin_cl.gs.data import Camera, View
-
-
-def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)) -> Tensor:
-    """[4, 4] world-to-camera (OpenCV axes) for a camera at `eye` looking at `target`."""
-    eye = np.asarray(eye, np.float64)
-    f = np.asarray(target, np.float64) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    d = np.cross(f, r)
-    R = np.stack([r, d, f])
-    V = np.eye(4)
-    V[:3, :3], V[:3, 3] = R, -R @ eye
-    return torch.tensor(V, dtype=torch.float32)
+from coin_cl.scene.conventions import look_at
 
 
 @dataclass
@@ -71,7 +58,8 @@ def tiny_scene(
     for i in range(n_views):
         a = 2 * math.pi * i / n_views
         eye = [3.5 * math.sin(a), 0.6 * math.cos(3 * a), -3.5 * math.cos(a)]
-        cam = Camera(K, look_at(eye), width, height, f"view{i}")
+        vm = torch.tensor(look_at(eye, (0.0, 0.0, 0.0), (0.0, -1.0, 0.0)), dtype=torch.float32)
+        cam = Camera(K, vm, width, height, f"view{i}")
         with torch.no_grad():
             img, _, _, _ = rasterize(means, quats, scales, opac, cols, cam.viewmat, cam.K,
                                      width, height, background=torch.zeros(3), backend=backend)  # fmt: skip

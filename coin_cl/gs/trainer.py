@@ -35,6 +35,7 @@ from coin_cl.gs.sampler import ShuffledEpochs, ViewSampler
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, scaffold_config_from_dict
 from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy, default_strategy
 from coin_cl.gs.terms import LossContext, LossTerm, default_terms
+from coin_cl.scene.io import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,9 @@ class TrainConfig:
     max_seconds: float = 0.0  # stop when training time (evaluation excluded) exceeds this
     progress: bool = True  # tqdm bar
     export_ply: bool = True
+    # The fused training path (index-gather decode, fused Adam); False: the earlier unfused path,
+    # kept so that benchmarks/train.py --throughput measures both in one run. See docs/BENCHMARKS.md.
+    fused: bool = True
 
 
 def build_model(
@@ -157,9 +161,8 @@ def model_from_state(sd: dict[str, Any]) -> Model:
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, default=_json_default))
-    os.replace(tmp, path)
+    text = json.dumps(obj, indent=1, default=_json_default)  # serialised before the file is opened
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def _json_default(o: Any) -> Any:
@@ -245,6 +248,7 @@ class Trainer:
         if not train_views:
             raise ValueError("no training views")
         self.model = model
+        model.fused = model.optimizer.fused = cfg.fused
         self.train_views = list(train_views)
         self.test_views = list(test_views)
         self.cfg = cfg
@@ -311,6 +315,7 @@ class Trainer:
         device = self.model.device  # the device is the caller's choice, not the checkpoint's
         self.model = model_from_state(msd)
         self.model.device = device
+        self.model.fused = self.model.optimizer.fused = self.cfg.fused
         t = state["trainer"]
         # Checkpoints from before the strategy / sampler split kept these in the model and trainer.
         legacy_cfg = {**msd.get("cfg", {}), **msd.get("cfg", {}).get("densify", {})}

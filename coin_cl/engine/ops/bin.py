@@ -45,6 +45,24 @@ class TileBins:
         return self.ids[int(self.tile_start[t]) : int(self.tile_end[t])].long()
 
 
+def stable_depth_order(depths: np.ndarray) -> np.ndarray:
+    """[N] int64 permutation sorting float32 `depths` ascending, ties in index order (a stable
+    argsort, NaN last).
+
+    Each depth's bits become an order-preserving unsigned key with its index in the low 32 bits,
+    so the keys are unique and numpy's SIMD sort of plain integers gives the stable order: 5-7x
+    faster than `np.argsort(kind="stable")` on floats (35 ms at 300k splats on the 2-core machine,
+    the largest part of binning).
+    """
+    d = np.asarray(depths, dtype=np.float32) + np.float32(0.0)  # -0.0 -> +0.0 (they tie)
+    d[np.isnan(d)] = np.nan  # one NaN pattern (sign bit clear), so every NaN sorts last
+    bits = d.view(np.uint32)
+    # Negative floats: flip every bit; non-negative: flip the sign bit (IEEE-754 total order).
+    key = np.where(bits >> 31 != 0, ~bits, bits | np.uint32(0x80000000)).astype(np.uint64)
+    key = (key << np.uint64(32)) | np.arange(bits.size, dtype=np.uint64)
+    return (np.sort(key) & np.uint64(0xFFFFFFFF)).astype(np.int64)
+
+
 def empty_bins(n: int, width: int, height: int, extents: Tensor | None = None) -> TileBins:
     ts = cst.TILE_SIZE
     tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
@@ -104,8 +122,7 @@ def bin_tiles(
     bins.pair_start[1:] = torch.cumsum(area, 0)
     # One stable depth sort of the splats that reach a tile; every tile list inherits it.
     vis = (area > 0).nonzero().squeeze(1)
-    order_np = np.argsort(depths.detach()[vis].numpy(), kind="stable")  # numpy's beats torch's here
-    order = vis[torch.from_numpy(order_np)].to(torch.int32)
+    order = vis[torch.from_numpy(stable_depth_order(depths.detach()[vis].numpy()))].to(torch.int32)
     n_vis = bins.n_visible = int(order.numel())
     rects = rects[order.long()]  # gathered once, so the passes below read sequentially
     # Enough chunks to keep every compute unit busy with some balance, few enough that the
