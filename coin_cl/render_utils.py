@@ -35,14 +35,14 @@ def _viewmat(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch
 
 def orbit_cameras(cams, n: int, model, step: int, backend: str):
     """`n` cameras on a circle in the mean camera's image plane, looking at the scene's median
-    depth along the mean view direction (suits forward-facing captures). `cams`: `gs.data.Camera`s."""
-    from coin_cl.gs.data import Camera
+    depth along the mean view direction (suits forward-facing captures). `cams`: `Camera`s."""
+    from coin_cl.scene.types import Camera
 
-    centers = torch.stack([c.center for c in cams])
+    centers = torch.stack([c.center_t for c in cams])
     c0 = centers.mean(0)
-    fwd = torch.stack([c.viewmat[2, :3] for c in cams]).mean(0)
+    fwd = torch.stack([c.viewmat_t[2, :3] for c in cams]).mean(0)
     fwd = fwd / fwd.norm()
-    up = -torch.stack([c.viewmat[1, :3] for c in cams]).mean(0)
+    up = -torch.stack([c.viewmat_t[1, :3] for c in cams]).mean(0)
     base = cams[0]
     V = _viewmat(c0, c0 + fwd, up)
     right, down = V[0, :3], V[1, :3]

@@ -1,5 +1,5 @@
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -7,14 +7,13 @@ import pytest
 from coin_cl.cli import main
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.trainer import scaled_strategy
-from coin_cl.scene import Camera, Scene, save_scene
+from coin_cl.scene import Scene, save_scene
 
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory):
     sc = tiny_scene(n=30, width=32, height=24, n_views=8, backend="opencl")
-    cams = [Camera(v.camera.K.numpy(), v.camera.viewmat.numpy(), v.camera.width,
-                   v.camera.height, f"{v.camera.name}.png") for v in sc.views]  # fmt: skip
+    cams = [replace(v.camera, name=f"{v.camera.name}.png") for v in sc.views]
     imgs = [v.image.numpy() for v in sc.views]
     masks = [np.zeros((24, 32), bool) for _ in sc.views]
     scene = Scene(cams, imgs, masks, sc.noisy_points().astype(np.float32), None,

@@ -191,7 +191,7 @@ def test_scale_regulariser_is_the_mean_volume():
     m.optimizer.set_rows("scaling", torch.log(torch.full((a, 6), 0.08)))
     cam = sc.views[0].camera
     out = m.render(cam, 0, backend="opencl")
-    dec = m.decode(cam.center, m.visible_anchors(cam))
+    dec = m.decode(cam.center_t, m.visible_anchors(cam))
     expected = 0.01 * float(dec["scales"].detach().prod(1).mean())
     term = ScaleVolumeReg()
     ctx = LossContext(view=sc.views[0], index=0, out=out, step=0, model=m)

@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from coin_cl.gs import refgs
-from coin_cl.gs.data import Camera as GsCamera
 from coin_cl.gs.refgs import (
     DATASET_DEPTH_PRIOR,
     GS_DEPTH_PRIOR,
@@ -133,9 +132,10 @@ def test_prune_removes_exactly_points_in_masks(room):
     assert 0 <= n_top_all <= n_top_half < 150
 
 
-def test_prune_accepts_gs_cameras_and_checks_input(room):
+def test_prune_accepts_torch_inputs_and_checks_input(room):
     _, obj, cams, masks = room
-    gcams = [GsCamera.from_any(c) for c in cams]
+    # Cameras built from torch tensors, masks as tensors.
+    gcams = [Camera(torch.from_numpy(c.K), torch.from_numpy(c.viewmat), c.width, c.height) for c in cams]
     tmasks = [torch.from_numpy(m) for m in masks]
     pts = obj.center[None] + np.zeros((3, 3))
     assert prune_points_in_masks(pts, gcams, tmasks).n_removed == 3
@@ -213,12 +213,12 @@ def test_weights_checkpoint_round_trip_is_exact():
 # anchor attention
 
 
-def _pinhole(W=40, H=30, f=30.0) -> GsCamera:
+def _pinhole(W=40, H=30, f=30.0) -> Camera:
     K = torch.tensor([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
-    return GsCamera(K, torch.eye(4), W, H, "c")
+    return Camera(K, torch.eye(4), W, H, "c")
 
 
-def _at_pixel(cam: GsCamera, u: float, v: float, z: float) -> list[float]:
+def _at_pixel(cam: Camera, u: float, v: float, z: float) -> list[float]:
     K = cam.K
     return [(u - float(K[0, 2])) / float(K[0, 0]) * z, (v - float(K[1, 2])) / float(K[1, 1]) * z, z]
 
@@ -241,9 +241,8 @@ def test_mask_anchor_sets():
     )
     in_idx, side_idx = mask_anchor_sets(anchors, cam, mask)
     assert in_idx.tolist() == [0, 1] and side_idx.tolist() == [2, 3]
-    # A scene.types camera (numpy) gives the same sets.
-    ncam = Camera(K=cam.K.numpy(), viewmat=np.eye(4), width=40, height=30)
-    i2, s2 = mask_anchor_sets(anchors.numpy(), ncam, mask)
+    # Numpy anchors give the same sets.
+    i2, s2 = mask_anchor_sets(anchors.numpy(), cam, mask)
     assert torch.equal(i2, in_idx) and torch.equal(s2, side_idx)
     # A wider ring reaches anchor 4.
     assert 4 in mask_anchor_sets(anchors, cam, mask, ring_frac=1.2)[1].tolist()

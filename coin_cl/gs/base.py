@@ -57,7 +57,7 @@ def splat(
     from coin_cl.engine.rendering import rasterize
 
     image, alpha, depth, meta = rasterize(
-        means, quats, scales, opacities, colors, cam.viewmat, cam.K, cam.width, cam.height,
+        means, quats, scales, opacities, colors, cam.viewmat_t, cam.K_t, cam.width, cam.height,
         background=background, return_depth=return_depth, backend=backend, device=device,
     )  # fmt: skip
     if training and meta["means2d"].requires_grad:

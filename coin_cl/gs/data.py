@@ -14,36 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-
-@dataclass
-class Camera:
-    """Pinhole camera in the engine's conventions (OpenCV axes, pixel centres at +0.5).
-
-    K [3, 3] and viewmat [4, 4] world-to-camera, float32 tensors.
-    """
-
-    K: Tensor
-    viewmat: Tensor
-    width: int
-    height: int
-    name: str = ""
-
-    @property
-    def center(self) -> Tensor:
-        """[3] camera centre in world coordinates."""
-        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
-        return -(R.T @ t)
-
-    @staticmethod
-    def from_any(cam, name: str = "") -> Camera:
-        """Wrap any object with K, viewmat, width, height (numpy or torch)."""
-        return Camera(
-            K=torch.as_tensor(np.asarray(cam.K), dtype=torch.float32).clone(),
-            viewmat=torch.as_tensor(np.asarray(cam.viewmat), dtype=torch.float32).clone(),
-            width=int(cam.width),
-            height=int(cam.height),
-            name=str(getattr(cam, "name", name) or name),
-        )
+from coin_cl.scene.types import Camera
 
 
 @dataclass
@@ -107,9 +78,10 @@ def colors_from_views(points: np.ndarray, views: Sequence[View], max_views: int 
     step = max(1, len(views) // max_views)
     for v in list(views)[::step][:max_views]:
         c = v.camera
-        pc = pts @ c.viewmat[:3, :3].T + c.viewmat[:3, 3]
+        V, K = c.viewmat_t, c.K_t
+        pc = pts @ V[:3, :3].T + V[:3, 3]
         z = pc[:, 2]
-        uv = pc[:, :2] / z.clamp_min(1e-6)[:, None] @ c.K[:2, :2].T + c.K[:2, 2]
+        uv = pc[:, :2] / z.clamp_min(1e-6)[:, None] @ K[:2, :2].T + K[:2, 2]
         px = torch.floor(uv).long()
         ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
         if v.exclude is not None:
@@ -122,6 +94,6 @@ def colors_from_views(points: np.ndarray, views: Sequence[View], max_views: int 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:
     """3DGS' 'cameras_extent': 1.1 x the largest camera distance from the mean centre."""
-    cs = torch.stack([c.center for c in cameras])
+    cs = torch.stack([c.center_t for c in cameras])
     r = (cs - cs.mean(0)).norm(dim=-1).max().item()
     return 1.1 * max(r, 1e-6)

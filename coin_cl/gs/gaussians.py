@@ -126,7 +126,7 @@ class GaussianModel(Model):
         p = self.p
         deg = self.sh_degree_at(step)
         coeffs = torch.cat([p["sh0"], p["shN"][:, : num_sh_bases(deg) - 1]], 1)
-        colors = eval_sh(deg, coeffs, p["means"] - cam.center)
+        colors = eval_sh(deg, coeffs, p["means"] - cam.center_t)
         image, alpha, depth, meta = splat(
             cam, p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
             backend=backend, background=background, return_depth=return_depth, training=training,

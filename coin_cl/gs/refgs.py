@@ -29,9 +29,8 @@ Intended use per run (the trainer wires it; nothing here touches the trainer):
     checkpoint: weights.state_dict(), attn.state_dict() (generator state included).
 
 Cameras are duck-typed: anything with `K` [3, 3], `viewmat` [4, 4] world-to-camera (OpenCV axes),
-`width`, `height` (numpy or torch), i.e. both `coin_cl.scene.types.Camera` and
-`coin_cl.gs.data.Camera`. Pixel centres are at +0.5, so a projection (u, v) lies in pixel
-(floor(v), floor(u)), as everywhere in the package.
+`width`, `height` (numpy or torch), such as `coin_cl.scene.types.Camera`. Pixel centres are at
++0.5, so a projection (u, v) lies in pixel (floor(v), floor(u)), as everywhere in the package.
 """
 
 from __future__ import annotations

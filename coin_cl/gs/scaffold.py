@@ -146,7 +146,8 @@ class ScaffoldModel(Model):
 
     def visible_anchors(self, cam: Camera) -> Tensor:
         """[A] bool: anchors whose reach sphere intersects the view frustum (sphere-plane test)."""
-        x = self.p["anchors"].detach() @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
+        V = cam.viewmat_t
+        x = self.p["anchors"].detach() @ V[:3, :3].T + V[:3, 3]
         r = self.anchor_reach()
         fx, fy, cx, cy = (float(v) for v in (cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]))
         # Side planes through the optical centre, inward normals, for x/z in [-cx/fx, (W-cx)/fx].
@@ -260,7 +261,7 @@ class ScaffoldModel(Model):
         """Render `cam`; `features` [A, feat_dim] optionally overrides the anchor features
         (see `decode`)."""
         vis = self.visible_anchors(cam)
-        g = self.decode(cam.center, vis, features)
+        g = self.decode(cam.center_t, vis, features)
         image, alpha, depth, meta = splat(
             cam, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             backend=backend, background=background, return_depth=return_depth, training=training,

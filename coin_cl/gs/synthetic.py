@@ -61,7 +61,7 @@ def tiny_scene(
         vm = torch.tensor(look_at(eye, (0.0, 0.0, 0.0), (0.0, -1.0, 0.0)), dtype=torch.float32)
         cam = Camera(K, vm, width, height, f"view{i}")
         with torch.no_grad():
-            img, _, _, _ = rasterize(means, quats, scales, opac, cols, cam.viewmat, cam.K,
+            img, _, _, _ = rasterize(means, quats, scales, opac, cols, cam.viewmat_t, cam.K_t,
                                      width, height, background=torch.zeros(3), backend=backend)  # fmt: skip
         views.append(View(cam, img.float().clamp(0, 1)))
     return TinyScene(means, quats, scales, opac, cols, views)

@@ -181,18 +181,11 @@ def _peak_rss_mb() -> float:
 
 
 def cameras_to_json(cams: Sequence[Camera]) -> list[dict]:
-    return [
-        {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
-         "viewmat": c.viewmat.tolist()}
-        for c in cams
-    ]  # fmt: skip
+    return [c.to_json() for c in cams]
 
 
 def cameras_from_json(items: list[dict]) -> list[Camera]:
-    return [
-        Camera(torch.tensor(d["K"]), torch.tensor(d["viewmat"]), d["width"], d["height"], d["name"])
-        for d in items
-    ]
+    return [Camera.from_json(d) for d in items]
 
 
 def evaluate_views(
@@ -492,7 +485,7 @@ class Trainer:
     def export_ply(self, path: Path) -> None:
         """Write the model as plain 3DGS Gaussians, view-dependent colours frozen at the mean
         training camera (see `write_model_ply`)."""
-        center = torch.stack([v.camera.center for v in self.train_views]).mean(0)
+        center = torch.stack([v.camera.center_t for v in self.train_views]).mean(0)
         write_model_ply(self.model, path, center)
 
 

@@ -422,7 +422,7 @@ def _stage_eval(ctx: StageContext) -> dict:
 
     orbit_gif(model, [Camera.from_any(scene.cameras[i]) for i in scene.train_idx], ctx.out / "orbit.gif")
     ply = ctx.out / "point_cloud.ply"
-    centers = torch.stack([Camera.from_any(scene.cameras[i]).center for i in scene.train_idx])
+    centers = torch.stack([scene.cameras[i].center_t for i in scene.train_idx])
     write_model_ply(model, ply, centers.mean(0))
     result: dict[str, Any] = {"final_stage": final, "ply": str(ply)}
     gt_ok = scene.test_idx and all(scene.masks[i].any() for i in scene.test_idx)
@@ -469,7 +469,7 @@ def orbit_gif(model, cameras: list, path: Path, frames: int = 36) -> None:
     for j in range(frames):
         u = j * max(1, len(cameras) - 1) / frames
         a, b = cameras[min(int(u), len(cameras) - 1)], cameras[min(int(u) + 1, len(cameras) - 1)]
-        vm = interpolate_pose(a.viewmat.double(), b.viewmat.double(), u - int(u)).to(a.viewmat.dtype)
+        vm = interpolate_pose(a.viewmat, b.viewmat, u - int(u))
         with torch.no_grad():
             r = model.render(replace(a, viewmat=vm, name=f"orbit_{j:03d}"), 10**9)
         images.append(to_uint8(r.image.clamp(0, 1).numpy()))

@@ -27,13 +27,9 @@ def save_scene(scene: Scene, out_dir: str | Path) -> Path:
         write_png(out / "masks" / f"{stem}.png", m.astype(np.uint8) * 255)
         views.append(
             {
-                "name": cam.name,
+                **cam.to_json(),
                 "image": f"images/{stem}.png",
                 "mask": f"masks/{stem}.png",
-                "width": cam.width,
-                "height": cam.height,
-                "K": cam.K.tolist(),
-                "viewmat": cam.viewmat.tolist(),
             }
         )
     for group, data in (("priors", scene.priors), ("extras", scene.extras)):
@@ -79,15 +75,7 @@ def load_native_folder(root: Path) -> Scene:
         img = read_image(root / v["image"])
         if img.shape[:2] != (v["height"], v["width"]):
             raise ValueError(f"{root / v['image']} is not {v['width']}x{v['height']} as {sj} says")
-        cameras.append(
-            Camera(
-                K=np.array(v["K"]),
-                viewmat=np.array(v["viewmat"]),
-                width=v["width"],
-                height=v["height"],
-                name=v["name"],
-            )
-        )
+        cameras.append(Camera.from_json(v))
         imgs.append(img)
         m = read_mask(root / v["mask"], img.shape[:2])
         masks.append(check_mask(m, str(root / v["mask"])) if m.any() else m)

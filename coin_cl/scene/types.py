@@ -17,10 +17,14 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Camera:
-    """A pinhole camera in the engine's convention (see `conventions`).
+    """A pinhole camera in the engine's convention (see `conventions`): the one camera type of
+    coin-cl (scenes, training views, pipeline stages, CLI and tests).
 
     K: (3, 3) float64 intrinsics in pixels of (width, height), pixel centres at +0.5.
     viewmat: (4, 4) float64 world-to-camera, OpenCV axes (x right, y down, z forward).
+    Stored in float64 numpy (poses of huge scenes keep their precision); the `_t` properties give
+    float32 torch tensors for the renderer (`K_t`, `viewmat_t`, `center_t`, `camtoworld_t`).
+    Constructing from torch tensors works too (they are converted).
     """
 
     K: np.ndarray
@@ -58,6 +62,34 @@ class Camera:
         import torch
 
         return torch.as_tensor(self.K, dtype=torch.float32)
+
+    @property
+    def center_t(self):
+        """(3,) torch float32 camera centre in world coordinates."""
+        import torch
+
+        return torch.as_tensor(self.center, dtype=torch.float32)
+
+    @staticmethod
+    def from_any(cam: Any, name: str = "") -> Camera:
+        """A copy of any object with K, viewmat, width, height (numpy or torch); its own name
+        wins over `name`."""
+
+        def arr(x: Any) -> np.ndarray:
+            return np.asarray(x.detach().cpu() if hasattr(x, "detach") else x, dtype=np.float64)
+
+        return Camera(arr(cam.K), arr(cam.viewmat), int(cam.width), int(cam.height),
+                      str(getattr(cam, "name", "") or name))  # fmt: skip
+
+    def to_json(self) -> dict[str, Any]:
+        """{"name", "width", "height", "K", "viewmat"} with plain lists (float64 kept exactly)."""
+        return {"name": self.name, "width": self.width, "height": self.height,
+                "K": self.K.tolist(), "viewmat": self.viewmat.tolist()}  # fmt: skip
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> Camera:
+        """The inverse of `to_json` (extra keys ignored)."""
+        return Camera(np.array(d["K"]), np.array(d["viewmat"]), d["width"], d["height"], d.get("name", ""))
 
     @property
     def camtoworld_t(self):
