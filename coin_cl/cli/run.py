@@ -13,7 +13,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="run folder (a rerun resumes)")
     p.add_argument("--mask", choices=("seg", "bbox", "scribble"), default="seg")
     p.add_argument("--ref", default=None, help="reference view, name or index (default: chosen by rule)")
-    p.add_argument("--prompt", default="", help="text for insertion (needs --sd-path)")
+    p.add_argument("--prompt", default="", help="text for insertion (needs --sd-path or COIN_SD2_PATH)")
+    p.add_argument("--edited-ref", type=Path, default=None,
+                   help="insertion without weights: the reference view edited in a 2D tool (the object "
+                        "painted in; the masks cover where it goes in every view); its view is --ref or "
+                        "the one it matches")  # fmt: skip
     p.add_argument("--budget", type=float, default=30.0, help="training minutes to aim at")
     p.add_argument("--resolution", type=float, default=1.0, help="image scale (0.5 = half)")
     p.add_argument("--skip-stage", action="append", default=[], choices=("refgs", "clg", "ted"),
@@ -44,7 +48,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     ).with_iters(args.iters)  # fmt: skip
     ref = int(args.ref) if args.ref is not None and args.ref.isdigit() else args.ref
     res = inpaint(args.scene, args.out, masks=args.mask, reference=ref, prompt=args.prompt or None,
-                  budget=args.budget, config=cfg, force=tuple(args.force))  # fmt: skip
+                  budget=args.budget, config=cfg, force=tuple(args.force),
+                  edited_ref=args.edited_ref)  # fmt: skip
     for name, rec in res.stages.items():
         print(f"  {name}: {rec['status']}" + (f" ({rec['seconds']:.0f} s)" if "seconds" in rec else ""))
     if res.metrics:
