@@ -34,6 +34,7 @@ import numpy as np
 
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import Stage, StageContext, check_output_folder, run_stages
 from coin_cl.pipeline.ted import TEDConfig
 
@@ -55,7 +56,7 @@ BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversa
 # noise) and 2 minutes (133 steps) gives textured fills. An explicit `prior_seconds` is obeyed
 # (with a warning below the floor), for smoke tests.
 PRIOR_MIN_SECONDS = 120.0
-STAGES = ("0_scene", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
+STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 
 
 @dataclass
@@ -68,7 +69,10 @@ class CoInConfig:
     iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (override
     the budget rule; see PRIOR_MIN_SECONDS). seed, device: as everywhere.
     edited_ref: path of the reference view edited by the user (insertion without weights,
-    `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings."""
+    `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
+    masks: "input" (inpaint the whole masks) or "refined" (3D-first, supplement C.2: stage 0_refine
+    narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for removal
+    on wide captures). refine: its settings."""
 
     mask: str = "seg"
     mask_dilate: int = 0
@@ -91,6 +95,8 @@ class CoInConfig:
     clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
     edited_ref: str | None = None
     insert: InsertConfig = field(default_factory=InsertConfig)
+    masks: str = "input"
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
     def with_iters(self, n: int | None) -> CoInConfig:
         """This config with every GS training stage set to `n` steps (None: unchanged)."""
@@ -224,6 +230,12 @@ def inpaint(
 
         env = resolve_sd2_path(None)  # COIN_SD2_PATH
         cfg = replace(cfg, sd_path=None if env is None else str(env))
+    if cfg.masks not in ("input", "refined"):
+        raise ValueError(f"masks must be 'input' or 'refined', got {cfg.masks!r}")
+    if cfg.masks == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+        raise ValueError(
+            "refined masks are for removal: they cannot be combined with a prompt or --edited-ref"
+        )
     if cfg.prompt and (edited_ref is not None or cfg.edited_ref):
         raise ValueError("give either a text prompt or an edited reference view (--edited-ref), not both")
     if cfg.prompt and not cfg.sd_path:
@@ -286,19 +298,23 @@ def _run(
     # The edited image's content (not its path) decides whether stage 1 and what follows rerun.
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
                                         "ref": ref, "cfg": _jsonable(cfg.insert)}  # fmt: skip
+    refined = cfg.masks == "refined"
+    r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     stages = [
         Stage("0_scene", _stage_scene, settings=base),
-        Stage("1_inpaint", _stage_inpaint, ["0_scene"],
+        *([Stage("0_refine", _stage_refine, ["0_scene"],
+                 {"cfg": _jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
+        Stage("1_inpaint", _stage_inpaint, ["0_scene", *r],
               {"cfg": _jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"],
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
-        Stage("2_refgs", _stage_refgs, ["0_scene", "1_inpaint"],
+        Stage("2_refgs", _stage_refgs, ["0_scene", *r, "1_inpaint"],
               {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"],
                "plain": "refgs" in cfg.skip}),
-        Stage("3_clg", _stage_clg, ["0_scene", "1_inpaint", "2_refgs"],
+        Stage("3_clg", _stage_clg, ["0_scene", *r, "1_inpaint", "2_refgs"],
               {"cfg": _jsonable(cfg.clg), "ref": ref, "dino": cfg.dino_path},
               skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
         Stage("4_ted", _stage_ted,
-              ["0_scene", "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
+              ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
               {"cfg": _jsonable(cfg.ted), "iters": [iters["ted_finetune"], iters["ted_adversarial"]]},
               skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
@@ -346,10 +362,16 @@ def _stage_scene(ctx: StageContext) -> dict:
 
 
 def _scene_views(ctx: StageContext):
-    """(scene, masks, training views) as the stage sees them: the input masks, or after an
+    """(scene, masks, training views) as the stage sees them: the input masks; with refined masks
+    (stage 0_refine) M^rmv_n and the captures with R^rmv_n in the rest of the input mask; after an
     insertion's stage 1 the object's footprints F_n (`coin_cl.pipeline.insert`), which are the only
     pixels that change (the rest of the input mask is captured background)."""
     scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    if "0_refine" in ctx.inputs:
+        from coin_cl.pipeline.refine_masks import read_refined
+
+        images, masks = read_refined(scene, ctx.inputs["0_refine"], list(scene.train_idx), masks)
+        scene = replace(scene, images=images)
     feet = ctx.inputs.get("1_inpaint", Path("-")) / "footprints"
     if ctx.name != "1_inpaint" and feet.is_dir():
         from coin_cl.scene.masks import read_mask
@@ -359,6 +381,18 @@ def _scene_views(ctx: StageContext):
             p = feet / (Path(scene.cameras[i].name).stem + ".png")
             masks[i] = read_mask(p, masks[i].shape)
     return scene, masks, list(scene.train_idx)
+
+
+def _stage_refine(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.refine_masks import refine_masks
+
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    cfg: CoInConfig = ctx.shared["cfg"]
+    res = refine_masks(scene, masks, list(scene.train_idx), ctx.out, cfg.refine, ctx.settings["iters"],
+                       cfg.seed, cfg.device)  # fmt: skip
+    ctx.note(f"refined masks: {res['refined_px']} of {res['input_px']} mask px left to inpaint "
+             f"({res['refined_ratio']:.0%}); per view in 0_refine/areas.json")  # fmt: skip
+    return res
 
 
 def _sd2(cfg: CoInConfig):

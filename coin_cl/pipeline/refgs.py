@@ -96,22 +96,32 @@ def _stem(name: str, i: int) -> str:
     return Path(name).stem if name else f"view_{i:03d}"
 
 
-def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
-                  device: Any, out: Path) -> np.ndarray:  # fmt: skip
-    """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
-    (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
+def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
+                 device: Any, out: Path) -> Trainer:  # fmt: skip
+    """A short GS (`kind` 'scaffold' or '3dgs', `iters` steps, default schedules compressed to
+    them) fitted to the captured (unmasked) training images, resumable in `out`; the trained
+    `Trainer` (its `model`, `train_views`)."""
     from coin_cl.gs.data import views_from_scene
 
     views = views_from_scene(scene, train_idx)
     pts, cols = init_points(scene, views)
-    model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed,
-                        scaled_model_config("scaffold", iters))  # fmt: skip
+    model = build_model(kind, pts, cols, scene_extent([v.camera for v in views]), seed,
+                        scaled_model_config(kind, iters))  # fmt: skip
     model.device = device
-    cfg = TrainConfig(iters=iters, backend=backend, seed=seed, progress=False, ckpt_every=0, export_ply=False)
-    tr = Trainer(model, views, [], cfg, out, strategy=scaled_strategy("scaffold", iters))
+    cfg = TrainConfig(model=kind, iters=iters, backend=backend, seed=seed, progress=False, ckpt_every=0,
+                      export_ply=False)  # fmt: skip
+    tr = Trainer(model, views, [], cfg, out, strategy=scaled_strategy(kind, iters))
     if tr.ckpt_path is not None and tr.ckpt_path.is_file():
         tr.load_checkpoint()
     tr.train()
+    return tr
+
+
+def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+                  device: Any, out: Path) -> np.ndarray:  # fmt: skip
+    """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
+    (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
+    tr = fit_captured(scene, train_idx, "scaffold", iters, seed, backend, device, out)
     cam = Camera.from_any(scene.cameras[k])
     with torch.no_grad():
         r = tr.model.render(cam, tr.step, backend=backend, return_depth=True)
