@@ -12,8 +12,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", type=Path, help="a folder load_scene reads (SPIn-NeRF, COLMAP, coin-cl)")
     p.add_argument("--out", type=Path, required=True, help="run folder (a rerun resumes)")
     p.add_argument("--mask", choices=("seg", "bbox", "scribble"), default="seg")
+    p.add_argument("--masks", choices=("input", "refined"), default="input",
+                   help="refined: 3D-first (wide/360 captures, removal): inpaint only the mask pixels no "
+                        "other view sees (stage 0_refine)")  # fmt: skip
     p.add_argument("--ref", default=None, help="reference view, name or index (default: chosen by rule)")
-    p.add_argument("--prompt", default="", help="text for insertion (needs --sd-path)")
+    p.add_argument("--prompt", default="", help="text for insertion (needs --sd-path or COIN_SD2_PATH)")
+    p.add_argument("--edited-ref", type=Path, default=None,
+                   help="insertion without weights: the reference view edited in a 2D tool (the object "
+                        "painted in; the masks cover where it goes in every view); its view is --ref or "
+                        "the one it matches")  # fmt: skip
     p.add_argument("--budget", type=float, default=30.0, help="training minutes to aim at")
     p.add_argument("--resolution", type=float, default=1.0, help="image scale (0.5 = half)")
     p.add_argument("--skip-stage", action="append", default=[], choices=("refgs", "clg", "ted"),
@@ -41,10 +48,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
+        masks=args.masks,
     ).with_iters(args.iters)  # fmt: skip
     ref = int(args.ref) if args.ref is not None and args.ref.isdigit() else args.ref
     res = inpaint(args.scene, args.out, masks=args.mask, reference=ref, prompt=args.prompt or None,
-                  budget=args.budget, config=cfg, force=tuple(args.force))  # fmt: skip
+                  budget=args.budget, config=cfg, force=tuple(args.force),
+                  edited_ref=args.edited_ref)  # fmt: skip
     for name, rec in res.stages.items():
         print(f"  {name}: {rec['status']}" + (f" ({rec['seconds']:.0f} s)" if "seconds" in rec else ""))
     if res.metrics:

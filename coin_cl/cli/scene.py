@@ -16,6 +16,9 @@ def add_commands(subparsers) -> None:
     p.add_argument("--views", type=int, default=40, help="number of views (a quarter are test views)")
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=192)
+    p.add_argument("--task", choices=("removal", "insertion"), default="removal",
+                   help="removal: capture with the object, target without; insertion: capture without, "
+                        "target with a red box on the table, masks = its footprint")  # fmt: skip
     p.set_defaults(func=cmd_make_scene)
 
     e = subparsers.add_parser("eval", help="PSNR/SSIM (+ masked, LPIPS when weights exist) of test views")
@@ -35,8 +38,9 @@ def cmd_make_scene(args: argparse.Namespace) -> int:
         n_views=args.views,
         width=args.width,
         height=args.height,
+        task=args.task,
     )
-    print(f"wrote synthetic scene ({args.views} views, coverage {args.coverage} deg) to {out}")
+    print(f"wrote synthetic {args.task} scene ({args.views} views, coverage {args.coverage} deg) to {out}")
     return 0
 
 

@@ -90,6 +90,11 @@ class CLGConfig:
         sampler's scale many points share a pixel anyway.
     feather_px: inward feather of the paste (outside the mask is untouched either way).
     seed: view n samples with seed + n. progress: tqdm bars over views and steps.
+    sample: False = no diffusion sampler: every hole pixel takes the energy's own target, the
+        reference's colour warped through P_k where supported (S) and R_n elsewhere, i.e. the
+        minimiser of E(X) with the RGB term alone (`warp_fill`). The pipeline uses it for an
+        edited reference (`coin_cl.pipeline.insert`), where no model can draw the inserted object
+        and a sampler would paint the hole with the scene's own textures.
     """
 
     steps: int | None = None
@@ -114,6 +119,7 @@ class CLGConfig:
     feather_px: int = 2
     seed: int = 0
     progress: bool = True
+    sample: bool = True
 
     def num_steps(self, denoiser: Denoiser) -> int:
         if self.steps is not None:
@@ -460,6 +466,34 @@ def consistency_residual(
     return float(d[sup].mean()), n
 
 
+def warp_fill(
+    image_n: np.ndarray,
+    render_n: np.ndarray,
+    image_k: np.ndarray,
+    cam_n: Any,
+    cam_k: Any,
+    points: np.ndarray,
+    mask_n: np.ndarray,
+    depth_k: np.ndarray | None = None,
+    device: Any = None,
+) -> tuple[np.ndarray, int]:
+    """CLG without a sampler (`CLGConfig.sample` False) for one view: inside mask_n (H, W) bool, the
+    reference image_k (Hk, Wk, 3) warped into view n through P_k `points` [M, 3] where supported,
+    render_n elsewhere; outside the mask image_n. Returns ((H, W, 3) float32, supported pixels)."""
+    from coin_cl.engine import warp_features
+
+    pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+    with torch.no_grad():
+        wk, wt, _ = warp_features(
+            pts, cam_k.K, cam_k.viewmat, torch.from_numpy(np.ascontiguousarray(image_k, dtype=np.float32)),
+            cam_n.K, cam_n.viewmat, cam_n.width, cam_n.height, src_depth=_depth_t(depth_k), device=device,
+        )  # fmt: skip
+    m = np.asarray(mask_n, bool)
+    sup = m & (wt.numpy() > 0)
+    fill = np.where(sup[..., None], wk.numpy(), render_n)
+    return np.where(m[..., None], fill, image_n).astype(np.float32), int(sup.sum())
+
+
 def _stem(cam: Any, i: int) -> str:
     return Path(cam.name).stem if getattr(cam, "name", "") else f"view_{i:03d}"
 
@@ -483,8 +517,8 @@ def run_clg(
     depths: Sequence[np.ndarray | None] | None,
     masks: Sequence[np.ndarray],
     points: np.ndarray,
-    denoiser: Denoiser,
-    features: Callable,
+    denoiser: Denoiser | None,
+    features: Callable | None,
     out_dir: str | Path,
     cfg: CLGConfig | None = None,
     device: Any = None,
@@ -502,7 +536,8 @@ def run_clg(
         depths: per view, rendered camera z [H, W] (occlusion tests; non-finite = empty) or None.
         masks: per view, [H, W] bool (True = inpaint).
         points: P_k [M, 3] world points (see `reference_points`); NaN rows are dropped by the warp.
-        denoiser: a `coin_cl.diffusion` Denoiser with make_condition (scene prior or SD2).
+        denoiser: a `coin_cl.diffusion` Denoiser with make_condition (scene prior or SD2); None with
+            `cfg.sample` False (as `features`).
         features: f_hr, a differentiable (1, 3, h, w) [0, 1] -> (1, C, h, w) extractor.
         out_dir: writes images/<stem>.png and views/<stem>.json; existing PNGs are kept (resume).
         cfg: `CLGConfig`. device: OpenCL device for the warp (Runtime, name, or None).
@@ -545,8 +580,12 @@ def run_clg(
     out_dir = Path(out_dir)
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
     (out_dir / "views").mkdir(parents=True, exist_ok=True)
-    work = _work_size(denoiser)
-    n_steps = cfg.num_steps(denoiser)
+    if cfg.sample and (denoiser is None or features is None):
+        raise ValueError(
+            "CLG with the sampler needs a denoiser and a feature extractor (or CLGConfig.sample=False)"
+        )
+    work = _work_size(denoiser) if cfg.sample else 0
+    n_steps = cfg.num_steps(denoiser) if cfg.sample else 0
     records: dict[str, dict[str, Any]] = {}
     bar = tqdm(list(views), desc="CLG views", unit="view", disable=not cfg.progress)
     for n in bar:
@@ -578,6 +617,20 @@ def run_clg(
         ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
         depth_n = None if depths is None or depths[n] is None else _check_image(
             depths[n], cam.height, cam.width, f"depth of view {n}", None)  # fmt: skip
+        if not cfg.sample:
+            out, n_sup = warp_fill(inp_n, ren_n, inp_k, cam, cam_k, points, mask, depth_k, device)
+            r_before, _ = consistency_residual(inp_n, inp_k, cam, cam_k, points, mask, depth_k, device)
+            written = to_uint8(out).astype(np.float32) / 255
+            r_after, _ = consistency_residual(written, inp_k, cam, cam_k, points, mask, depth_k, device)
+            rec = {"view": n, "status": "warped", "residual_before": r_before, "residual_after": r_after,
+                   "support_px": n_sup, "hole_px": int(mask.sum()),
+                   "seconds": time.perf_counter() - t0}  # fmt: skip
+            atomic_write(js, lambda p, r=rec: p.write_text(json.dumps(r, indent=1)))
+            write_png(png, out)
+            records[stem] = rec
+            log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
+                     "residual %.4f -> %.4f", n, stem, n_sup, int(mask.sum()), r_before, r_after)  # fmt: skip
+            continue
         prob = _setup_view(cam_k, cam, inp_k, inp_n, ren_n, depth_k, depth_n, mask, points, features,
                            work, cfg, device)  # fmt: skip
         energy = _make_energy(prob, features, cfg, device)
@@ -633,12 +686,12 @@ def run_clg(
     status = [r["status"] for r in records.values()]
     return {
         "views": records,
-        "n_guided": sum(s in ("guided", "unguided") for s in status),
+        "n_guided": sum(s in ("guided", "unguided", "warped") for s in status),
         "n_skipped": status.count("skipped"),
         "n_resumed": status.count("resumed"),
-        "steps": n_steps,
-        "model": getattr(denoiser, "name", type(denoiser).__name__),
-        "features": getattr(features, "name", type(features).__name__),
+        "steps": n_steps if cfg.sample else 0,
+        "model": getattr(denoiser, "name", type(denoiser).__name__) if cfg.sample else "none (warp only)",
+        "features": getattr(features, "name", type(features).__name__) if cfg.sample else None,
         "n_points": int(len(points)),
         "reference": k,
     }
@@ -648,9 +701,10 @@ def run_clg(
 # the pipeline stage
 
 
-def stage_clg(ctx: Any) -> dict[str, Any]:
+def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None) -> dict[str, Any]:
     """Stage 3_clg of `coin_cl.pipeline.coin`: reads 1_inpaint (I^_n, the scene prior's cache) and
-    2_refgs (renders/, depths/, alphas/, reference_points.ply); writes images/<stem>.png per guided view."""
+    2_refgs (renders/, depths/, alphas/, reference_points.ply); writes images/<stem>.png per guided view.
+    scene, masks: the views as the pipeline's stages see them (default `ctx.shared`'s)."""
     from dataclasses import replace
 
     from coin_cl.diffusion.features import make_feature_extractor
@@ -659,7 +713,8 @@ def stage_clg(ctx: Any) -> dict[str, Any]:
     from coin_cl.pipeline.inpaint2d import effective_config, read_inpaints, stage_prior
     from coin_cl.scene.io import read_image
 
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    scene = ctx.shared["scene"] if scene is None else scene
+    masks = ctx.shared["masks"] if masks is None else masks
     train = list(scene.train_idx)
     k = int(ctx.shared["ref"])
     ccfg = ctx.shared["cfg"]
@@ -689,7 +744,13 @@ def stage_clg(ctx: Any) -> dict[str, Any]:
     else:
         points = reference_points(scene.cameras[k], depths[k], masks[k])
         ctx.note(f"P_k: {len(points)} points unprojected from the reference render's depth")
-    if ccfg.sd_path:
+    if (ctx.inputs["1_inpaint"] / "edit" / "points.ply").is_file():
+        cfg = replace(cfg, sample=False)
+        ctx.note("edited reference: no sampler (no model here can draw the inserted object); each hole pixel "
+                 "takes the reference warped through P_k, or R_n where P_k does not reach")  # fmt: skip
+    if not cfg.sample:
+        denoiser = None
+    elif ccfg.sd_path:
         from coin_cl.diffusion.sd2 import SD2Denoiser
 
         denoiser = SD2Denoiser.from_pretrained(ccfg.sd_path)
@@ -703,9 +764,12 @@ def stage_clg(ctx: Any) -> dict[str, Any]:
         if not (folder / f"scene_prior_{key}.pt").is_file():
             folder = ctx.out  # never write into an earlier stage's folder (its manifest hashes it)
         denoiser = stage_prior(scene, masks, train, icfg, folder)
-    ctx.note(f"CLG model: {denoiser.name}")
-    extractor, fname = make_feature_extractor(ccfg.dino_path)
-    ctx.note(f"CLG features: {fname}")
+    if denoiser is not None:
+        ctx.note(f"CLG model: {denoiser.name}")
+        extractor, fname = make_feature_extractor(ccfg.dino_path)
+        ctx.note(f"CLG features: {fname}")
+    else:
+        extractor = None
     res = run_clg(k, train, scene.cameras, inpaints, renders, depths, masks, points, denoiser, extractor,
                   ctx.out, cfg, device=ccfg.device)  # fmt: skip
     for stem, r in res["views"].items():

@@ -33,6 +33,8 @@ from typing import Any
 import numpy as np
 
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config, read_inpaints, run_inpaint2d
+from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import Stage, StageContext, check_output_folder, run_stages
 from coin_cl.pipeline.ted import TEDConfig
 
@@ -54,7 +56,7 @@ BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversa
 # noise) and 2 minutes (133 steps) gives textured fills. An explicit `prior_seconds` is obeyed
 # (with a warning below the floor), for smoke tests.
 PRIOR_MIN_SECONDS = 120.0
-STAGES = ("0_scene", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
+STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 
 
 @dataclass
@@ -65,7 +67,12 @@ class CoInConfig:
     resolution: image scale (0.5 = half). sd_path / dino_path: local weights (else the embedded
     defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
     iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (override
-    the budget rule; see PRIOR_MIN_SECONDS). seed, device: as everywhere."""
+    the budget rule; see PRIOR_MIN_SECONDS). seed, device: as everywhere.
+    edited_ref: path of the reference view edited by the user (insertion without weights,
+    `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
+    masks: "input" (inpaint the whole masks) or "refined" (3D-first, supplement C.2: stage 0_refine
+    narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for removal
+    on wide captures). refine: its settings."""
 
     mask: str = "seg"
     mask_dilate: int = 0
@@ -86,6 +93,10 @@ class CoInConfig:
     ted: TEDConfig = field(default_factory=TEDConfig)
     refgs: Any = None  # coin_cl.gs.refgs.RefGSConfig (default built on use)
     clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
+    edited_ref: str | None = None
+    insert: InsertConfig = field(default_factory=InsertConfig)
+    masks: str = "input"
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
     def with_iters(self, n: int | None) -> CoInConfig:
         """This config with every GS training stage set to `n` steps (None: unchanged)."""
@@ -170,8 +181,10 @@ def inpaint(
     config: CoInConfig | None = None,
     device: Any = None,
     force: tuple[str, ...] = (),
+    edited_ref: str | Path | np.ndarray | None = None,
 ) -> CoInResult:
-    """Remove (or, with a prompt and SD2 weights, insert) the masked object in a captured scene.
+    """Remove the masked object in a captured scene, or insert one: from a text prompt (SD2
+    weights) or from one view edited by the user (`edited_ref`, no weights needed).
 
     Args:
         scene: a `coin_cl.scene.Scene` or a folder `load_scene` reads.
@@ -181,6 +194,10 @@ def inpaint(
         prompt: text for insertion (needs Stable Diffusion 2 weights: `config.sd_path`).
         budget: minutes of training to aim at (default `config.budget_minutes`).
         config: everything else (`CoInConfig`). device: the OpenCL device (Runtime or name).
+        edited_ref: the reference view edited in a 2D tool (a path, or (H, W, 3) uint8 / float in
+            [0, 1]) at the captured or the run's resolution; the masks must cover where the object
+            is to appear in every view. Its view is `reference` or, without one, the training view
+            it matches outside the mask (`coin_cl.pipeline.insert`).
     Returns:
         `CoInResult` (paths, metrics, final model).
     """
@@ -206,6 +223,21 @@ def inpaint(
             if tuple(np.shape(m)) != tuple(scene.masks[i].shape):
                 raise ValueError(f"mask {i} has shape {np.shape(m)}, the view is {scene.masks[i].shape}")
         scene = replace(scene, masks=[np.asarray(m, bool) for m in masks])
+    if edited_ref is not None and not isinstance(edited_ref, np.ndarray):
+        cfg = replace(cfg, edited_ref=str(edited_ref))
+    if cfg.sd_path is None:
+        from coin_cl.diffusion.sd2 import resolve_sd2_path
+
+        env = resolve_sd2_path(None)  # COIN_SD2_PATH
+        cfg = replace(cfg, sd_path=None if env is None else str(env))
+    if cfg.masks not in ("input", "refined"):
+        raise ValueError(f"masks must be 'input' or 'refined', got {cfg.masks!r}")
+    if cfg.masks == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+        raise ValueError(
+            "refined masks are for removal: they cannot be combined with a prompt or --edited-ref"
+        )
+    if cfg.prompt and (edited_ref is not None or cfg.edited_ref):
+        raise ValueError("give either a text prompt or an edited reference view (--edited-ref), not both")
     if cfg.prompt and not cfg.sd_path:
         raise ValueError(
             "a text prompt needs Stable Diffusion 2 inpainting weights: pass sd_path / --sd-path or set "
@@ -218,17 +250,35 @@ def inpaint(
             f"scene {scene.path} has no training view with a mask: nothing to inpaint "
             "(give masks, e.g. a label/ or masks/ folder)"
         )
+    edited = None
+    if edited_ref is not None or cfg.edited_ref:
+        from coin_cl.pipeline.insert import load_edited
+
+        src = edited_ref if edited_ref is not None else cfg.edited_ref
+        cam = scene.cameras[scene.train_idx[0]]
+        full = (round(cam.width / cfg.resolution), round(cam.height / cfg.resolution))
+        edited = load_edited(src, (cam.width, cam.height), full if cfg.resolution != 1.0 else None)
     out = Path(out)
     check_output_folder(out, scene_id(scene))
-    return _run(scene, out, cfg, force)
+    return _run(scene, out, cfg, force, edited)
 
 
-def _run(scene, out: Path, cfg: CoInConfig, force: tuple[str, ...]) -> CoInResult:
+def _run(
+    scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
+) -> CoInResult:
     from coin_cl.gs.refgs import RefGSConfig, choose_reference
 
     masks = _train_masks(scene, cfg)
     train = list(scene.train_idx)
-    ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
+    if edited is not None:
+        from coin_cl.pipeline.insert import check_edit, find_reference
+
+        ref = find_reference(edited, scene, masks, train, cfg.ref, cfg.insert.ref_match_tol)
+        check_edit(
+            edited, scene.images[ref], masks[ref], scene.cameras[ref].name, cfg.insert
+        )  # before any stage
+    else:
+        ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
     iters = cfg.iterations(cam.width, cam.height)
     if iters["prior_seconds"] < PRIOR_MIN_SECONDS and not cfg.sd_path:
@@ -238,25 +288,33 @@ def _run(scene, out: Path, cfg: CoInConfig, force: tuple[str, ...]) -> CoInResul
             iters["prior_seconds"], PRIOR_MIN_SECONDS,
         )  # fmt: skip
     refgs_cfg = cfg.refgs or RefGSConfig()
-    shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg}
+    shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg,
+              "edited": edited}  # fmt: skip
     log.info(
         "CoIn: %d training views (%d with a mask), reference view %d (%s), %s masks, iterations %s",
         len(train), sum(masks[i].any() for i in train), ref, scene.cameras[ref].name, cfg.mask, iters,
     )  # fmt: skip
     base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask, "dilate": cfg.mask_dilate}
+    # The edited image's content (not its path) decides whether stage 1 and what follows rerun.
+    edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
+                                        "ref": ref, "cfg": _jsonable(cfg.insert)}  # fmt: skip
+    refined = cfg.masks == "refined"
+    r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     stages = [
         Stage("0_scene", _stage_scene, settings=base),
-        Stage("1_inpaint", _stage_inpaint, ["0_scene"],
+        *([Stage("0_refine", _stage_refine, ["0_scene"],
+                 {"cfg": _jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
+        Stage("1_inpaint", _stage_inpaint, ["0_scene", *r],
               {"cfg": _jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"],
-               "sd": cfg.sd_path, "prompt": cfg.prompt}),
-        Stage("2_refgs", _stage_refgs, ["0_scene", "1_inpaint"],
+               "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
+        Stage("2_refgs", _stage_refgs, ["0_scene", *r, "1_inpaint"],
               {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"],
                "plain": "refgs" in cfg.skip}),
-        Stage("3_clg", _stage_clg, ["0_scene", "1_inpaint", "2_refgs"],
+        Stage("3_clg", _stage_clg, ["0_scene", *r, "1_inpaint", "2_refgs"],
               {"cfg": _jsonable(cfg.clg), "ref": ref, "dino": cfg.dino_path},
               skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
         Stage("4_ted", _stage_ted,
-              ["0_scene", "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
+              ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
               {"cfg": _jsonable(cfg.ted), "iters": [iters["ted_finetune"], iters["ted_adversarial"]]},
               skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
@@ -304,8 +362,37 @@ def _stage_scene(ctx: StageContext) -> dict:
 
 
 def _scene_views(ctx: StageContext):
+    """(scene, masks, training views) as the stage sees them: the input masks; with refined masks
+    (stage 0_refine) M^rmv_n and the captures with R^rmv_n in the rest of the input mask; after an
+    insertion's stage 1 the object's footprints F_n (`coin_cl.pipeline.insert`), which are the only
+    pixels that change (the rest of the input mask is captured background)."""
     scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    if "0_refine" in ctx.inputs:
+        from coin_cl.pipeline.refine_masks import read_refined
+
+        images, masks = read_refined(scene, ctx.inputs["0_refine"], list(scene.train_idx), masks)
+        scene = replace(scene, images=images)
+    feet = ctx.inputs.get("1_inpaint", Path("-")) / "footprints"
+    if ctx.name != "1_inpaint" and feet.is_dir():
+        from coin_cl.scene.masks import read_mask
+
+        masks = list(masks)
+        for i in scene.train_idx:
+            p = feet / (Path(scene.cameras[i].name).stem + ".png")
+            masks[i] = read_mask(p, masks[i].shape)
     return scene, masks, list(scene.train_idx)
+
+
+def _stage_refine(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.refine_masks import refine_masks
+
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    cfg: CoInConfig = ctx.shared["cfg"]
+    res = refine_masks(scene, masks, list(scene.train_idx), ctx.out, cfg.refine, ctx.settings["iters"],
+                       cfg.seed, cfg.device)  # fmt: skip
+    ctx.note(f"refined masks: {res['refined_px']} of {res['input_px']} mask px left to inpaint "
+             f"({res['refined_ratio']:.0%}); per view in 0_refine/areas.json")  # fmt: skip
+    return res
 
 
 def _sd2(cfg: CoInConfig):
@@ -319,6 +406,13 @@ def _sd2(cfg: CoInConfig):
 def _stage_inpaint(ctx: StageContext) -> dict:
     scene, masks, train = _scene_views(ctx)
     cfg: CoInConfig = ctx.shared["cfg"]
+    if ctx.shared.get("edited") is not None:
+        from coin_cl.pipeline.insert import run_insert
+
+        res = run_insert(scene, masks, train, ctx.shared["ref"], ctx.shared["edited"], ctx.out, cfg.insert,
+                         cfg.device)  # fmt: skip
+        ctx.note(f"initial images: {res['source']}; {res['views_without_object']} views without the object")
+        return res
     cam = scene.cameras[train[0]]
     icfg = effective_config(
         cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
@@ -354,14 +448,24 @@ def _stage_refgs(ctx: StageContext) -> dict:
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
     scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
     full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
+    from coin_cl.pipeline.insert import read_lift
+
+    lift = read_lift(ctx.inputs["1_inpaint"])
+    if lift is not None:
+        ctx.note(
+            f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
+        )
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
-                     device=cfg.device, seed=cfg.seed)  # fmt: skip
+                     device=cfg.device, seed=cfg.seed,
+                     seed_points=None if lift is None else (lift.points, lift.colors),
+                     known_depth=None if lift is None else lift.depth)  # fmt: skip
 
 
 def _stage_clg(ctx: StageContext) -> dict:
     from coin_cl.pipeline.clg import stage_clg
 
-    return stage_clg(ctx)
+    scene, masks, _ = _scene_views(ctx)
+    return stage_clg(ctx, scene, masks)
 
 
 def _stage_ted(ctx: StageContext) -> dict:

@@ -96,22 +96,32 @@ def _stem(name: str, i: int) -> str:
     return Path(name).stem if name else f"view_{i:03d}"
 
 
-def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
-                  device: Any, out: Path) -> np.ndarray:  # fmt: skip
-    """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
-    (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
+def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
+                 device: Any, out: Path) -> Trainer:  # fmt: skip
+    """A short GS (`kind` 'scaffold' or '3dgs', `iters` steps, default schedules compressed to
+    them) fitted to the captured (unmasked) training images, resumable in `out`; the trained
+    `Trainer` (its `model`, `train_views`)."""
     from coin_cl.gs.data import views_from_scene
 
     views = views_from_scene(scene, train_idx)
     pts, cols = init_points(scene, views)
-    model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed,
-                        scaled_model_config("scaffold", iters))  # fmt: skip
+    model = build_model(kind, pts, cols, scene_extent([v.camera for v in views]), seed,
+                        scaled_model_config(kind, iters))  # fmt: skip
     model.device = device
-    cfg = TrainConfig(iters=iters, backend=backend, seed=seed, progress=False, ckpt_every=0, export_ply=False)
-    tr = Trainer(model, views, [], cfg, out, strategy=scaled_strategy("scaffold", iters))
+    cfg = TrainConfig(model=kind, iters=iters, backend=backend, seed=seed, progress=False, ckpt_every=0,
+                      export_ply=False)  # fmt: skip
+    tr = Trainer(model, views, [], cfg, out, strategy=scaled_strategy(kind, iters))
     if tr.ckpt_path is not None and tr.ckpt_path.is_file():
         tr.load_checkpoint()
     tr.train()
+    return tr
+
+
+def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+                  device: Any, out: Path) -> np.ndarray:  # fmt: skip
+    """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
+    (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
+    tr = fit_captured(scene, train_idx, "scaffold", iters, seed, backend, device, out)
     cam = Camera.from_any(scene.cameras[k])
     with torch.no_grad():
         r = tr.model.render(cam, tr.step, backend=backend, return_depth=True)
@@ -122,11 +132,17 @@ def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed
 
 def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
                  device: Any, gs_depth: np.ndarray | None, out: Path,
-                 aux_iters: int | None = None) -> DepthPrior:  # fmt: skip
-    """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it."""
+                 aux_iters: int | None = None,
+                 known_depth: np.ndarray | None = None) -> DepthPrior:  # fmt: skip
+    """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it.
+    known_depth: see `run_refgs`; its finite pixels replace the prior's."""
     npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
     if npy.is_file() and meta.is_file():
         return DepthPrior(np.load(npy), json.loads(meta.read_text())["name"])
+    if known_depth is not None and (getattr(scene, "priors", None) or {}).get("depth"):
+        # The dataset's inpainted disparity shows the scene without the object: wrong on an insertion.
+        log.info("known depth given: the dataset's (removal) depth prior is not used")
+        scene = replace(scene, priors={n: v for n, v in scene.priors.items() if n != "depth"})
     if os.environ.get("COIN_DEPTH_WEIGHTS"):
         # No Depth Anything port exists in this package yet; say so rather than silently skip.
         log.warning("COIN_DEPTH_WEIGHTS is set but no monocular estimator is implemented; next prior")
@@ -141,6 +157,10 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed:
     prior = reference_depth_prior(scene, k, gs_depth=gs_depth, mask=np.asarray(scene.masks[k], bool))
     if not np.isfinite(prior.prior).all():
         prior = DepthPrior(inpaint_depth(prior.prior, ~np.isfinite(prior.prior)), prior.name)
+    if known_depth is not None:
+        known = np.isfinite(known_depth)
+        name = f"{prior.name}; {int(known.sum())} px from the inserted object's hull depth"
+        prior = DepthPrior(np.where(known, known_depth, prior.prior).astype(np.float32), name)
     np.save(npy, prior.prior)
     meta.write_text(json.dumps({"name": prior.name, "view": k, "is_disparity": prior.is_disparity}))
     return prior
@@ -172,6 +192,8 @@ def run_refgs(
     gs_depth: np.ndarray | None = None,
     ckpt_every: int = 500,
     callback: Callable[[Trainer, int], None] | None = None,
+    seed_points: tuple[np.ndarray, np.ndarray] | None = None,
+    known_depth: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
 
@@ -185,6 +207,12 @@ def run_refgs(
         gs_depth: [H, W] depth of a GS trained on the unmasked scene for the reference view (used
             when the scene ships no depth prior; otherwise a short one is trained here).
         ckpt_every: steps between checkpoints; callback: the trainer's per-step callback.
+        seed_points: (points [M, 3], colours [M, 3]) added to the initial points after the pruning
+            (an inserted object's lift, `coin_cl.pipeline.insert`: it lies inside the masks, where
+            pruning would remove it).
+        known_depth: [H, W] camera z of the reference known from elsewhere (NaN where not; the
+            inserted object's hull depth): replaces the depth prior there, and the dataset's
+            inpainted disparity (made for removal) is then not used.
     Returns:
         JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
     """
@@ -222,13 +250,28 @@ def run_refgs(
         )
         pts, cols, n_removed = pr.points, (None if cols is None else cols[pr.keep]), pr.n_removed
         log.info("pruned %d of %d SfM points inside the masks", n_removed, n_removed + len(pts))
+    if seed_points is not None and len(seed_points[0]):
+        sp, sc = (np.asarray(a, np.float32) for a in seed_points)
+        pts = np.concatenate([pts, sp])
+        cols = None if cols is None else np.concatenate([cols, sc])
+        log.info("%d seed points added after pruning", len(sp))
     if len(pts) < 4:
         raise ValueError(f"only {len(pts)} SfM points left after pruning; lower prune_min_fraction")
 
     prior = None
     if cfg.depth_loss:
         prior = _depth_prior(
-            scene, train_idx, k, n_iters, seed, backend, device, gs_depth, out, cfg.depth_prior_iters
+            scene,
+            train_idx,
+            k,
+            n_iters,
+            seed,
+            backend,
+            device,
+            gs_depth,
+            out,
+            cfg.depth_prior_iters,
+            known_depth,
         )
         log.info("reference depth prior: %s", prior.name)
 

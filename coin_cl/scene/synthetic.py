@@ -7,6 +7,15 @@ exactly the object-present views with the object gone). World axes: z up, metres
 `make_synthetic` returns everything in memory; `write_synthetic` writes it in the SPIn-NeRF layout
 (images_4/, label/, test_label/, sparse/0 COLMAP model, poses_bounds.npy, views.txt) plus ground truth
 (`depth/<stem>.npy` camera z, `images_4/absent/` for training views, `images_4/present/` for test views).
+
+Two tasks share the room and the cameras:
+- "removal" (default): the captured views show the room with its object (the astronaut box); the
+  target is the room without it.
+- "insertion": the captured views show the room *without* that object, and the target is the room
+  with another object (`insertion_object`, a red box) standing on the table. The masks are that
+  object's footprint in every view (exact ground truth for where an insertion must appear), the
+  test views hold the room *with* the object, and `paste_object` makes the "edited reference" a
+  user would draw: the object's true appearance pasted into one captured view.
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ from .types import Camera
 log = logging.getLogger(__name__)
 
 COVERAGES = (90, 180, 360)
+TASKS = ("removal", "insertion")
 LIGHT = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])
 AMBIENT = 0.5
 
@@ -198,6 +208,44 @@ def default_room(seed: int = 0) -> list[Box]:
     return [room, table, crate, obj]
 
 
+def insertion_object(seed: int = 0) -> Box:
+    """The object the insertion task adds: a red-tinted textured box standing on the table top
+    (z = 0.5), near the table's centre, its position and yaw varying with the seed. Saturated red
+    (textured: the moon photo on the sides, a checkerboard on top) is rare in the room, so where it
+    lands is easy to score."""
+    rng = np.random.default_rng(seed + 7)
+    off = rng.uniform(-0.06, 0.06, size=2)
+    # tints above 1 brighten the mid-grey moon photo into a saturated red (colours are clipped to 1)
+    red = Material("moon", (1.8, 0.15, 0.1), density=None)
+    top = Material("checkerboard", (1.0, 0.4, 0.1), density=None)
+    return Box([off[0], off[1], 0.5 + 0.17], [0.13, 0.11, 0.17], float(rng.uniform(0.2, 0.7)),
+               [red, red, red, red, top, top], is_object=True)  # fmt: skip
+
+
+def room_for(task: str, seed: int = 0) -> list[Box]:
+    """The boxes of a task: "removal" = `default_room` (its object is the one to remove);
+    "insertion" = the room without that object plus `insertion_object` (the one to insert)."""
+    if task not in TASKS:
+        raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+    boxes = default_room(seed)
+    if task == "insertion":
+        boxes = [b for b in boxes if not b.is_object] + [insertion_object(seed)]
+    return boxes
+
+
+def paste_object(image: np.ndarray, object_image: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+    """An edited view as a user would make it in a 2D tool: `image` (H, W, 3) with the pixels of
+    `footprint` (H, W) bool taken from `object_image` (H, W, 3), the same view rendered with the
+    object. On the synthetic insertion scene this is the object's exact appearance. (H, W, 3)."""
+    image, object_image = np.asarray(image), np.asarray(object_image)
+    if image.shape != object_image.shape or image.shape[:2] != np.shape(footprint):
+        raise ValueError(
+            f"paste_object: image {image.shape}, object image {object_image.shape} and footprint "
+            f"{np.shape(footprint)} must share (H, W)"
+        )
+    return np.where(np.asarray(footprint, bool)[..., None], object_image, image)
+
+
 def arc_cameras(
     n_views: int,
     coverage: int,
@@ -338,15 +386,20 @@ def make_synthetic(
     seed: int = 0,
     n_points: int = 20000,
     supersample: int = 2,
+    task: str = "removal",
 ) -> SyntheticScene:
     """Generate the room scene. Every 4th camera along the arc (offset 2) is a test view; views are
-    ordered test first, as in SPIn-NeRF, so `cameras[:n_test]` are the test views."""
+    ordered test first, as in SPIn-NeRF, so `cameras[:n_test]` are the test views.
+
+    task: "removal" or "insertion" (module doc). The cameras aim at the removal object's centre
+    in both, so the two tasks share one rig for a seed. In either task `present` is the room with
+    the task's object and `masks` its footprint; the "SfM" points come from what is captured."""
     if n_views < 4:
         raise ValueError(f"n_views must be at least 4 (1 test view per 4), got {n_views}")
     rng = np.random.default_rng(seed)
-    boxes = default_room(seed)
-    obj = next(b for b in boxes if b.is_object)
-    cams = arc_cameras(n_views, coverage, width, height, obj.center, seed)
+    boxes = room_for(task, seed)
+    aim = next(b for b in default_room(seed) if b.is_object).center
+    cams = arc_cameras(n_views, coverage, width, height, aim, seed)
     test_pos = [i for i in range(n_views) if i % 4 == 2]
     order = test_pos + [i for i in range(n_views) if i % 4 != 2]
     cams = [cams[i] for i in order]
@@ -363,8 +416,9 @@ def make_synthetic(
         out["mask"].append(r["mask"])
         out["dp"].append(r["depth_present"])
         out["da"].append(r["depth_absent"])
-        # "SfM" points: what each view sees (test views see the room without the object).
-        key = "absent" if is_test[j] else "present"
+        # "SfM" points: what each view sees (removal: test views see the room without the object;
+        # insertion: every captured view is of the room without the object).
+        key = "absent" if is_test[j] or task == "insertion" else "present"
         depth = r[f"depth_{key}"]
         flat = rng.choice(width * height, size=per_view, replace=per_view > width * height)
         yy, xx = np.divmod(flat, width)
@@ -392,30 +446,39 @@ def make_synthetic(
             "seed": seed,
             "n_points": n_points,
             "supersample": supersample,
+            "task": task,
         },
     )
 
 
 def write_synthetic(out_dir: str | Path, scene: SyntheticScene | None = None, **kwargs) -> Path:
     """Write a synthetic scene (made with `make_synthetic(**kwargs)` unless given) in the SPIn-NeRF
-    layout that `load_scene` reads. Returns the folder."""
+    layout that `load_scene` reads. Returns the folder.
+
+    Training views hold what is captured (removal: the room with the object; insertion: without),
+    test views the target (removal: without; insertion: with), `depth/` the camera z of whichever
+    image the view holds, and `images_4/absent/` / `images_4/present/` the other one."""
     s = scene if scene is not None else make_synthetic(**kwargs)
+    insertion = s.params.get("task") == "insertion"
     root = Path(out_dir)
     imgdir = root / "images_4"
     n_test = sum(s.is_test)
     lines = ["# index  name  split  included_here  mask_file"]
     for j, cam in enumerate(s.cameras):
         stem = Path(cam.name).stem
+        shows_object = s.is_test[j] == insertion  # removal: train views; insertion: test views
+        img, other, depth = (
+            (s.present[j], "absent", s.depth_present[j])
+            if shows_object
+            else (s.absent[j], "present", s.depth_absent[j])
+        )
+        write_png(imgdir / cam.name, img)
+        write_png(imgdir / other / cam.name, s.absent[j] if shows_object else s.present[j])
+        write_npy(root / "depth" / f"{stem}.npy", depth)
         if s.is_test[j]:
-            write_png(imgdir / cam.name, s.absent[j])
-            write_png(imgdir / "present" / cam.name, s.present[j])
             mask_rel = f"images_4/test_label/out_{j + 1:05d}.png"
-            write_npy(root / "depth" / f"{stem}.npy", s.depth_absent[j])
         else:
-            write_png(imgdir / cam.name, s.present[j])
-            write_png(imgdir / "absent" / cam.name, s.absent[j])
             mask_rel = f"images_4/label/{cam.name}"
-            write_npy(root / "depth" / f"{stem}.npy", s.depth_present[j])
         write_mask(root / mask_rel, s.masks[j])
         lines.append(f"{j:3d}  {cam.name}  {'test' if s.is_test[j] else 'train'}  yes  {mask_rel}")
     write_text(root / "views.txt", "\n".join(lines) + "\n")
@@ -433,7 +496,9 @@ def write_synthetic(out_dir: str | Path, scene: SyntheticScene | None = None, **
     )
     write_text(root / "sparse" / "0" / "test.txt", "\n".join(c.name for c in s.cameras[:n_test]) + "\n")
     # LLFF poses too, so the poses_bounds.npy path can be checked against the COLMAP one.
-    depths = [s.depth_absent[j] if s.is_test[j] else s.depth_present[j] for j in range(len(s.cameras))]
+    depths = [
+        s.depth_present[j] if s.is_test[j] == insertion else s.depth_absent[j] for j in range(len(s.cameras))
+    ]
     bounds = np.array([[np.percentile(d, 0.5), np.percentile(d, 99.5)] for d in depths])
     hwf = np.array([[cam0.height, cam0.width, K[0, 0]]] * len(s.cameras))
     pb = camtoworld_to_llff(np.stack([c.camtoworld for c in s.cameras]), hwf, bounds)
@@ -447,3 +512,33 @@ def write_synthetic(out_dir: str | Path, scene: SyntheticScene | None = None, **
     write_text(root / "scene_info.json", json.dumps(info, indent=1))
     log.info("synthetic scene (%d views, %d test) written to %s", len(s.cameras), n_test, root)
     return root
+
+
+def truly_unseen(s: SyntheticScene, views: list[int], depth_tol: float = 0.02) -> list[np.ndarray]:
+    """Ground truth for 3D-first refined masks: per view n of `views`, the mask pixels whose surface
+    point in the scene *without* the object (ray-cast depth) no other view of `views` sees outside
+    its own mask (visible there: in the image, in front, and at the depth that view's capture shows,
+    within `depth_tol` relative). These are what a removal must still invent; the rest of the mask
+    is seen elsewhere. (H, W) bool per view, in the order of `views`."""
+    out = []
+    for n in views:
+        cam = s.cameras[n]
+        ys, xs = np.nonzero(s.masks[n])
+        uv = np.stack([xs + 0.5, ys + 0.5], 1)
+        pts = cam.unproject(uv, s.depth_absent[n][ys, xs].astype(np.float64))
+        seen = np.zeros(len(pts), bool)
+        for m in views:
+            if m == n:
+                continue
+            c = s.cameras[m]
+            uvm, z = c.project(pts)
+            ok = c.in_image(uvm) & (z > 0)
+            px = np.zeros((len(pts), 2), np.int64)
+            px[ok] = np.floor(uvm[ok]).astype(np.int64)
+            d = s.depth_present[m][px[:, 1], px[:, 0]]
+            vis = ok & (np.abs(z - d) <= depth_tol * d) & ~s.masks[m][px[:, 1], px[:, 0]]
+            seen |= vis
+        u = np.zeros_like(s.masks[n])
+        u[ys[~seen], xs[~seen]] = True
+        out.append(u)
+    return out
