@@ -65,6 +65,17 @@ def test_changed_setting_reruns_that_stage_and_after(room, first_run, tmp_path):
     assert status["4_ted"] == "ran" and status["eval"] == "ran"
 
 
+def test_ted_with_zero_iterations_passes_the_refgs_scene_through(room, first_run, tmp_path):
+    import shutil
+
+    out = tmp_path / "zero_ted"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=replace(TINY, iters_ted_finetune=0, iters_ted_adversarial=0))
+    assert res.stages["4_ted"]["status"] == "ran" and res.stages["eval"]["status"] == "ran"
+    assert any("passed through" in n for n in res.stages["4_ted"]["notes"])
+    assert (out / "4_ted" / "ckpt.pt").is_file() and np.isfinite(res.metrics["psnr"])
+
+
 def test_ablation_skips_stages_and_says_why(room, tmp_path):
     res = inpaint(room, tmp_path / "abl", config=replace(TINY, skip=("clg", "ted")))
     assert res.stages["3_clg"]["status"].startswith("skipped: asked")

@@ -335,13 +335,17 @@ def _run(
     )
 
 
-def _load_model(folder: Path, ckpt_name: str, model_from_state):
-    import torch
-
+def _latest_ckpt(folder: Path, ckpt_name: str) -> Path:
     cands = sorted(folder.rglob(ckpt_name), key=lambda p: p.stat().st_mtime)
     if not cands:
         raise FileNotFoundError(f"no {ckpt_name} under {folder}")
-    state = torch.load(cands[-1], weights_only=False)
+    return cands[-1]
+
+
+def _load_model(folder: Path, ckpt_name: str, model_from_state):
+    import torch
+
+    state = torch.load(_latest_ckpt(folder, ckpt_name), weights_only=False)
     return model_from_state(state["model"])
 
 
@@ -499,6 +503,14 @@ def _stage_ted(ctx: StageContext) -> dict:
     res, _ = run_ted(
         model, views, [], ctx.out, tcfg, TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True)
     )
+    if not any(ctx.out.rglob(CKPT_NAME)):
+        # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the
+        # Ref-GS scene through unchanged, so that eval and resumption find a checkpoint here.
+        import shutil
+
+        shutil.copy2(_latest_ckpt(ctx.inputs["2_refgs"], CKPT_NAME), ctx.out / CKPT_NAME)
+        ctx.note("TE-D ran 0 iterations: the Ref-GS scene is passed through unchanged")
+        res["passed_through"] = True
     return _jsonable(res)
 
 

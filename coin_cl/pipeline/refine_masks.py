@@ -85,7 +85,7 @@ def refine_masks(
 
     tr = fit_captured(scene, train, cfg.model, n_iters, seed, "opencl", device, out_dir / "gs")
     model, views = tr.model, tr.train_views
-    centre = torch.stack([v.camera.center for v in views]).mean(0)
+    centre = torch.stack([v.camera.center_t for v in views]).mean(0)
     with torch.no_grad():
         g = model.export_gaussians(centre)
     means = g["means"].float()
@@ -106,7 +106,7 @@ def refine_masks(
     for v, i in zip(views, train, strict=True):
         stem = Path(scene.cameras[i].name).stem
         mask = np.asarray(masks[i], bool)
-        V, K = v.camera.viewmat.float(), v.camera.K.float()
+        V, K = v.camera.viewmat_t, v.camera.K_t
         z = (m @ V[:3, :3].T + V[:3, 3])[:, 2].clamp_min(1e-6)
         fixed = (cfg.splat_px * z / K[0, 0])[:, None].expand(-1, 3).contiguous()
         with torch.no_grad():
