@@ -205,12 +205,14 @@ class ScaffoldModel(Model):
         # Row of each drawn offset in the [A*k, 3] offsets parameter.
         flat = vidx.index_select(0, aidx) * k + (sidx - aidx * k)
         offsets = p["offsets"].reshape(-1, 3).index_select(0, flat) * sc[:, :3]
-        quats = cov[:, 3:7]
+        # One split (backward: one concatenation) rather than two slices (each backward writes a
+        # zero-filled [M, 7] gradient).
+        cov_scale, quats = cov.split((3, 4), dim=1)
         quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         return {
             "means": anchor.index_select(0, aidx) + offsets,
             "quats": quats,
-            "scales": sc[:, 3:] * torch.sigmoid(cov[:, :3]),
+            "scales": sc[:, 3:] * torch.sigmoid(cov_scale),
             "opacities": opacity.index_select(0, sidx),
             "colors": color,
             "neural_opacity": opacity.detach(),

@@ -434,6 +434,28 @@ def _make_energy(p: _ViewProblem, extractor: Callable, cfg: CLGConfig, device: A
     return energy
 
 
+def reference_in_view(
+    image_k: np.ndarray,
+    cam_n: Any,
+    cam_k: Any,
+    points: np.ndarray,
+    depth_k: np.ndarray | None = None,
+    device: Any = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The reference image_k (Hk, Wk, 3) warped into view n at full resolution through P_k
+    `points` [M, 3] (`warp_features`: k -> n, occlusion-tested against depth_k): (H, W, 3) colours
+    and (H, W) weights (0 where no point lands)."""
+    from coin_cl.engine import warp_features
+
+    pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
+    with torch.no_grad():
+        wk, wt, _ = warp_features(
+            pts, cam_k.K, cam_k.viewmat, torch.from_numpy(np.ascontiguousarray(image_k, dtype=np.float32)),
+            cam_n.K, cam_n.viewmat, cam_n.width, cam_n.height, src_depth=_depth_t(depth_k), device=device,
+        )  # fmt: skip
+    return wk.numpy(), wt.numpy()
+
+
 def consistency_residual(
     image_n: np.ndarray,
     image_k: np.ndarray,
@@ -450,19 +472,12 @@ def consistency_residual(
 
     Returns (residual, number of supported pixels); (nan, 0) without support.
     """
-    from coin_cl.engine import warp_features
-
-    pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
-    with torch.no_grad():
-        wk, wt, _ = warp_features(
-            pts, cam_k.K, cam_k.viewmat, torch.from_numpy(np.ascontiguousarray(image_k, dtype=np.float32)),
-            cam_n.K, cam_n.viewmat, cam_n.width, cam_n.height, src_depth=_depth_t(depth_k), device=device,
-        )  # fmt: skip
-    sup = np.asarray(mask_n, bool) & (wt.numpy() > 0)
+    wk, wt = reference_in_view(image_k, cam_n, cam_k, points, depth_k, device)
+    sup = np.asarray(mask_n, bool) & (wt > 0)
     n = int(sup.sum())
     if n == 0:
         return float("nan"), 0
-    d = np.abs(np.asarray(image_n, np.float32) - wk.numpy()).mean(-1)
+    d = np.abs(np.asarray(image_n, np.float32) - wk).mean(-1)
     return float(d[sup].mean()), n
 
 
@@ -480,17 +495,10 @@ def warp_fill(
     """CLG without a sampler (`CLGConfig.sample` False) for one view: inside mask_n (H, W) bool, the
     reference image_k (Hk, Wk, 3) warped into view n through P_k `points` [M, 3] where supported,
     render_n elsewhere; outside the mask image_n. Returns ((H, W, 3) float32, supported pixels)."""
-    from coin_cl.engine import warp_features
-
-    pts = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))
-    with torch.no_grad():
-        wk, wt, _ = warp_features(
-            pts, cam_k.K, cam_k.viewmat, torch.from_numpy(np.ascontiguousarray(image_k, dtype=np.float32)),
-            cam_n.K, cam_n.viewmat, cam_n.width, cam_n.height, src_depth=_depth_t(depth_k), device=device,
-        )  # fmt: skip
+    wk, wt = reference_in_view(image_k, cam_n, cam_k, points, depth_k, device)
     m = np.asarray(mask_n, bool)
-    sup = m & (wt.numpy() > 0)
-    fill = np.where(sup[..., None], wk.numpy(), render_n)
+    sup = m & (wt > 0)
+    fill = np.where(sup[..., None], wk, render_n)
     return np.where(m[..., None], fill, image_n).astype(np.float32), int(sup.sum())
 
 
