@@ -77,8 +77,9 @@ def test_tiny_scene_trains_scaffold():
 
 
 def test_fused_decode_equals_masked_decode_values_and_gradients():
-    """The index-gather decode (default) and Scaffold-GS' boolean-mask decode give identical
-    Gaussians and the same gradients (up to summation order) for random cotangents."""
+    """The fused decode (default: the decode kernel after the MLPs) and Scaffold-GS' boolean-mask
+    decode give the same Gaussians (float rounding of exp / sigmoid aside) and the same gradients
+    for random cotangents; the selection itself is identical."""
     sc = tiny_scene(backend=BACKEND)
     m = _randomised(np.random.default_rng(2).uniform(-4, 4, (2000, 3)))
     cam = sc.views[0].camera
@@ -99,11 +100,14 @@ def test_fused_decode_equals_masked_decode_values_and_gradients():
         results[fused] = ({k: g[k].detach() for k in (*keys, "selected", "neural_opacity")}, grads)
     (v0, g0), (v1, g1) = results[False], results[True]
     assert int(v0["selected"].sum()) > 0
-    for k, v in v0.items():
-        assert torch.equal(v, v1[k]), k
+    for k in ("selected", "neural_opacity"):
+        assert torch.equal(v0[k], v1[k]), k
+    for k in keys:
+        torch.testing.assert_close(v1[k], v0[k], rtol=1e-6, atol=1e-6, msg=k)
     assert set(g0) == set(g1) and {"offsets", "features", "scaling"} <= set(g0)
-    for n in g0:
-        assert torch.allclose(g0[n], g1[n], rtol=1e-5, atol=1e-6), n
+    for n in g0:  # float32 sums in a different order: relative to each gradient's largest entry
+        err = float((g0[n] - g1[n]).abs().max()) / max(float(g0[n].abs().max()), 1e-12)
+        assert err < 1e-5, (n, err)
 
 
 def test_decode_with_no_visible_anchor_or_no_drawn_offset_is_empty_not_an_error():

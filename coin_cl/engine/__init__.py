@@ -12,7 +12,13 @@ geometry    small math the fast path and the twins share
 from coin_cl.engine.errors import NoDeviceError, PairOverflowError
 from coin_cl.engine.gaussians import Gaussians
 from coin_cl.engine.ops.warp import support_mask, warp_features
-from coin_cl.engine.rendering import bin_tiles, project, rasterize, rasterize_to_pixels
+from coin_cl.engine.rendering import (
+    bin_tiles,
+    decode_neural_gaussians,
+    project,
+    rasterize,
+    rasterize_to_pixels,
+)
 from coin_cl.engine.runtime import Runtime, get_runtime, resolve_device
 
 __all__ = [
@@ -21,6 +27,7 @@ __all__ = [
     "PairOverflowError",
     "Runtime",
     "bin_tiles",
+    "decode_neural_gaussians",
     "get_runtime",
     "project",
     "rasterize",

@@ -273,3 +273,42 @@ def bin_tiles(
         tiles_x, tiles_y, tile_start, tile_end, ids.to(torch.int32), pair_start, pair_slot,
         ext.float(), n_pairs=n_pairs, n_visible=int(order.numel()),
     )  # fmt: skip
+
+
+def decode_neural_gaussians(
+    anchors: Tensor,
+    offsets: Tensor,
+    scaling: Tensor,
+    opacity: Tensor,
+    cov: Tensor,
+    color: Tensor,
+    vidx: Tensor,
+    sidx: Tensor,
+    device: object = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Scaffold-GS' neural Gaussians from its MLP outputs (`device` is ignored).
+
+    Args:
+        anchors [A, 3], offsets [A, k, 3], scaling [A, 6] (log: offset scale, Gaussian scale): the
+            anchor parameters. opacity [V*k] (tanh output), cov [V*k, 7] (3 scale logits, 4
+            quaternion entries), color [V*k, 3] (sigmoid output): the MLPs' outputs for the V
+            visible anchors vidx [V] (int, unique). sidx [M] (int): the drawn offsets, indices
+            into V*k (Scaffold-GS draws those with opacity > 0).
+    Returns:
+        means [M, 3] = anchor + offset * exp(scaling[:3]), quats [M, 4] (normalised, the norm
+        clamped at 1e-12), scales [M, 3] = exp(scaling[3:]) * sigmoid(cov[:3]), opacities [M],
+        colors [M, 3].
+    """
+    k = offsets.shape[1]
+    sidx = sidx.long()
+    a = vidx.long()[torch.div(sidx, k, rounding_mode="floor")]
+    j = sidx % k
+    s = torch.exp(scaling[a])
+    cs, r = cov[sidx].split((3, 4), dim=1)
+    return (
+        anchors[a] + offsets[a, j] * s[:, :3],
+        r / r.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+        s[:, 3:] * torch.sigmoid(cs),
+        opacity[sidx],
+        color[sidx],
+    )

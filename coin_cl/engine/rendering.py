@@ -104,6 +104,26 @@ def rasterize_to_pixels(
     )  # fmt: skip
 
 
+def decode_neural_gaussians(
+    anchors: Tensor,
+    offsets: Tensor,
+    scaling: Tensor,
+    opacity: Tensor,
+    cov: Tensor,
+    color: Tensor,
+    vidx: Tensor,
+    sidx: Tensor,
+    backend: str = "opencl",
+    device: Device = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Scaffold-GS' neural Gaussians from its MLP outputs, differentiably; shapes in
+    `coin_cl.engine.reference.decode_neural_gaussians`. The OpenCL op builds no per-offset
+    temporaries (one work-item per drawn Gaussian forward, per visible anchor backward)."""
+    return _backend(backend).decode_neural_gaussians(
+        anchors, offsets, scaling, opacity, cov, color, vidx, sidx, device=device
+    )
+
+
 def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background):
     n = means.shape[0]
     shapes = {

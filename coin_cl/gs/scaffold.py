@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from coin_cl.engine import constants as cst
+from coin_cl.engine.rendering import decode_neural_gaussians
 from coin_cl.gs.base import Model, RenderOutput, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
@@ -163,7 +164,9 @@ class ScaffoldModel(Model):
         inside = ((x @ normals.T) > -r[:, None]).all(1)
         return inside & (x[:, 2] + r > cst.NEAR_PLANE)
 
-    def decode(self, cam_center: Tensor, vis: Tensor, features: Tensor | None = None) -> dict[str, Tensor]:
+    def decode(
+        self, cam_center: Tensor, vis: Tensor, features: Tensor | None = None, backend: str = "opencl"
+    ) -> dict[str, Tensor]:
         """Neural Gaussians of the anchors in `vis` [A] bool, seen from `cam_center` [3].
 
         `features` [A, feat_dim] replaces the feature parameter for this decode (Ref-GS's anchor
@@ -173,10 +176,11 @@ class ScaffoldModel(Model):
         M drawn Gaussians (opacity > 0), plus 'neural_opacity' [V*k] (before the mask) and
         'selected' [V*k] bool (which of the visible anchors' offsets were drawn).
 
-        With `self.fused` (default) rows are gathered by integer index (`index_select`, whose
-        backward is a scatter-add) instead of boolean masks (whose backward is an accumulating
-        `index_put`, several times slower on CPU), and nothing is repeated per offset before the
-        selection; the values are identical, the gradients equal up to summation order.
+        With `self.fused` (default) everything after the MLPs (gathers, activations, quaternion
+        normalisation, means) is one op, `coin_cl.engine.decode_neural_gaussians` (an OpenCL
+        kernel forward and backward on `backend="opencl"`, its torch twin on "torch"), so no
+        per-offset temporaries are built in torch; False is Scaffold-GS' boolean-mask code. Both
+        give the same Gaussians (to float rounding) and gradients.
         """
         p = self.p
         if features is None:
@@ -187,34 +191,24 @@ class ScaffoldModel(Model):
             )
         if not self.fused:
             return self._decode_masked(cam_center, vis, features)
-        k = self.cfg.n_offsets
         vidx = vis.nonzero().squeeze(1)  # [V]
         anchor = p["anchors"].index_select(0, vidx)
-        feat = features.index_select(0, vidx)
-        scaling = torch.exp(p["scaling"].index_select(0, vidx))
         ob_view = anchor - cam_center
         ob_view = ob_view / ob_view.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        x = torch.cat([feat, ob_view], -1)
+        x = torch.cat([features.index_select(0, vidx), ob_view], -1)
         opacity = self.mlps["mlp_opacity"](x).reshape(-1)  # [V*k]
         sel = opacity > 0
-        sidx = sel.nonzero().squeeze(1)  # [M] into the V*k offsets
-        aidx = torch.div(sidx, k, rounding_mode="floor")  # [M] into the V visible anchors
-        color = self.mlps["mlp_color"](x).reshape(-1, 3).index_select(0, sidx)
-        cov = self.mlps["mlp_cov"](x).reshape(-1, 7).index_select(0, sidx)
-        sc = scaling.index_select(0, aidx)  # [M, 6]
-        # Row of each drawn offset in the [A*k, 3] offsets parameter.
-        flat = vidx.index_select(0, aidx) * k + (sidx - aidx * k)
-        offsets = p["offsets"].reshape(-1, 3).index_select(0, flat) * sc[:, :3]
-        # One split (backward: one concatenation) rather than two slices (each backward writes a
-        # zero-filled [M, 7] gradient).
-        cov_scale, quats = cov.split((3, 4), dim=1)
-        quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        means, quats, scales, opac, colors = decode_neural_gaussians(
+            p["anchors"], p["offsets"], p["scaling"], opacity,
+            self.mlps["mlp_cov"](x).reshape(-1, 7), self.mlps["mlp_color"](x).reshape(-1, 3),
+            vidx, sel.nonzero().squeeze(1), backend=backend, device=self.device,
+        )  # fmt: skip
         return {
-            "means": anchor.index_select(0, aidx) + offsets,
+            "means": means,
             "quats": quats,
-            "scales": sc[:, 3:] * torch.sigmoid(cov_scale),
-            "opacities": opacity.index_select(0, sidx),
-            "colors": color,
+            "scales": scales,
+            "opacities": opac,
+            "colors": colors,
             "neural_opacity": opacity.detach(),
             "selected": sel,
         }
@@ -263,7 +257,7 @@ class ScaffoldModel(Model):
         """Render `cam`; `features` [A, feat_dim] optionally overrides the anchor features
         (see `decode`)."""
         vis = self.visible_anchors(cam)
-        g = self.decode(cam.center_t, vis, features)
+        g = self.decode(cam.center_t, vis, features, backend=backend)
         image, alpha, depth, meta = splat(
             cam, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             backend=backend, background=background, return_depth=return_depth, training=training,
