@@ -21,6 +21,11 @@ The embedded defaults replace the paper's models (no weights can be downloaded h
 prior stands in for Stable Diffusion 2 (rows seg_prior, bbox), analytic features for DINO (CLG).
 Ends with one JSON line (baseline_mpsnr, coin_mpsnr, ..., floors). Usage:
     python benchmarks/coin.py [--budget 30] [--rows coin,baseline,...] [--resolution 0.5]
+
+`--only insertion` runs issue 13's rows instead, on synthetic rooms with exact ground truth
+(insertion from an edited view, refined masks, scribbles, `--refs N` reference robustness; see
+benchmarks/coin_insertion.py); none of the rows above run then:
+    python benchmarks/coin.py --only insertion [--size 96x72] [--views 16] [--iters 300] [--refs 3]
 """
 
 import os
@@ -81,11 +86,21 @@ def main() -> int:
     ap.add_argument("--budget", type=float, default=30.0, help="training minutes per full-pipeline row")
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--resolution", type=float, default=0.5)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out" / "coin")
+    ap.add_argument("--out", type=Path, default=None, help="default benchmarks/out/coin (or coin_insertion)")
+    ap.add_argument("--only", choices=["insertion"], help="run issue 13's synthetic rows instead of these")
+    import coin_insertion
+
+    coin_insertion.add_arguments(ap)
     args = ap.parse_args()
     import logging
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    if args.only == "insertion":
+        args.out = args.out or ROOT / "benchmarks" / "out" / "coin_insertion"
+        return coin_insertion.run(args)
+    if args.refs is not None:
+        ap.error("--refs is measured on the synthetic room: use it with --only insertion")
+    args.out = args.out or ROOT / "benchmarks" / "out" / "coin"
     names = args.rows.split(",")
     unknown = [n for n in names if n not in ROWS]
     if unknown:

@@ -83,6 +83,23 @@ def test_ablation_skips_stages_and_says_why(room, tmp_path):
     assert res.stages["eval"]["status"] == "ran"
 
 
+def test_refgs_trains_around_the_pipeline_reference(room, first_run, tmp_path):
+    # Ref-GS used to choose its reference again by its own rule (ignoring --ref, and on refined masks
+    # or insertion footprints possibly another view), so P_k came from another view than CLG's camera k.
+    from coin_cl.gs.refgs import choose_reference
+    from coin_cl.pipeline.coin import share_stages
+
+    scene = load_scene(room)
+    rule = choose_reference(scene)
+    other = next(i for i in scene.train_idx if i != rule and scene.masks[i].any())
+    for name, skip in (("full", ("clg", "ted")), ("plain", ("refgs", "clg", "ted"))):
+        out = tmp_path / name
+        share_stages(first_run[0], out, ("0_scene", "1_inpaint"))  # stage 1 does not depend on the reference
+        res = inpaint(room, out, config=replace(TINY, ref=other, skip=skip))
+        assert res.stages["1_inpaint"]["status"] == "skipped: up to date"
+        assert res.stages["2_refgs"]["result"]["reference"]["index"] == other, name
+
+
 def test_cli_run(room, tmp_path, capsys):
     # seconds of scene-prior training and 3 steps of every training stage: a smoke run
     rc = main(["run", str(room), "--out", str(tmp_path / "cli"), "--mask", "bbox", "--iters", "3",

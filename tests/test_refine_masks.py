@@ -2,6 +2,7 @@
 360-degree capture of the synthetic room, checked against the generator's visibility: the refined
 masks stay inside the input masks, are much smaller, and cover the pixels no other view sees."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -80,6 +81,10 @@ def test_pipeline_with_refined_masks(capture, tmp_path):
     )  # fmt: skip
     res = inpaint(scene, tmp_path / "run", config=cfg)
     assert res.stages["0_refine"]["status"] == "ran"
+    # Ref-GS and CLG share the pipeline's reference (chosen on the input masks), although the refined
+    # masks would make Ref-GS's own rule choose another view
+    ref = json.loads((tmp_path / "run" / "2_refgs" / "manifest.json").read_text())["settings"]["ref"]
+    assert res.stages["2_refgs"]["result"]["reference"]["index"] == ref
     ratio = res.stages["0_refine"]["result"]["refined_ratio"]
     assert 0 < ratio < 1
     assert any("refined masks" in n for n in res.stages["0_refine"]["notes"])

@@ -287,7 +287,10 @@ def _run(
             "untrained on 2 cores and its fills are noise: use this for smoke tests only",
             iters["prior_seconds"], PRIOR_MIN_SECONDS,
         )  # fmt: skip
-    refgs_cfg = cfg.refgs or RefGSConfig()
+    # Ref-GS trains around the pipeline's reference, the one CLG warps from: left to its own rule it
+    # would choose again from the masks it is given (refined masks, insertion footprints), or ignore
+    # --ref, and P_k would then come from another view than CLG's camera k.
+    refgs_cfg = replace(cfg.refgs or RefGSConfig(), ref=ref)
     shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg,
               "edited": edited}  # fmt: skip
     log.info(
@@ -447,7 +450,11 @@ def _stage_refgs(ctx: StageContext) -> dict:
         from coin_cl.gs.refgs import RefGSConfig
 
         rcfg = RefGSConfig(
-            adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False
+            adaptive_weights=False,
+            feature_attention=False,
+            depth_loss=False,
+            prune_points=False,
+            ref=ctx.shared["ref"],
         )
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
     scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
