@@ -58,6 +58,8 @@ ROWS = {
     "no_ted": {"skip": ("ted",)},
     "seg_prior": {"inpaint2d": Inpaint2DConfig(use_dataset=False)},
     "bbox": {"mask": "bbox"},
+    "scribble": {"mask": "scribble"},
+    "refined": {"masks": "refined"},
 }
 KEYS = ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd")
 
