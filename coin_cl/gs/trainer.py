@@ -241,10 +241,10 @@ class Trainer:
         if not train_views:
             raise ValueError("no training views")
         self.model = model
-        model.fused = model.optimizer.fused = cfg.fused
         self.train_views = list(train_views)
         self.test_views = list(test_views)
         self.cfg = cfg
+        self._set_path(model)
         self.out = Path(out_dir) if out_dir is not None else None
         self.callback = callback
         self.background = torch.tensor(cfg.background, dtype=torch.float32)
@@ -270,6 +270,11 @@ class Trainer:
             cams = {"train": cameras_to_json([v.camera for v in self.train_views]),
                     "test": cameras_to_json([v.camera for v in self.test_views])}  # fmt: skip
             _atomic_json(self.out / CAMERAS_NAME, cams)
+
+    def _set_path(self, model: Model) -> None:
+        """The training path of `cfg.fused` on the model and its optimiser (a checkpoint load
+        builds a new model, so this runs again there)."""
+        model.fused = model.optimizer.fused = self.cfg.fused
 
     # ---- checkpoints ----
     @property
@@ -308,7 +313,7 @@ class Trainer:
         device = self.model.device  # the device is the caller's choice, not the checkpoint's
         self.model = model_from_state(msd)
         self.model.device = device
-        self.model.fused = self.model.optimizer.fused = self.cfg.fused
+        self._set_path(self.model)
         t = state["trainer"]
         # Checkpoints from before the strategy / sampler split kept these in the model and trainer.
         legacy_cfg = {**msd.get("cfg", {}), **msd.get("cfg", {}).get("densify", {})}

@@ -535,15 +535,14 @@ def _stage_eval(ctx: StageContext) -> dict:
     model.device = cfg.device
     rdir = ctx.out / "renders"
     rdir.mkdir(parents=True, exist_ok=True)
-    from coin_cl.gs.data import Camera
 
     for i in list(scene.test_idx) + list(scene.train_idx):
         with torch.no_grad():
-            r = model.render(Camera.from_any(scene.cameras[i]), 10**9)
+            r = model.render(scene.cameras[i], 10**9)
         write_png(rdir / (Path(scene.cameras[i].name).stem + ".png"), to_uint8(r.image.clamp(0, 1).numpy()))
     from coin_cl.gs.trainer import write_model_ply
 
-    orbit_gif(model, [Camera.from_any(scene.cameras[i]) for i in scene.train_idx], ctx.out / "orbit.gif")
+    orbit_gif(model, [scene.cameras[i] for i in scene.train_idx], ctx.out / "orbit.gif")
     ply = ctx.out / "point_cloud.ply"
     centers = torch.stack([scene.cameras[i].center_t for i in scene.train_idx])
     write_model_ply(model, ply, centers.mean(0))

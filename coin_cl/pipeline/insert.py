@@ -263,18 +263,12 @@ def propagate(edited: np.ndarray, lift: EditLift, cam_k: Any, cam_n: Any, captur
     """Step 3 for one view: (I^_n (H, W, 3) float32, footprint F_n (H, W) bool). The lift's points
     carry the edited colours from the reference into view n (z-buffered splat); F_n is where they
     land inside mask_n, with one-pixel cracks closed (colours there filled by Telea)."""
-    import torch
-
-    from coin_cl.engine import warp_features
+    from coin_cl.pipeline.clg import reference_in_view
 
     if len(lift.points) == 0 or not np.asarray(mask_n).any():
         return captured_n.astype(np.float32), np.zeros(mask_n.shape, bool)
-    col, wt, _ = warp_features(
-        torch.from_numpy(np.ascontiguousarray(lift.points)), cam_k.K, cam_k.viewmat,
-        torch.from_numpy(np.ascontiguousarray(edited, np.float32)), cam_n.K, cam_n.viewmat, cam_n.width,
-        cam_n.height, device=device,
-    )  # fmt: skip
-    col, hit = col.numpy(), wt.numpy() > 0
+    col, wt = reference_in_view(edited, cam_n, cam_k, lift.points, None, device)
+    hit = wt > 0
     mask_n = np.asarray(mask_n, bool)
     closed = cv2.morphologyEx(hit.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
     foot = closed & mask_n

@@ -122,7 +122,7 @@ def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed
     """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
     (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
     tr = fit_captured(scene, train_idx, "scaffold", iters, seed, backend, device, out)
-    cam = Camera.from_any(scene.cameras[k])
+    cam = scene.cameras[k]
     with torch.no_grad():
         r = tr.model.render(cam, tr.step, backend=backend, return_depth=True)
     d = r.depth.numpy().astype(np.float32)
