@@ -109,10 +109,8 @@ def _render(res: CoInResult, cam) -> tuple[np.ndarray, np.ndarray]:
     """(image (H, W, 3), expected depth (H, W)) of the final model in view `cam`."""
     import torch
 
-    from coin_cl.gs.data import Camera
-
     with torch.no_grad():
-        r = res.model.render(Camera.from_any(cam), 10**9, return_depth=True)
+        r = res.model.render(cam, 10**9, return_depth=True)
     return r.image.clamp(0, 1).numpy(), r.depth.numpy()
 
 

@@ -40,7 +40,6 @@ sys.path.insert(0, str(ROOT))
 from common import default_data, write_result  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
-from coin_cl.gs.data import Camera  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig, composite_targets  # noqa: E402
 from coin_cl.gs.trainer import model_from_state  # noqa: E402
 from coin_cl.pipeline.refgs import run_refgs  # noqa: E402
@@ -118,9 +117,7 @@ def score(scene, res: dict, backend: str) -> dict:
     per_view = []
     for i in scene.test_idx:
         with torch.no_grad():
-            img = (
-                model.render(Camera.from_any(scene.cameras[i]), 0, backend=backend).image.clamp(0, 1).numpy()
-            )
+            img = model.render(scene.cameras[i], 0, backend=backend).image.clamp(0, 1).numpy()
         gt = np.asarray(scene.images[i], np.float32)
         mask = np.asarray(scene.masks[i], bool)
         m = metrics.evaluate_view(img, gt, mask)

@@ -152,7 +152,6 @@ def clg_part(args) -> dict:
 
     from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, train_scene_prior
 
-    from coin_cl.gs.data import Camera as GSCamera
     from coin_cl.gs.refgs import choose_reference
     from coin_cl.gs.trainer import TrainConfig, make_trainer
     from coin_cl.pipeline.clg import CLGConfig, reference_points, run_clg
@@ -195,7 +194,7 @@ def clg_part(args) -> dict:
         tr.train()
         for i in train:
             with torch.no_grad():
-                r = tr.model.render(GSCamera.from_any(scene.cameras[i]), tr.step, return_depth=True)
+                r = tr.model.render(scene.cameras[i], tr.step, return_depth=True)
             renders[i] = r.image.clamp(0, 1).numpy().astype(np.float32)
             depths[i] = np.where(r.alpha.numpy() > 0.5, r.depth.numpy(), np.nan).astype(np.float32)
         np.savez(cache, **{f"r{i}": renders[i] for i in train}, **{f"d{i}": depths[i] for i in train})
