@@ -19,8 +19,12 @@ is blur) and GMSD on the mask's bounding box (`coin_cl.evaluation`), and minutes
 
 The embedded defaults replace the paper's models (no weights can be downloaded here): the scene
 prior stands in for Stable Diffusion 2 (rows seg_prior, bbox), analytic features for DINO (CLG).
+`--refs N` adds reference-robustness rows (issue 13): `ref_<view>`, the coin row with N - 1 other
+training views as the reference (random, `--seed`), reported as mean and standard deviation with
+the coin row.
+
 Ends with one JSON line (baseline_mpsnr, coin_mpsnr, ..., floors). Usage:
-    python benchmarks/coin.py [--budget 30] [--rows coin,baseline,...] [--resolution 0.5]
+    python benchmarks/coin.py [--budget 30] [--rows coin,baseline,...] [--resolution 0.5] [--refs 3]
 
 `--only insertion` runs issue 13's rows instead, on synthetic rooms with exact ground truth
 (insertion from an edited view, refined masks, scribbles, `--refs N` reference robustness; see
@@ -42,7 +46,7 @@ from pathlib import Path  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import cpu_model, default_data, git_commit, write_result  # noqa: E402
+from common import cpu_model, default_data, git_commit, mean_std, other_references, write_result  # noqa: E402
 
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
 from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint, share_stages  # noqa: E402
@@ -64,8 +68,7 @@ ROWS = {
 KEYS = ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd")
 
 
-def run_row(name: str, data: Path, out: Path, base: CoInConfig) -> dict:
-    cfg = replace(base, **ROWS[name])
+def run_row(name: str, data: Path, out: Path, cfg: CoInConfig) -> dict:
     row_out = out / name
     if name != "coin" and (out / "coin").is_dir():
         share_stages(out / "coin", row_out, STAGES)
@@ -80,6 +83,21 @@ def run_row(name: str, data: Path, out: Path, base: CoInConfig) -> dict:
         "status": {k: r["status"] for k, r in res.stages.items()},
         "sources": res.stages["1_inpaint"].get("result", {}).get("sources"),
     }
+
+
+def reference_rows(args: argparse.Namespace, base: CoInConfig, rows: dict) -> dict:
+    """The coin row and `args.refs - 1` rows with other reference views (added to `rows` too)."""
+    from coin_cl import load_scene
+
+    scene = load_scene(args.data, resolution=args.resolution)
+    chosen = int(json.loads((args.out / "coin" / "2_refgs" / "manifest.json").read_text())["settings"]["ref"])
+    out = {"coin": {**rows["coin"], "ref": scene.cameras[chosen].name}}
+    for i in other_references(scene, chosen, args.refs, args.seed):
+        name = f"ref_{Path(scene.cameras[i].name).stem}"
+        rows[name] = out[name] = {**run_row(name, args.data, args.out, replace(base, ref=i)),
+                                  "ref": scene.cameras[i].name}  # fmt: skip
+        print(name, json.dumps(rows[name], default=str), file=sys.stderr, flush=True)
+    return out
 
 
 def main() -> int:
@@ -100,25 +118,28 @@ def main() -> int:
     if args.only == "insertion":
         args.out = args.out or ROOT / "benchmarks" / "out" / "coin_insertion"
         return coin_insertion.run(args)
-    if args.refs is not None:
-        ap.error("--refs is measured on the synthetic room: use it with --only insertion")
+    if args.refs is not None and args.refs < 2:
+        ap.error("--refs must be at least 2 (a standard deviation needs two references)")
     args.out = args.out or ROOT / "benchmarks" / "out" / "coin"
     names = args.rows.split(",")
     unknown = [n for n in names if n not in ROWS]
     if unknown:
         ap.error(f"unknown rows {unknown}; choose from {list(ROWS)}")
+    if args.refs and "coin" not in names:
+        names.append("coin")  # the default-reference row of the robustness rows
     if "coin" in names:  # the row the others start from goes first
         names = ["coin"] + [n for n in names if n != "coin"]
     base = CoInConfig(budget_minutes=args.budget, resolution=args.resolution)
 
     rows: dict[str, dict] = {}
     for name in names:
-        rows[name] = run_row(name, args.data, args.out, base)
+        rows[name] = run_row(name, args.data, args.out, replace(base, **ROWS[name]))
         print(name, json.dumps(rows[name], default=str), file=sys.stderr, flush=True)
+    ref_rows = reference_rows(args, base, rows) if args.refs else {}
 
     from coin_cl.engine import get_runtime
 
-    print(f"\nSPIn-NeRF scene 1 ({args.data.name}) at resolution {args.resolution} of images_4; "
+    print(f"\nScene {args.data.name} at resolution {args.resolution} of images_4; "
           f"commit {git_commit()}; CPU {cpu_model()}, {os.cpu_count()} cores; OpenCL {get_runtime().name}; "
           f"budget {args.budget} min")  # fmt: skip
     print(
@@ -135,6 +156,14 @@ def main() -> int:
         per += f" (all {r['wall_minutes']:.1f})"
         print(f"| {name} | {f(r['psnr'])} | {f(r['ssim'], 4)} | {f(r['m_psnr'])} | {f(r['m_ssim'], 4)} | "
               f"{f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)} | {per} |")  # fmt: skip
+
+    if ref_rows:
+        (mp, mp_sd), (hf, hf_sd) = mean_std(ref_rows, "m_psnr"), mean_std(ref_rows, "hf_ratio")
+        print("\n| reference | m-PSNR | HF ratio | bbox GMSD |\n|---|---|---|---|")
+        for name, r in ref_rows.items():
+            cells = f"{f(r['m_psnr'])} | {f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)}"
+            print(f"| {r['ref']} ({name}) | {cells} |")
+        print(f"| {len(ref_rows)} references | {mp:.2f} +- {mp_sd:.2f} | {hf:.3f} +- {hf_sd:.3f} | |")
 
     def g(row: str, key: str):
         return rows.get(row, {}).get(key)
@@ -153,6 +182,17 @@ def main() -> int:
         "bbox_mpsnr": g("bbox", "m_psnr"),
         "bbox_hf_ratio": g("bbox", "hf_ratio"),
         "budget_minutes": args.budget,
+        **(
+            {
+                "refs": len(ref_rows),
+                "ref_mean_mpsnr": mp,
+                "ref_std_mpsnr": mp_sd,
+                "ref_mean_hf_ratio": hf,
+                "ref_std_hf_ratio": hf_sd,
+            }
+            if ref_rows
+            else {}
+        ),
         "commit": git_commit(),
         "cpu": cpu_model(),
     }

@@ -37,7 +37,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from common import cpu_model, git_commit, write_result
+from common import cpu_model, git_commit, mean_std, other_references, write_result
 
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.clg import CLGConfig
@@ -254,9 +254,7 @@ def run(args: argparse.Namespace) -> int:
         r, minutes = _run(sc_f, out / kind, replace(base, mask=kind))
         rows[kind] = {**_removal(r), "minutes": minutes, "ran": _ran(r)}
         _progress(kind, rows[kind])
-    cands = [i for i in sc_f.train_idx if i != seg_ref and sc_f.masks[i].any()]
-    rng = np.random.default_rng(args.seed)
-    others = [int(i) for i in rng.choice(cands, size=min(args.refs - 1, len(cands)), replace=False)]
+    others = other_references(sc_f, seg_ref, args.refs, args.seed)
     ref_rows = {"seg": rows["seg"]}
     for i in others:
         name = f"ref_{_stem(sc_f.cameras[i].name)}"
@@ -312,11 +310,8 @@ def run(args: argparse.Namespace) -> int:
         kind = name if name in kinds else "seg"
         print(f"| {name} | {kind} | {r.get('ref', '(rule)')} | {f(r['m_psnr'])} | {f(r['hf_ratio'], 3)} | "
               f"{f(r['psnr'])} | {r['minutes']:.1f} | {r['ran']} |")  # fmt: skip
-    mp = np.array([r["m_psnr"] for r in ref_rows.values()], float)
-    hf = np.array([r["hf_ratio"] for r in ref_rows.values()], float)
-    # sample standard deviation (ddof=1) over the references
-    print(f"| {len(ref_rows)} references | seg | | {mp.mean():.2f} +- {mp.std(ddof=1):.2f} | "
-          f"{hf.mean():.3f} +- {hf.std(ddof=1):.3f} | | | |")  # fmt: skip
+    (mp, mp_sd), (hf, hf_sd) = mean_std(ref_rows, "m_psnr"), mean_std(ref_rows, "hf_ratio")
+    print(f"| {len(ref_rows)} references | seg | | {mp:.2f} +- {mp_sd:.2f} | {hf:.3f} +- {hf_sd:.3f} | | | |")
 
     def g(row: str, key: str):
         return rows.get(row, {}).get(key)
@@ -344,10 +339,10 @@ def run(args: argparse.Namespace) -> int:
         "scribble_hf_ratio": g("scribble", "hf_ratio"),
         "bbox_mpsnr": g("bbox", "m_psnr"),
         "refs": len(ref_rows),
-        "ref_mean_mpsnr": float(mp.mean()),
-        "ref_std_mpsnr": float(mp.std(ddof=1)),
-        "ref_mean_hf_ratio": float(hf.mean()),
-        "ref_std_hf_ratio": float(hf.std(ddof=1)),
+        "ref_mean_mpsnr": mp,
+        "ref_std_mpsnr": mp_sd,
+        "ref_mean_hf_ratio": hf,
+        "ref_std_hf_ratio": hf_sd,
         "size": [w, h],
         "views": args.views,
         "minutes": total,

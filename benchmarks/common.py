@@ -44,3 +44,21 @@ def write_result(out: Path, result: dict, rows: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "result.json").write_text(json.dumps({"result": result, "rows": rows}, indent=1, default=str))
     print(json.dumps(result))
+
+
+def other_references(scene, chosen: int, n: int, seed: int) -> list[int]:
+    """n - 1 training views other than `chosen` whose masks are not empty, drawn without
+    replacement by `np.random.default_rng(seed)` (the reference-robustness rows)."""
+    import numpy as np
+
+    cands = [i for i in scene.train_idx if i != chosen and np.asarray(scene.masks[i]).any()]
+    rng = np.random.default_rng(seed)
+    return [int(i) for i in rng.choice(cands, size=min(n - 1, len(cands)), replace=False)]
+
+
+def mean_std(rows: dict, key: str) -> tuple[float, float]:
+    """Mean and sample standard deviation (ddof=1) of rows[*][key]."""
+    import numpy as np
+
+    v = np.array([r[key] for r in rows.values()], float)
+    return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else float("nan")
