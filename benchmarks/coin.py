@@ -43,11 +43,14 @@ import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common import cpu_model, default_data, git_commit, mean_std, other_references, write_result  # noqa: E402
 
+from coin_cl import load_scene  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
 from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint, share_stages  # noqa: E402
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
@@ -85,10 +88,45 @@ def run_row(name: str, data: Path, out: Path, cfg: CoInConfig) -> dict:
     }
 
 
+TEXTURE_SOURCES = {  # (folder under the run, views): the images each stage hands to the next
+    "initial": ("1_inpaint/images", "train"),
+    "clg": ("3_clg/images", "train"),
+    "render_train": ("eval/renders", "train"),
+    "render_test": ("eval/renders", "test"),
+}
+
+
+def texture_by_stage(run: Path, scene) -> dict:
+    """Mean texture inside the masks (`metrics.mask_texture`) of the object-absent ground truth
+    (test views) and of each stage's images, the latter as ratios to the former. Training views
+    have no object-absent truth, so this compares views of one region, not pixels: it shows which
+    stage loses the texture the HF ratio misses (NaN where the row skips a stage)."""
+    from coin_cl.metrics import mask_texture
+    from coin_cl.scene.io import read_image
+
+    status = {k: v["status"] for k, v in json.loads((run / "log.json").read_text())["stages"].items()}
+
+    def mean(views, folder: Path | None) -> float:
+        if folder is not None:  # a stage this row skipped may have left a folder of another run
+            stage = folder.relative_to(run).parts[0]
+            if status.get(stage) not in ("ran", "skipped: up to date"):
+                return float("nan")
+        vals = []
+        for i in views:
+            m = np.asarray(scene.masks[i], bool)
+            p = None if folder is None else folder / f"{Path(scene.cameras[i].name).stem}.png"
+            if not m.any() or (p is not None and not p.is_file()):
+                continue
+            vals.append(mask_texture(scene.images[i] if p is None else read_image(p), m))
+        return float(np.mean(vals)) if vals else float("nan")
+
+    gt = mean(scene.test_idx, None)
+    views = {"train": scene.train_idx, "test": scene.test_idx}
+    return {"gt": gt, **{k: mean(views[v], run / d) / gt for k, (d, v) in TEXTURE_SOURCES.items()}}
+
+
 def reference_rows(args: argparse.Namespace, base: CoInConfig, rows: dict) -> dict:
     """The coin row and `args.refs - 1` rows with other reference views (added to `rows` too)."""
-    from coin_cl import load_scene
-
     scene = load_scene(args.data, resolution=args.resolution)
     chosen = int(json.loads((args.out / "coin" / "2_refgs" / "manifest.json").read_text())["settings"]["ref"])
     out = {"coin": {**rows["coin"], "ref": scene.cameras[chosen].name}}
@@ -157,6 +195,13 @@ def main() -> int:
         print(f"| {name} | {f(r['psnr'])} | {f(r['ssim'], 4)} | {f(r['m_psnr'])} | {f(r['m_ssim'], 4)} | "
               f"{f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)} | {per} |")  # fmt: skip
 
+    scene = load_scene(args.data, resolution=args.resolution)
+    texture = {name: texture_by_stage(args.out / name, scene) for name in rows}
+    print("\n| row | texture in the masks, ratio to the object-absent truth: initial inpaints | CLG images | "
+          "renders (train views) | renders (test views) |\n|---|---|---|---|---|")  # fmt: skip
+    for name, t in texture.items():
+        print(f"| {name} | {f(t['initial'], 3)} | {f(t['clg'], 3)} | {f(t['render_train'], 3)} | "
+              f"{f(t['render_test'], 3)} |")  # fmt: skip
     if ref_rows:
         (mp, mp_sd), (hf, hf_sd) = mean_std(ref_rows, "m_psnr"), mean_std(ref_rows, "hf_ratio")
         print("\n| reference | m-PSNR | HF ratio | bbox GMSD |\n|---|---|---|---|")

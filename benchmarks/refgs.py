@@ -30,7 +30,6 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
@@ -64,21 +63,6 @@ def git_commit() -> str:
                                        stderr=subprocess.DEVNULL, text=True).strip()  # fmt: skip
     except (subprocess.CalledProcessError, FileNotFoundError):
         return "uncommitted"
-
-
-def grad_mag(img: np.ndarray) -> np.ndarray:
-    """[H, W] Sobel gradient magnitude of the grey image of `img` [H, W, 3] in [0, 1]."""
-    g = cv2.cvtColor(np.ascontiguousarray(img, np.float32), cv2.COLOR_RGB2GRAY)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    return np.sqrt(gx * gx + gy * gy)
-
-
-def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
-    """Mean gradient magnitude inside `mask`, prediction over ground truth."""
-    m = np.asarray(mask, bool)
-    den = float(grad_mag(gt)[m].mean())
-    return float(grad_mag(pred)[m].mean()) / den if den > 0 else float("nan")
 
 
 def cross_view_residual(scene, res: dict, k: int, target_k: np.ndarray) -> float:
@@ -122,7 +106,7 @@ def score(scene, res: dict, backend: str) -> dict:
         mask = np.asarray(scene.masks[i], bool)
         m = metrics.evaluate_view(img, gt, mask)
         per_view.append({"psnr": m["psnr"], "ssim": m["ssim"], "m_psnr": m["m_psnr"], "m_ssim": m["m_ssim"],
-                         "hf_ratio": hf_ratio(img, gt, mask)})  # fmt: skip
+                         "hf_ratio": metrics.hf_ratio(img, gt, mask)})  # fmt: skip
     return metrics.aggregate(per_view)
 
 

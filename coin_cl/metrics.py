@@ -128,24 +128,33 @@ def bbox_gmsd(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
 
 
 def _grad_mag(img: np.ndarray) -> np.ndarray:
-    g = cv2.cvtColor(np.asarray(img, np.float32), cv2.COLOR_RGB2GRAY)
+    g = cv2.cvtColor(np.ascontiguousarray(img, np.float32), cv2.COLOR_RGB2GRAY)
     gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)
     return np.sqrt(gx * gx + gy * gy)
 
 
+def mask_texture(img: np.ndarray, mask: np.ndarray, power: int = 1) -> float:
+    """Texture inside `mask` of an (H, W, 3) float [0, 1] image: the mean Sobel gradient magnitude
+    of its grey image there (power=2: gradient energy). NaN for an empty mask. The numerator and
+    denominator of `hf_ratio`; alone it compares images of different views of one region (the
+    texture each CoIn stage hands to the next)."""
+    m = np.asarray(mask, bool)
+    if m.shape != np.shape(img)[:2]:
+        raise ValueError(f"mask {m.shape} does not match the image {np.shape(img)[:2]}")
+    return float((_grad_mag(img)[m] ** power).mean()) if m.any() else math.nan
+
+
 def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, power: int = 1) -> float:
-    """High-frequency ratio inside `mask`: mean Sobel gradient magnitude (power=1; power=2: gradient
-    energy) of the prediction over that of the ground truth. 1 is right, below 1 is blur (a smear
-    where an object was), above 1 is texture stronger than the truth's. NaN for an empty mask or a
-    flat ground truth there. What PSNR does not see: a sharp wrong guess and a blur can score the
-    same PSNR but not the same ratio."""
+    """High-frequency ratio inside `mask`: `mask_texture` of the prediction over that of the ground
+    truth. 1 is right, below 1 is blur (a smear where an object was), above 1 is texture stronger
+    than the truth's. NaN for an empty mask or a flat ground truth there. What PSNR does not see: a
+    sharp wrong guess and a blur can score the same PSNR but not the same ratio."""
     p, g = _check_pair(pred, gt)
     m = np.asarray(mask, bool)
     if not m.any():
         return math.nan
-    num = float((_grad_mag(p)[m] ** power).mean())
-    den = float((_grad_mag(g)[m] ** power).mean())
-    return num / den if den > 0 else math.nan
+    den = mask_texture(g, m, power)
+    return mask_texture(p, m, power) / den if den > 0 else math.nan
 
 
 # ----------------------------------------------------------------------------------------------

@@ -233,3 +233,20 @@ def test_hf_ratio_and_gmsd_see_blur():
     assert math.isnan(M.bbox_gmsd(gt, gt, np.zeros((64, 64), bool)))
     v = M.evaluate_view(blur, gt, mask)
     assert v["hf_ratio"] < 0.5 and v["bbox_gmsd"] > 0.05
+
+
+def test_mask_texture_is_the_hf_ratio_terms():
+    """mask_texture: 0 on a flat image, a known value on a ramp, NaN on an empty mask, a clear error
+    on a mask of another size; hf_ratio is the ratio of two of them."""
+    rng = np.random.default_rng(4)
+    gt = rng.random((40, 50, 3)).astype(np.float32)
+    pred = cv2.GaussianBlur(gt, (0, 0), 1.0)
+    mask = np.zeros((40, 50), bool)
+    mask[10:30, 5:45] = True
+    assert M.mask_texture(np.full((40, 50, 3), 0.3, np.float32), mask) == 0.0
+    ramp = np.repeat(np.tile(np.arange(50, dtype=np.float32) / 100, (40, 1))[..., None], 3, 2)
+    assert M.mask_texture(ramp, mask) == pytest.approx(0.08, rel=1e-4)  # Sobel x: 8 x slope 0.01
+    assert math.isnan(M.mask_texture(gt, np.zeros((40, 50), bool)))
+    with pytest.raises(ValueError, match="does not match"):
+        M.mask_texture(gt, np.ones((40, 49), bool))
+    assert M.hf_ratio(pred, gt, mask) == pytest.approx(M.mask_texture(pred, mask) / M.mask_texture(gt, mask))
