@@ -23,6 +23,10 @@ prior stands in for Stable Diffusion 2 (rows seg_prior, bbox), analytic features
 training views as the reference (random, `--seed`), reported as mean and standard deviation with
 the coin row.
 
+Beside the scores, the texture each stage hands to the next (initial inpaints, CLG images, renders)
+against the ground truth's, inside the masks (`texture_by_stage`); `--texture-only` prints that table
+for rows already run under --out without running anything.
+
 Ends with one JSON line (baseline_mpsnr, coin_mpsnr, ..., floors). Usage:
     python benchmarks/coin.py [--budget 30] [--rows coin,baseline,...] [--resolution 0.5] [--refs 3]
 
@@ -125,6 +129,20 @@ def texture_by_stage(run: Path, scene) -> dict:
     return {"gt": gt, **{k: mean(views[v], run / d) / gt for k, (d, v) in TEXTURE_SOURCES.items()}}
 
 
+def print_texture(args: argparse.Namespace, names) -> dict:
+    """`texture_by_stage` of the rows' folders under --out, printed as a table; {row: figures}."""
+    scene = load_scene(args.data, resolution=args.resolution)
+    texture = {name: texture_by_stage(args.out / name, scene) for name in names}
+    gt = next(iter(texture.values()))["gt"] if texture else float("nan")
+    print(f"\nTexture in the masks (mean Sobel gradient magnitude), ratio to the object-absent truth's "
+          f"({gt:.4f}, test views):\n\n| row | initial inpaints | CLG images | renders (train views) | "
+          "renders (test views) |\n|---|---|---|---|---|")  # fmt: skip
+    for name, t in texture.items():
+        cells = [f"{t[k]:.3f}" if np.isfinite(t[k]) else "-" for k in TEXTURE_SOURCES]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    return texture
+
+
 def reference_rows(args: argparse.Namespace, base: CoInConfig, rows: dict) -> dict:
     """The coin row and `args.refs - 1` rows with other reference views (added to `rows` too)."""
     scene = load_scene(args.data, resolution=args.resolution)
@@ -146,6 +164,8 @@ def main() -> int:
     ap.add_argument("--resolution", type=float, default=0.5)
     ap.add_argument("--out", type=Path, default=None, help="default benchmarks/out/coin (or coin_insertion)")
     ap.add_argument("--only", choices=["insertion"], help="run issue 13's synthetic rows instead of these")
+    ap.add_argument("--texture-only", action="store_true",
+                    help="print the texture table of the rows already under --out; run nothing")  # fmt: skip
     import coin_insertion
 
     coin_insertion.add_arguments(ap)
@@ -167,6 +187,9 @@ def main() -> int:
         names.append("coin")  # the default-reference row of the robustness rows
     if "coin" in names:  # the row the others start from goes first
         names = ["coin"] + [n for n in names if n != "coin"]
+    if args.texture_only:
+        print_texture(args, [n for n in names if (args.out / n / "log.json").is_file()])
+        return 0
     base = CoInConfig(budget_minutes=args.budget, resolution=args.resolution)
 
     rows: dict[str, dict] = {}
@@ -195,13 +218,7 @@ def main() -> int:
         print(f"| {name} | {f(r['psnr'])} | {f(r['ssim'], 4)} | {f(r['m_psnr'])} | {f(r['m_ssim'], 4)} | "
               f"{f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)} | {per} |")  # fmt: skip
 
-    scene = load_scene(args.data, resolution=args.resolution)
-    texture = {name: texture_by_stage(args.out / name, scene) for name in rows}
-    print("\n| row | texture in the masks, ratio to the object-absent truth: initial inpaints | CLG images | "
-          "renders (train views) | renders (test views) |\n|---|---|---|---|---|")  # fmt: skip
-    for name, t in texture.items():
-        print(f"| {name} | {f(t['initial'], 3)} | {f(t['clg'], 3)} | {f(t['render_train'], 3)} | "
-              f"{f(t['render_test'], 3)} |")  # fmt: skip
+    texture = print_texture(args, rows)
     if ref_rows:
         (mp, mp_sd), (hf, hf_sd) = mean_std(ref_rows, "m_psnr"), mean_std(ref_rows, "hf_ratio")
         print("\n| reference | m-PSNR | HF ratio | bbox GMSD |\n|---|---|---|---|")
@@ -226,6 +243,7 @@ def main() -> int:
         "seg_prior_hf_ratio": g("seg_prior", "hf_ratio"),
         "bbox_mpsnr": g("bbox", "m_psnr"),
         "bbox_hf_ratio": g("bbox", "hf_ratio"),
+        "texture": texture,
         "budget_minutes": args.budget,
         **(
             {
