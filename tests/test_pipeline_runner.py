@@ -40,6 +40,8 @@ def test_second_run_skips_everything(tmp_path):
     assert calls.n == {"a": 1, "b": 1, "c": 1}
     assert all(r["status"] == "skipped: up to date" for r in rec2.values())
     assert rec2["2_b"]["result"] == {"value": "bx"}
+    # the time a stage took is kept with it: a rerun that skips it still reports what it cost
+    assert all(rec2[k]["seconds_when_run"] == rec1[k]["seconds"] >= 0 for k in rec1)
     logged = json.loads((tmp_path / "log.json").read_text())["stages"]
     assert set(logged) == {"1_a", "2_b", "3_c"}
 

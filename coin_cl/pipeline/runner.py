@@ -129,8 +129,9 @@ def run_stages(
 ) -> dict[str, dict]:
     """Run `stages` in order under `out`; returns {stage name: record} (also in OUT/log.json).
 
-    A record holds status ("ran", "skipped: up to date", "skipped: <reason>"), seconds, the
-    stage's result and notes. `force` names stages to rerun regardless of their manifest.
+    A record holds status ("ran", "skipped: up to date", "skipped: <reason>"), seconds (of this
+    run; an up-to-date stage has `seconds_when_run` instead, from its manifest), the stage's result
+    and notes. `force` names stages to rerun regardless of their manifest.
     """
     shared = shared or {}
     records: dict[str, dict] = {}
@@ -160,7 +161,8 @@ def run_stages(
         ):
             log.info("[%s] skipped: up to date (manifest key and output hashes match)", st.name)
             manifests[st.name] = man
-            records[st.name] = {"status": "skipped: up to date", "result": man.get("result", {})}
+            records[st.name] = {"status": "skipped: up to date", "result": man.get("result", {}),
+                                "seconds_when_run": man.get("seconds")}  # fmt: skip
             continue
         started = _read_json(folder / STARTED)
         if folder.exists() and (started is None or started.get("key") != key or st.name in force):
@@ -176,7 +178,8 @@ def run_stages(
         t0 = time.perf_counter()
         result = st.fn(ctx) or {}
         seconds = time.perf_counter() - t0
-        man = {"key": key, "settings": st.settings, "outputs": hash_files(folder), "result": result}
+        man = {"key": key, "settings": st.settings, "outputs": hash_files(folder), "result": result,
+               "seconds": seconds}  # fmt: skip
         _write_json(folder / MANIFEST, man)
         manifests[st.name] = man
         records[st.name] = {"status": "ran", "seconds": seconds, "result": result, "notes": ctx.notes}
