@@ -21,8 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -40,28 +38,9 @@ from coin_cl.diffusion.features import AnalyticFeatures, DinoFeatures, DinoViT  
 from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, opencv_inpaint  # noqa: E402
 from coin_cl.diffusion.sampling import DDIMSampler, SamplerConfig  # noqa: E402
 from coin_cl.diffusion.scene_prior import PriorCondition, ScenePriorConfig, train_scene_prior  # noqa: E402
-from common import default_data  # noqa: E402
+from common import cpu_model, default_data, git_commit  # noqa: E402
 
 from coin_cl import metrics  # noqa: E402
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.check_output(
-            ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], stderr=subprocess.DEVNULL, text=True
-        ).strip()
-    except (subprocess.CalledProcessError, FileNotFoundError):
-        return "uncommitted"
 
 
 def table(rows: list[dict], cols: list[str]) -> str:

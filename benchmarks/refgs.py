@@ -36,7 +36,7 @@ import torch  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import default_data, write_result  # noqa: E402
+from common import cpu_model, default_data, git_commit, write_result  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig, composite_targets  # noqa: E402
@@ -53,16 +53,6 @@ ROWS = {
     "no_attn": RefGSConfig(feature_attention=False),
     "no_depth": RefGSConfig(depth_loss=False),
 }
-
-
-def git_commit() -> str:
-    import subprocess
-
-    try:
-        return subprocess.check_output(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                                       stderr=subprocess.DEVNULL, text=True).strip()  # fmt: skip
-    except (subprocess.CalledProcessError, FileNotFoundError):
-        return "uncommitted"
 
 
 def cross_view_residual(scene, res: dict, k: int, target_k: np.ndarray) -> float:
@@ -142,8 +132,8 @@ def main() -> int:
 
     from coin_cl.engine import get_runtime
 
-    print(f"\nSPIn-NeRF scene 1 at {w}x{h}; commit {git_commit()}; {os.cpu_count()} cores; "
-          f"OpenCL device {get_runtime().name}; {args.minutes} min per row")  # fmt: skip
+    print(f"\nSPIn-NeRF scene 1 at {w}x{h}; commit {git_commit()}; CPU {cpu_model()}, {os.cpu_count()} "
+          f"cores; OpenCL device {get_runtime().name}; {args.minutes} min per row")  # fmt: skip
     print("\n| row | PSNR | SSIM | m-PSNR | m-SSIM | HF ratio (mask) | residual to ref | minutes | steps |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, r in rows.items():
@@ -160,6 +150,7 @@ def main() -> int:
         "minutes_per_row": args.minutes,
         "resolution": [w, h],
         "commit": git_commit(),
+        "cpu": cpu_model(),
     }
     if nv and rg:
         result["floor_met"] = bool(rg["hf_ratio"] > nv["hf_ratio"] and rg["m_psnr"] >= nv["m_psnr"] - 0.5)
