@@ -18,6 +18,7 @@ from coin_cl.engine.rendering import (
     project,
     rasterize,
     rasterize_to_pixels,
+    ssim_map,
 )
 from coin_cl.engine.runtime import Runtime, get_runtime, resolve_device
 
@@ -33,6 +34,7 @@ __all__ = [
     "rasterize",
     "rasterize_to_pixels",
     "resolve_device",
+    "ssim_map",
     "support_mask",
     "warp_features",
 ]

@@ -39,3 +39,22 @@ def finite_rows(*tensors: Tensor) -> Tensor:
         t = t[:, None] if t.dim() == 1 else t.flatten(1)
         ok = ok & torch.isfinite(t).all(dim=1)
     return ok
+
+
+def gaussian_window(window: int, sigma: float) -> Tensor:
+    """[window] float64 normalised 1D Gaussian weights of the SSIM window."""
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"SSIM window must be a positive odd width, got {window}")
+    if not sigma > 0:
+        raise ValueError(f"SSIM sigma must be positive, got {sigma}")
+    x = torch.arange(window, dtype=torch.float64) - (window - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return g / g.sum()
+
+
+def check_ssim_inputs(a: Tensor, b: Tensor) -> None:
+    """Two [B, H, W, C] images of one shape, else a clear error."""
+    if a.dim() != 4 or a.shape != b.shape:
+        raise ValueError(
+            f"ssim_map takes two [B, H, W, C] images of one shape, got {tuple(a.shape)} and {tuple(b.shape)}"
+        )

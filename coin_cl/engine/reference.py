@@ -11,11 +11,12 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from coin_cl.engine import constants as cst
 from coin_cl.engine.errors import PairOverflowError
-from coin_cl.engine.geometry import finite_rows, quat_to_rotmat
+from coin_cl.engine.geometry import check_ssim_inputs, finite_rows, gaussian_window, quat_to_rotmat
 
 
 def project(
@@ -312,3 +313,41 @@ def decode_neural_gaussians(
         opacity[sidx],
         color[sidx],
     )
+
+
+def ssim_map(
+    a: Tensor,
+    b: Tensor,
+    window: int = 11,
+    sigma: float = 1.5,
+    c1: float = 0.01**2,
+    c2: float = 0.03**2,
+    device: object = None,
+) -> Tensor:
+    """Per-pixel SSIM (separable Gaussian window, zero padding as in 3DGS' training loss).
+
+    Args:
+        a, b: [B, H, W, C] images (any C). window: odd width, sigma: the Gaussian's, c1, c2: the
+            stabilising constants (> 0 keeps flat windows finite: SSIM 1 where a = b). `device` is
+            ignored (the twin's signature is the op's).
+    Returns:
+        [B, H, W] SSIM averaged over channels, in a's dtype; differentiable in both images. A NaN/Inf
+        pixel makes the SSIM of every window it touches NaN (the training loss turns non-finite and
+        the trainer stops with `NonFiniteError`, naming the step).
+    """
+    check_ssim_inputs(a, b)
+    g = gaussian_window(window, sigma).to(a.dtype)
+    pad = window // 2
+    x = F.pad(a.permute(0, 3, 1, 2), (pad, pad, pad, pad))
+    y = F.pad(b.to(a.dtype).permute(0, 3, 1, 2), (pad, pad, pad, pad))
+    c = x.shape[1]
+    stats = torch.cat([x, y, x * x, y * y, x * y], 1)
+    k = g.numel()
+    stats = F.conv2d(stats, g.view(1, 1, 1, k).expand(5 * c, 1, 1, k), groups=5 * c)
+    stats = F.conv2d(stats, g.view(1, 1, k, 1).expand(5 * c, 1, k, 1), groups=5 * c)
+    mu_x, mu_y, sxx, syy, sxy = stats.split(c, 1)
+    mu_xy = mu_x * mu_y
+    mu_xx, mu_yy = mu_x * mu_x, mu_y * mu_y
+    num = (2 * mu_xy + c1) * (2 * (sxy - mu_xy) + c2)
+    den = (mu_xx + mu_yy + c1) * ((sxx - mu_xx) + (syy - mu_yy) + c2)
+    return (num / den).mean(1)

@@ -226,3 +226,18 @@ def rasterize(
         **stats,
     }
     return image, alpha, depth, meta
+
+
+def ssim_map(
+    a: Tensor,
+    b: Tensor,
+    window: int = 11,
+    sigma: float = 1.5,
+    c1: float = 0.01**2,
+    c2: float = 0.03**2,
+    backend: str = "opencl",
+    device: Device = None,
+) -> Tensor:
+    """[B, H, W] per-pixel SSIM of a, b [B, H, W, C] (Gaussian window, zero padding), averaged over
+    channels; see `coin_cl.engine.reference.ssim_map`. The OpenCL op differentiates `a` only."""
+    return _backend(backend).ssim_map(a, b, window, sigma, c1, c2, device=device)

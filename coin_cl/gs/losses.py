@@ -10,9 +10,9 @@ weight 0 removes the view.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -27,46 +27,21 @@ class LossConfig:
 
 MASK_FILL = 0.5  # value both images take inside an exclusion mask (any constant would do)
 
-_WINDOWS: dict[tuple, Tensor] = {}
 
-
-def _gauss_1d(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
-    key = (size, sigma, dtype)
-    if key not in _WINDOWS:
-        x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
-        g = torch.exp(-(x**2) / (2 * sigma**2))
-        _WINDOWS[key] = (g / g.sum()).to(dtype)
-    return _WINDOWS[key]
-
-
-def _blur(x: Tensor, g: Tensor) -> Tensor:
-    """Separable Gaussian filter, 'valid' padding as in 3DGS (which zero-pads; we do not)."""
-    c = x.shape[1]
-    k = g.numel()
-    x = F.conv2d(x, g.view(1, 1, 1, k).expand(c, 1, 1, k), groups=c)
-    return F.conv2d(x, g.view(1, 1, k, 1).expand(c, 1, k, 1), groups=c)
-
-
-def ssim_map(a: Tensor, b: Tensor, cfg: LossConfig = LossConfig()) -> Tensor:
+def ssim_map(a: Tensor, b: Tensor, cfg: LossConfig = LossConfig(), backend: str = "torch",
+             device: Any = None) -> Tensor:  # fmt: skip
     """Per-pixel SSIM (Gaussian window, zero padding like 3DGS' training loss).
 
     Args:
-        a, b: [B, H, W, C] images in [0, 1].
+        a, b: [B, H, W, C] images in [0, 1]. backend: "torch" (`coin_cl.engine.reference.ssim_map`)
+            or "opencl" (the fused kernel, gradient to `a` only); device: its OpenCL device.
     Returns:
         [B, H, W] SSIM averaged over channels.
     """
-    g = _gauss_1d(cfg.ssim_window, cfg.ssim_sigma, a.dtype)
-    pad = cfg.ssim_window // 2
-    x = F.pad(a.permute(0, 3, 1, 2), (pad, pad, pad, pad))
-    y = F.pad(b.permute(0, 3, 1, 2), (pad, pad, pad, pad))
-    c = x.shape[1]
-    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g)
-    mu_x, mu_y, sxx, syy, sxy = stats.split(c, 1)
-    mu_xy = mu_x * mu_y
-    mu_xx, mu_yy = mu_x * mu_x, mu_y * mu_y
-    num = (2 * mu_xy + cfg.ssim_c1) * (2 * (sxy - mu_xy) + cfg.ssim_c2)
-    den = (mu_xx + mu_yy + cfg.ssim_c1) * ((sxx - mu_xx) + (syy - mu_yy) + cfg.ssim_c2)
-    return (num / den).mean(1)
+    from coin_cl.engine import ssim_map as engine_ssim
+
+    return engine_ssim(a, b, cfg.ssim_window, cfg.ssim_sigma, cfg.ssim_c1, cfg.ssim_c2, backend=backend,
+                       device=device)  # fmt: skip
 
 
 def photometric_loss(
@@ -75,6 +50,8 @@ def photometric_loss(
     weights: Tensor | None = None,
     exclude: Tensor | None = None,
     cfg: LossConfig = LossConfig(),
+    backend: str = "torch",
+    device: Any = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Weighted, masked (1 - lambda) L1 + lambda (1 - SSIM), summed over views.
 
@@ -82,6 +59,8 @@ def photometric_loss(
         pred, target: [B, H, W, C] (or [H, W, C] for one view).
         weights: [B] per-view weights (default ones); weight 0 => that view contributes nothing.
         exclude: [B, H, W] bool, True = pixel left out of the loss (e.g. the masked object).
+        backend, device: where the SSIM term runs (`ssim_map`); "opencl" needs a target that
+            does not require a gradient.
     Returns:
         (loss scalar = sum_b w_b * L_b, parts with per-view 'l1' [B], 'ssim' [B], 'loss' [B]).
     """
@@ -103,7 +82,7 @@ def photometric_loss(
         keep = None
         n_keep = pred.new_full((b,), float(pred.shape[1] * pred.shape[2]))
     l1_px = (pred - target).abs().mean(-1)
-    s_px = ssim_map(pred, target, cfg)
+    s_px = ssim_map(pred, target, cfg, backend, device)
     if keep is not None:
         l1_px, s_px = l1_px * keep, s_px * keep
     l1 = l1_px.sum((1, 2)) / n_keep.clamp_min(1.0)

@@ -122,9 +122,12 @@ class PhotometricLoss(LossTerm):
 
     def __call__(self, ctx: LossContext) -> Tensor:
         v = ctx.view
+        # The fused path runs SSIM as one OpenCL op (kernels/ssim.cl) instead of torch convolutions.
+        fused = getattr(ctx.model, "fused", False)
         loss, parts = photometric_loss(
             ctx.out.image[None], v.image[None], None,
             None if v.exclude is None else v.exclude[None], self.cfg,
+            backend="opencl" if fused else "torch", device=getattr(ctx.model, "device", None),
         )  # fmt: skip
         w = self.view_weights(ctx, parts["loss"][0])
         w = torch.as_tensor(w, dtype=loss.dtype)

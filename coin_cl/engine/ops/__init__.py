@@ -6,6 +6,7 @@
     reduce.py     <- kernels/reduce.cl
     warp.py       <- kernels/warp.cl (feature warping through a point cloud)
     decode.py     <- kernels/decode.cl (Scaffold-GS neural Gaussians after the MLPs)
+    ssim.py       <- kernels/ssim.cl (per-pixel SSIM of the photometric loss)
 
 Each public function has the signature of its float64 twin in `coin_cl.engine.reference`.
 Everything crosses into the kernels as contiguous float32 / int32 tensors wrapped by the runtime
@@ -16,6 +17,7 @@ from coin_cl.engine.ops.bin import TileBins, bin_tiles
 from coin_cl.engine.ops.decode import decode_neural_gaussians
 from coin_cl.engine.ops.project import project
 from coin_cl.engine.ops.rasterize import deterministic, kernel_variant, raster_variant, rasterize_to_pixels
+from coin_cl.engine.ops.ssim import ssim_map
 
 __all__ = [
     "TileBins",
@@ -26,4 +28,5 @@ __all__ = [
     "project",
     "raster_variant",
     "rasterize_to_pixels",
+    "ssim_map",
 ]
