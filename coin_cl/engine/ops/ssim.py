@@ -23,14 +23,14 @@ class _SSIM(torch.autograd.Function):
         defines = {"NUM_CHANNELS": C, "WIN": window}
         out, part = rt.empty(B, H, W), rt.empty(3 * C, B, H, W)  # planar (kernels/ssim.cl)
         if n:
-            hstat = rt.array(rt.empty(5 * C, n), mode="scratch")
-            rt.run(
-                "ssim.cl", "ssim_fwd_h", (groups(n),), (64,),
-                [i32(n), i32(H), i32(W), x, y, gw, hstat], defines=defines, wait=False,
-            )  # fmt: skip
+            vstat = rt.array(rt.empty(5 * C, n), mode="scratch")
             rt.run(
                 "ssim.cl", "ssim_fwd_v", (groups(n),), (64,),
-                [i32(n), i32(H), i32(W), f32(c1), f32(c2), hstat, gw, (out, "out"), (part, "out")],
+                [i32(n), i32(H), i32(W), x, y, gw, vstat], defines=defines, wait=False,
+            )  # fmt: skip
+            rt.run(
+                "ssim.cl", "ssim_fwd_h", (groups(n),), (64,),
+                [i32(n), i32(H), i32(W), f32(c1), f32(c2), vstat, gw, (out, "out"), (part, "out")],
                 defines=defines,
             )  # fmt: skip
         ctx.save_for_backward(x, y, part, gw)
