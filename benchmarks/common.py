@@ -6,7 +6,9 @@ from __future__ import annotations
 import json
 import os
 import platform
+import statistics
 import subprocess
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,3 +64,14 @@ def mean_std(rows: dict, key: str) -> tuple[float, float]:
 
     v = np.array([r[key] for r in rows.values()], float)
     return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else float("nan")
+
+
+def median_time(fn, runs: int) -> float:
+    """Median wall time of `runs` calls of fn() after one warm-up call (compiles, caches)."""
+    fn()
+    ts = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts)

@@ -38,7 +38,7 @@ from coin_cl.diffusion.features import AnalyticFeatures, DinoFeatures, DinoViT  
 from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, opencv_inpaint  # noqa: E402
 from coin_cl.diffusion.sampling import DDIMSampler, SamplerConfig  # noqa: E402
 from coin_cl.diffusion.scene_prior import PriorCondition, ScenePriorConfig, train_scene_prior  # noqa: E402
-from common import cpu_model, default_data, git_commit  # noqa: E402
+from common import cpu_model, default_data, git_commit, median_time  # noqa: E402
 
 from coin_cl import metrics  # noqa: E402
 
@@ -189,16 +189,6 @@ def fmt(r: dict) -> dict:
     return {"mPSNR dB": f"{r['mpsnr']:.2f}", "GMSD": f"{r['gmsd']:.4f}", "HF ratio": f"{r['hf']:.3f}"}
 
 
-def timeit(fn, n: int = 5) -> float:
-    fn()
-    ts = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
-
-
 def bench_steps(prior) -> tuple[list[dict], dict]:
     rows = []
     P = prior.work_size
@@ -215,8 +205,8 @@ def bench_steps(prior) -> tuple[list[dict], dict]:
 
     s = DDIMSampler(prior, SamplerConfig(num_steps=50, guidance_scale=0.3))
     z = torch.randn(1, 3, P, P)
-    unguided = timeit(lambda: s.step(z, 25, cond))
-    guided = timeit(lambda: s.step(z, 25, cond, energy=energy))
+    unguided = median_time(lambda: s.step(z, 25, cond), 5)
+    guided = median_time(lambda: s.step(z, 25, cond, energy=energy), 5)
     rows.append(
         {
             "model": f"scene prior {P}x{P}",
@@ -239,8 +229,8 @@ def bench_steps(prior) -> tuple[list[dict], dict]:
 
         return f
 
-    a_fwd = timeit(lambda: feats(x.detach()))
-    a_fb = timeit(fb(feats))
+    a_fwd = median_time(lambda: feats(x.detach()), 5)
+    a_fb = median_time(fb(feats), 5)
     rows.append(
         {
             "model": "analytic features 256x256 (fwd / fwd+bwd)",
@@ -249,8 +239,8 @@ def bench_steps(prior) -> tuple[list[dict], dict]:
         }
     )
     dino = DinoFeatures(DinoViT().eval().requires_grad_(False))  # random weights: the timing is the same
-    d_fwd = timeit(lambda: dino(x.detach()), n=3)
-    d_fb = timeit(fb(dino), n=3)
+    d_fwd = median_time(lambda: dino(x.detach()), 3)
+    d_fb = median_time(fb(dino), 3)
     rows.append(
         {
             "model": "DINO ViT-S/16 + JBU 256x256, random weights (fwd / fwd+bwd)",

@@ -24,13 +24,12 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import statistics  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import cpu_model, git_commit  # noqa: E402
+from common import cpu_model, git_commit, median_time  # noqa: E402
 
 from coin_cl.engine import ops, reference  # noqa: E402
 from coin_cl.engine.runtime import Runtime, get_runtime  # noqa: E402
@@ -72,16 +71,6 @@ def camera(width: int, height: int):
 def rel_err(a: torch.Tensor, e: torch.Tensor) -> float:
     a, e = a.detach().double(), e.detach().double()
     return float((a - e).abs().max() / e.abs().max().clamp_min(1e-30))
-
-
-def median_time(fn, runs: int) -> float:
-    fn()  # warm-up (compiles, caches)
-    ts = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 class Case:

@@ -18,11 +18,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
 
 import torch  # noqa: E402
-from common import cpu_model, git_commit  # noqa: E402
+from common import cpu_model, git_commit, median_time  # noqa: E402
 
 from coin_cl.engine import ops, reference  # noqa: E402
 from coin_cl.engine.runtime import get_runtime  # noqa: E402
@@ -37,16 +35,6 @@ def images(w: int, h: int) -> tuple[torch.Tensor, torch.Tensor]:
     b = (torch.nn.functional.avg_pool2d(a.permute(0, 3, 1, 2), 3, 1, 1).permute(0, 2, 3, 1)
          + 0.05 * torch.randn(1, h, w, 3, generator=g, dtype=torch.float64)).clamp(0, 1)  # fmt: skip
     return a, b
-
-
-def timed(fn, runs: int) -> float:
-    fn()
-    ts = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def ssim(impl: str, x: torch.Tensor, b: torch.Tensor, rt, **kw) -> torch.Tensor:
@@ -66,7 +54,7 @@ def row(impl: str, a: torch.Tensor, b: torch.Tensor, v: torch.Tensor, rt, runs: 
         x = a.clone().requires_grad_()
         torch.autograd.grad(ssim(impl, x, b, rt, **kw), x, v)
 
-    return timed(fwd, runs), timed(fwd_bwd, runs)
+    return median_time(fwd, runs), median_time(fwd_bwd, runs)
 
 
 def main() -> int:

@@ -37,14 +37,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import statistics  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import cpu_model, git_commit  # noqa: E402
+from common import cpu_model, git_commit, median_time  # noqa: E402
 
 from coin_cl.engine import reference_warp as warp_reference  # noqa: E402
 from coin_cl.engine.ops import warp  # noqa: E402
@@ -126,16 +125,6 @@ def run_op(mod, pts, k, phi, img, depth, v, rt=None, **kw):
                                    device=rt, **kw)  # fmt: skip
     (g,) = torch.autograd.grad(out, x, v)
     return out.detach(), wt, z, g
-
-
-def median_time(fn, runs: int) -> float:
-    fn()
-    ts = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def rel(a, e, sel=None) -> float:
