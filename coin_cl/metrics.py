@@ -150,11 +150,8 @@ def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, power: int = 1)
     than the truth's. NaN for an empty mask or a flat ground truth there. What PSNR does not see: a
     sharp wrong guess and a blur can score the same PSNR but not the same ratio."""
     p, g = _check_pair(pred, gt)
-    m = np.asarray(mask, bool)
-    if not m.any():
-        return math.nan
-    den = mask_texture(g, m, power)
-    return mask_texture(p, m, power) / den if den > 0 else math.nan
+    den = mask_texture(g, mask, power)  # NaN for an empty mask, so the ratio is NaN too
+    return mask_texture(p, mask, power) / den if den > 0 else math.nan
 
 
 # ----------------------------------------------------------------------------------------------

@@ -26,6 +26,18 @@ def spinnerf_dir() -> Path:
     return d / "spinnerf_scene1"
 
 
+@pytest.fixture
+def poisoned_rt():
+    """The default runtime with every kernel output starting as NaN / INT32_MIN, so an element a
+    kernel leaves unwritten shows in the comparison."""
+    from coin_cl.engine.runtime import get_runtime
+
+    r = get_runtime()
+    r.poison = True
+    yield r
+    r.poison = False
+
+
 def small_mode() -> bool:
     """True under Oclgrind (or COIN_CL_SMALL=1): kernel tests shrink to sizes a simulator runs."""
     return (

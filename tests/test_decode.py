@@ -7,7 +7,6 @@ import torch
 from conftest import small_mode
 
 from coin_cl.engine import ops, reference
-from coin_cl.engine.runtime import get_runtime
 
 pytestmark = pytest.mark.kernel
 
@@ -17,11 +16,8 @@ NAMES = ("means", "quats", "scales", "opacities", "colors")
 
 
 @pytest.fixture
-def rt():
-    r = get_runtime()
-    r.poison = True  # every output starts as NaN: an unwritten element shows
-    yield r
-    r.poison = False
+def rt(poisoned_rt):
+    return poisoned_rt  # every output starts as NaN: an unwritten element shows
 
 
 def _inputs(seed: int, frac_visible: float = 0.6, stiff: bool = False):

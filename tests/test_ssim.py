@@ -9,7 +9,6 @@ import torch
 from conftest import small_mode
 
 from coin_cl.engine import ops, reference
-from coin_cl.engine.runtime import get_runtime
 from coin_cl.gs.losses import LossConfig, photometric_loss
 
 pytestmark = pytest.mark.kernel
@@ -19,11 +18,8 @@ B, H, W = (1, 9, 14) if SMALL else (2, 37, 53)  # not multiples of anything on p
 
 
 @pytest.fixture
-def rt():
-    r = get_runtime()
-    r.poison = True  # every output starts as NaN: an unwritten element shows
-    yield r
-    r.poison = False
+def rt(poisoned_rt):
+    return poisoned_rt  # every output starts as NaN: an unwritten element shows
 
 
 def _images(seed: int, c: int = 3, shape=(B, H, W)):

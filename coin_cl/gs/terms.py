@@ -122,7 +122,8 @@ class PhotometricLoss(LossTerm):
 
     def __call__(self, ctx: LossContext) -> Tensor:
         v = ctx.view
-        # The fused path runs SSIM as one OpenCL op (kernels/ssim.cl) instead of torch convolutions.
+        # The fused path runs SSIM as one OpenCL op (kernels/ssim.cl) instead of torch convolutions;
+        # a term evaluated without a model (model=None) takes the torch path.
         fused = getattr(ctx.model, "fused", False)
         loss, parts = photometric_loss(
             ctx.out.image[None], v.image[None], None,
