@@ -34,6 +34,7 @@ import numpy as np
 
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.models import sd2_denoiser
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import Stage, StageContext, check_output_folder, run_stages
 from coin_cl.pipeline.ted import TEDConfig
@@ -62,7 +63,7 @@ STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval
 @dataclass
 class CoInConfig:
     """mask: "seg" | "bbox" | "scribble" (derived from the scene's segmentation masks).
-    ref: reference view (index or name); None chooses by `coin_cl.gs.refgs.choose_reference`.
+    ref: reference view (index or name); None chooses by `coin_cl.pipeline.reference.choose_reference`.
     prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
     resolution: image scale (0.5 = half). sd_path / dino_path: local weights (else the embedded
     defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
@@ -266,7 +267,8 @@ def inpaint(
 def _run(
     scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
 ) -> CoInResult:
-    from coin_cl.gs.refgs import RefGSConfig, choose_reference
+    from coin_cl.gs.refgs import RefGSConfig
+    from coin_cl.pipeline.reference import choose_reference
 
     masks = _train_masks(scene, cfg)
     train = list(scene.train_idx)
@@ -402,14 +404,6 @@ def _stage_refine(ctx: StageContext) -> dict:
     return res
 
 
-def _sd2(cfg: CoInConfig):
-    if not cfg.sd_path:
-        return None
-    from coin_cl.diffusion.sd2 import SD2Denoiser
-
-    return SD2Denoiser.from_pretrained(cfg.sd_path)
-
-
 def _stage_inpaint(ctx: StageContext) -> dict:
     scene, masks, train = _scene_views(ctx)
     cfg: CoInConfig = ctx.shared["cfg"]
@@ -424,7 +418,8 @@ def _stage_inpaint(ctx: StageContext) -> dict:
     icfg = effective_config(
         cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
     )
-    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask, sd2=_sd2(cfg), prompt=cfg.prompt)
+    sd2 = sd2_denoiser(cfg.sd_path)
+    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask, sd2=sd2, prompt=cfg.prompt)
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
     return res
@@ -432,7 +427,7 @@ def _stage_inpaint(ctx: StageContext) -> dict:
 
 def _targets(ctx: StageContext, folder: Path) -> dict[int, np.ndarray]:
     scene, masks, train = _scene_views(ctx)
-    from coin_cl.gs.refgs import composite_targets
+    from coin_cl.gs.targets import composite_targets
 
     inp = read_inpaints(scene, folder, train)
     # Outside the mask the captured image is the truth (paper 5.1).
