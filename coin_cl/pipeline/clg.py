@@ -29,14 +29,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
-from coin_cl.diffusion.inpaint2d import paste
-from coin_cl.diffusion.sampling import DDIMSampler, Denoiser, SamplerConfig
-from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
-from coin_cl.pipeline.crop import resize_to
-from coin_cl.pipeline.reprojection import consistency_residual, warp_fill
-from coin_cl.scene.io import atomic_write, to_uint8, view_stem, write_png
+from coin_cl.diffusion.sampling import Denoiser, SamplerConfig
+from coin_cl.pipeline.clg_view import ReferenceView, sample_view, warp_view
+from coin_cl.scene.io import atomic_write, view_stem, write_png
 
 log = logging.getLogger(__name__)
 
@@ -171,89 +167,6 @@ def _write_view(js: Path, png: Path, rec: dict[str, Any], out: np.ndarray) -> No
     write_png(png, out)
 
 
-@dataclass
-class _Reference:
-    """The reference view as every view's CLG sees it."""
-
-    k: int
-    cam: Any
-    image: np.ndarray  # [Hk, Wk, 3] I^_k
-    depth: np.ndarray | None  # [Hk, Wk] rendered camera z or None
-    points: np.ndarray  # [M, 3] P_k
-
-
-def _residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray, ref: _Reference,
-               device: Any) -> tuple[float, float, int]:  # fmt: skip
-    """Consistency residuals of the input and of what the PNG will hold (uint8), and the support."""
-    r_before, n_sup = consistency_residual(
-        before, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device
-    )
-    written = to_uint8(out).astype(np.float32) / 255  # the residual of what the PNG holds
-    r_after, _ = consistency_residual(written, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device)
-    return r_before, r_after, n_sup
-
-
-def _warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, mask: np.ndarray, ref: _Reference,
-               device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
-    """CLG without a sampler for view n: (output [H, W, 3], record)."""
-    out, n_sup = warp_fill(inp_n, ren_n, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device)
-    r_before, r_after, _ = _residuals(inp_n, out, cam, mask, ref, device)
-    rec = {"view": n, "status": "warped", "residual_before": r_before, "residual_after": r_after,
-           "support_px": n_sup, "hole_px": int(mask.sum())}  # fmt: skip
-    return out, rec
-
-
-def _sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray,
-                 depth_n: np.ndarray | None, mask: np.ndarray, ref: _Reference, denoiser: Denoiser,
-                 features: Callable, cfg: CLGConfig,
-                 device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
-    """Guided sampling for view n on its crop, pasted back inside the mask: (output, record)."""
-    from tqdm import tqdm
-
-    work, n_steps = work_size(denoiser), cfg.num_steps(denoiser)
-    prob = setup_view(ref.cam, cam, ref.image, inp_n, ren_n, ref.depth, depth_n, mask, ref.points, features,
-                      work, cfg, device)  # fmt: skip
-    energy = make_energy(prob, features, cfg, device)
-    cond = denoiser.make_condition(prob.image, prob.hole, cfg.prompt)
-    uncond = None
-    if cfg.sampler.cfg_scale != 1.0 and cfg.prompt and hasattr(denoiser, "encode_prompt"):
-        uncond = type(cond)(cond.mask, cond.masked_latent, denoiser.encode_prompt("").expand_as(cond.text))
-    if hasattr(denoiser, "latent_channels"):  # latent model (SD2): the VAE's grid
-        f = int(denoiser.vae_factor)
-        shape: tuple[int, ...] = (1, int(denoiser.latent_channels), work // f, work // f)
-    else:
-        shape = tuple(prob.image.shape)
-    g = torch.Generator().manual_seed(cfg.seed + n)
-    z = torch.randn(shape, generator=g)
-    sbar = tqdm(total=n_steps, desc=f"  {stem} steps", leave=False, disable=not cfg.progress)
-    res = DDIMSampler(denoiser, cfg.sampler_config(denoiser)).sample(
-        z, cond, uncond, energy=energy, generator=g, callback=lambda *_, b=sbar: b.update(1)
-    )
-    sbar.close()
-    with torch.no_grad():
-        # the last step's clean x0 prediction (as the scene prior's inpaint; for SD2 it equals z at
-        # alpha_bar_0 up to sqrt(1 - alpha_bar_0) of predicted noise)
-        x = denoiser.decode(res.x0).clamp(0, 1).float()
-        e_in, e_out = float(energy(prob.image)), float(energy(x))
-    fill = x[0].permute(1, 2, 0).numpy()
-    back = resize_to(fill, prob.side, prob.side)
-    full = inp_n.copy()
-    H, W = mask.shape
-    ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
-    xs = slice(max(prob.x0, 0), min(prob.x0 + prob.side, W))
-    full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
-    out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
-    r_before, r_after, n_sup = _residuals(inp_n, out, cam, mask, ref, device)
-    rec = {
-        "view": n, "status": "guided" if cfg.sampler.guidance_scale else "unguided", "steps": n_steps,
-        "energy_input": e_in, "energy_output": e_out, "energies": res.energies,
-        "residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
-        "support_work_px": int(prob.support.sum()), "hole_work_px": int(prob.hole.sum()),
-        "n_points": int(len(ref.points)), "crop": [prob.y0, prob.x0, prob.side], "work": work,
-    }  # fmt: skip
-    return out, rec
-
-
 def run_clg(
     reference: int,
     views: Sequence[int],
@@ -301,7 +214,7 @@ def run_clg(
     k = int(reference)
     cam_k = cameras[k]
     Hk, Wk = cam_k.height, cam_k.width
-    ref = _Reference(k, cam_k, _check_image(inpaints[k], Hk, Wk, f"inpaint of the reference view {k}"),
+    ref = ReferenceView(k, cam_k, _check_image(inpaints[k], Hk, Wk, f"inpaint of the reference view {k}"),
                      _depth_of(depths, k, Hk, Wk, "depth k"), points)  # fmt: skip
     out_dir = Path(out_dir)
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
@@ -341,13 +254,13 @@ def run_clg(
         ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
         depth_n = _depth_of(depths, n, cam.height, cam.width, f"depth of view {n}")
         if not cfg.sample:
-            out, rec = _warp_view(n, cam, inp_n, ren_n, mask, ref, device)
+            out, rec = warp_view(n, cam, inp_n, ren_n, mask, ref, device)
             log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
                      "residual %.4f -> %.4f", n, stem, rec["support_px"], rec["hole_px"],
                      rec["residual_before"], rec["residual_after"])  # fmt: skip
         else:
             assert denoiser is not None and features is not None
-            out, rec = _sample_view(n, stem, cam, inp_n, ren_n, depth_n, mask, ref, denoiser, features, cfg,
+            out, rec = sample_view(n, stem, cam, inp_n, ren_n, depth_n, mask, ref, denoiser, features, cfg,
                                     device)  # fmt: skip
         rec["seconds"] = time.perf_counter() - t0
         _write_view(js, png, rec, out)
