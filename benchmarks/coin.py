@@ -68,9 +68,9 @@ ROWS = {
     "no_clg": {"skip": ("clg",)},
     "no_ted": {"skip": ("ted",)},
     "seg_prior": {"inpaint2d": Inpaint2DConfig(use_dataset=False)},
-    "bbox": {"mask": "bbox"},
-    "scribble": {"mask": "scribble"},
-    "refined": {"masks": "refined"},
+    "bbox": {"mask_kind": "bbox"},
+    "scribble": {"mask_kind": "scribble"},
+    "refined": {"inpaint_region": "refined"},
 }
 KEYS = ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd")
 

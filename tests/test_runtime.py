@@ -130,9 +130,8 @@ def test_a_listed_device_that_cannot_compile_is_passed_over(monkeypatch, caplog)
     real = runtime.working_devices()[0]
     fake = _ListedButBroken(real)
     monkeypatch.setattr(runtime, "all_devices", lambda: [(fake.platform, fake), (real.platform, real)])
-    monkeypatch.setattr(
-        runtime, "_PROBES", {runtime._probe_key(fake): runtime.Probe(False, "unknown target CPU 'generic'", 0.0)}
-    )
+    broken = runtime.Probe(False, "unknown target CPU 'generic'", 0.0)
+    monkeypatch.setattr(runtime, "_PROBES", {runtime._probe_key(fake): broken})
     with caplog.at_level("WARNING", logger="coin_cl.engine.runtime"):
         chosen = runtime._choose_device(None)
     assert runtime.device_label(chosen) == runtime.device_label(real)
