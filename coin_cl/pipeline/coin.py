@@ -547,8 +547,10 @@ def _stage_ted(ctx: StageContext) -> dict:
     tcfg = replace(
         cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
     )
+    caps = {"finetune": plan.cap_seconds("ted_finetune"), "adversarial": plan.cap_seconds("ted_adversarial")}
     res, _ = run_ted(
-        model, views, [], ctx.out, tcfg, TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True)
+        model, views, [], ctx.out, tcfg, TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
+        max_seconds=caps,
     )
     if not any(ctx.out.rglob(CKPT_NAME)):
         # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the
