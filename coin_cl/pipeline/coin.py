@@ -549,7 +549,12 @@ def _stage_ted(ctx: StageContext) -> dict:
     )
     caps = {"finetune": plan.cap_seconds("ted_finetune"), "adversarial": plan.cap_seconds("ted_adversarial")}
     res, _ = run_ted(
-        model, views, [], ctx.out, tcfg, TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
+        model,
+        views,
+        [],
+        ctx.out,
+        tcfg,
+        TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
         max_seconds=caps,
     )
     if not any(ctx.out.rglob(CKPT_NAME)):
