@@ -40,7 +40,7 @@ import numpy as np
 from common import cpu_model, git_commit, mean_std, other_references, write_result
 
 from coin_cl.gs.refgs import RefGSConfig
-from coin_cl.pipeline.clg import CLGConfig
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, CoInResult, inpaint, share_stages
 from coin_cl.pipeline.insert import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig

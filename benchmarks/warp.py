@@ -142,7 +142,8 @@ def clg_part(args) -> dict:
     from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, train_scene_prior
 
     from coin_cl.gs.trainer import TrainConfig, make_trainer
-    from coin_cl.pipeline.clg import CLGConfig, run_clg
+    from coin_cl.pipeline.clg import run_clg
+    from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.reference import choose_reference, reference_points
     from coin_cl.scene import load_scene
 

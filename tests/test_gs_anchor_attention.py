@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from coin_cl.gs.anchor_attention import AnchorAttention, mask_anchor_sets, write_back_features
-from coin_cl.gs.refgs import RefGSConfig
+from coin_cl.gs.refgs import RefGSConfig, anchor_attention
 from coin_cl.scene.types import Camera
 
 
@@ -139,7 +139,7 @@ def test_attention_write_back_and_apply_view():
     anchors = torch.tensor([_at_pixel(cam, 20.5, 15.5, 2.0), _at_pixel(cam, 12.5, 15.5, 2.0),
                             _at_pixel(cam, 5.5, 5.5, 2.0)])  # fmt: skip
     param = torch.nn.Parameter(torch.randn(3, 32))
-    att = AnchorAttention.from_config(RefGSConfig())
+    att = anchor_attention(RefGSConfig())
     out, info = att.apply_view(param, anchors, cam, mask)
     assert info["updated"].tolist() == [0] and torch.allclose(out[0], param[1].detach(), atol=1e-6)
     before = param.detach().clone()

@@ -11,6 +11,7 @@ import torch
 
 from coin_cl.gs import view_weights
 from coin_cl.gs.refgs import RefGSConfig
+from coin_cl.gs.refgs import view_weights as view_weights_of
 from coin_cl.gs.view_weights import AdaptiveViewWeights
 
 
@@ -34,7 +35,7 @@ def test_weights_reference_first_visit_and_disabled():
     w = AdaptiveViewWeights(ref_view="r", lambda_r=100.0, first_visit_weight=0.25)
     assert w.weight("r", 9.0) == 100.0 and w.weight("r", 0.0) == 100.0 and w.weight("r", 5.0) == 100.0
     assert w.weight("a", 0.1) == 0.25
-    off = AdaptiveViewWeights.from_config(RefGSConfig(adaptive_weights=False), ref_view=0)
+    off = view_weights_of(RefGSConfig(adaptive_weights=False), ref_view=0)
     assert [off.weight(v, L) for v, L in [(0, 1.0), (1, 1.0), (1, 2.0)]] == [1.0, 1.0, 1.0]
 
 

@@ -12,7 +12,8 @@ import pytest
 import torch
 from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, opencv_inpaint, train_scene_prior
 
-from coin_cl.pipeline.clg import CLGConfig, run_clg, stage_clg
+from coin_cl.pipeline.clg import run_clg, stage_clg
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.reference import reference_points
 from coin_cl.scene.io import read_image, to_uint8
 from coin_cl.scene.synthetic import make_synthetic

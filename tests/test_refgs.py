@@ -18,3 +18,26 @@ def test_config_defaults_and_validation():
                 {"attn_mix": 0}, {"attn_heads": 0}, {"lambda_depth": -1}, {"attn_from": 2}):  # fmt: skip
         with pytest.raises(ValueError):
             RefGSConfig(**bad)
+
+
+def test_builders_and_terms_follow_the_config():
+    import numpy as np
+
+    from coin_cl.gs.refgs import adaptive_weights_of, anchor_attention, refgs_terms, view_weights
+
+    cfg = RefGSConfig(lambda_r=80.0, first_visit_weight=0.3, attn_heads=2, attn_head_dim=8, attn_mix=0.5,
+                      attn_from=0.25, ring_frac=0.3, ring_min_px=2, attn_write_back=False)  # fmt: skip
+    w = view_weights(cfg, 3)
+    assert (w.ref_view, w.lambda_r, w.first_visit_weight, w.enabled) == (3, 80.0, 0.3, True)
+    a = anchor_attention(cfg, 16)
+    assert (a.feat_dim, a.heads, a.head_dim, a.mix) == (16, 2, 8, 0.5)
+    masks = [np.zeros((4, 4), bool)] * 2
+    terms = refgs_terms(cfg, 1, masks, 100, feat_dim=16, depth_prior=np.zeros((4, 4), np.float32))
+    att = next(t for t in terms if t.name == "attention")
+    assert att.start_step == 25.0 and (att.ring_frac, att.ring_min_px, att.write_back) == (0.3, 2, False)
+    assert att.lr(0) == pytest.approx(0.01) and att.lr(100) == pytest.approx(1e-5)
+    assert any(t.name == "ref_depth" for t in terms) and adaptive_weights_of(terms).lambda_r == 80.0
+    plain = refgs_terms(RefGSConfig(depth_loss=False, feature_attention=False), 0, masks, 10)
+    assert [t.name for t in plain] == [t.name for t in terms[:2]]  # photometric loss and scale reg only
+    with pytest.raises(ValueError, match="depth prior"):
+        refgs_terms(RefGSConfig(), 0, masks, 10)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -22,12 +22,10 @@ from torch import Tensor, nn
 from coin_cl.engine import constants as cst
 from coin_cl.gs.base import Model
 from coin_cl.gs.data import View
+from coin_cl.gs.optim import ExpSchedule
 from coin_cl.gs.terms import LossContext, LossTerm
 from coin_cl.scene.masks import mask_of_shape
 from coin_cl.scene.types import Camera
-
-if TYPE_CHECKING:
-    from coin_cl.gs.refgs import RefGSConfig
 
 log = logging.getLogger(__name__)
 
@@ -136,13 +134,6 @@ class AnchorAttention(nn.Module):
         self.n_calls = 0
         self.n_skipped = 0
 
-    @staticmethod
-    def from_config(cfg: RefGSConfig, feat_dim: int = 32) -> AnchorAttention:
-        return AnchorAttention(
-            feat_dim, cfg.attn_heads, cfg.attn_head_dim, cfg.attn_max_in, cfg.attn_max_side,
-            cfg.attn_mix, cfg.seed,
-        )  # fmt: skip
-
     def get_extra_state(self) -> dict[str, Any]:
         return {"gen": self.gen.get_state(), "n_calls": self.n_calls, "n_skipped": self.n_skipped}
 
@@ -229,7 +220,7 @@ class AnchorAttention(nn.Module):
 @torch.no_grad()
 def write_back_features(param: Tensor, attended: Tensor, updated: Tensor) -> None:
     """Store the attended rows in the feature parameter (after the optimizer step), so that
-    evaluation, export and the next views see them (`RefGSConfig.attn_write_back`).
+    evaluation, export and the next views see them (`AnchorAttentionTerm`'s `write_back`).
 
     Args:
         param: [A, C] the model's feature parameter; attended: [A, C] the forward's output;
@@ -243,22 +234,36 @@ def write_back_features(param: Tensor, attended: Tensor, updated: Tensor) -> Non
 class AnchorAttentionTerm(LossTerm):
     """Anchor feature attention in every training view (no loss of its own: value 0).
 
-    Per step (once `cfg.attention_active(step, iters)`): the in-mask anchors of the view
-    (`masks[index]`) attend to the ring's; the render uses the attended features, so the
-    photometric gradient reaches the attention's query/key projections, which this term's Adam
-    steps in `step_after` (lr `cfg.attn_lr(iters)`), and then the attended rows are written into
-    the feature parameter when `cfg.attn_write_back`. Empty sets: no override that step
-    (`n_skipped`). Needs a model whose render takes `features=` (Scaffold-GS).
+    Per step from `start_step` on: the in-mask anchors of the view (`masks[index]`) attend to the
+    ring's (`ring_frac`, `ring_min_px`, see `ring_width_px`); the render uses the attended features,
+    so the photometric gradient reaches the attention's query/key projections, which this term's
+    Adam steps in `step_after` (learning rate `lr(step)`), and then the attended rows are written
+    into the feature parameter when `write_back`. Empty sets: no override that step (`n_skipped`).
+    Needs a model whose render takes `features=` (Scaffold-GS). `coin_cl.gs.refgs.refgs_terms`
+    builds it from a `RefGSConfig`.
     """
 
     name = "attention"
 
-    def __init__(self, attn: AnchorAttention, masks: Sequence[np.ndarray], cfg: RefGSConfig, iters: int):
+    def __init__(
+        self,
+        attn: AnchorAttention,
+        masks: Sequence[np.ndarray],
+        lr: ExpSchedule,
+        start_step: float = 0.0,
+        ring_frac: float = 0.5,
+        ring_min_px: int = 4,
+        write_back: bool = True,
+    ):
         self.attn = attn
         self.masks = [np.asarray(m, bool) for m in masks]
-        self.cfg = cfg
-        self.iters = int(iters)
-        self.lr = cfg.attn_lr(self.iters)
+        self.lr = lr
+        self.start_step = float(start_step)
+        self.ring_frac, self.ring_min_px, self.write_back = (
+            float(ring_frac),
+            int(ring_min_px),
+            bool(write_back),
+        )
         self.weight = 1.0
         self.opt = torch.optim.Adam(self.attn.parameters(), lr=self.lr(0), eps=1e-15)
         self.n_applied = 0
@@ -267,7 +272,7 @@ class AnchorAttentionTerm(LossTerm):
 
     def before_render(self, view: View, index: int, step: int, model: Model) -> dict[str, Any]:
         self._pending = None
-        if not self.cfg.attention_active(step, self.iters):
+        if step < self.start_step:
             return {}
         if "features" not in model.optimizer.params:
             raise ValueError(
@@ -278,7 +283,7 @@ class AnchorAttentionTerm(LossTerm):
         p = model.optimizer.params
         feats, info = self.attn.apply_view(
             p["features"], p["anchors"].detach(), view.camera, self.masks[index],
-            self.cfg.ring_frac, self.cfg.ring_min_px,
+            self.ring_frac, self.ring_min_px,
         )  # fmt: skip
         if info["skipped"] is not None:
             self.n_skipped += 1
@@ -305,7 +310,7 @@ class AnchorAttentionTerm(LossTerm):
             for group in self.opt.param_groups:
                 group["lr"] = self.lr(ctx.step)
             self.opt.step()
-        if self.cfg.attn_write_back:
+        if self.write_back:
             write_back_features(ctx.model.optimizer.params["features"], feats, updated)
 
     def state_dict(self) -> dict[str, Any]:

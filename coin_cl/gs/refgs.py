@@ -39,7 +39,7 @@ class RefGSConfig:
     `depth_loss=False`; all three plus `prune_points=False` is plain training on the inpaints.
     """
 
-    # -- reference view: name or index (see `resolve_reference`); None = `choose_reference` rule
+    # -- reference view: name or index; None = the rule of `coin_cl.pipeline.reference.choose_reference`
     ref: str | int | None = None
     # -- targets: inpaint inside the mask, captured image outside (paper 5.1)
     composite: bool = True
@@ -113,6 +113,24 @@ class RefGSConfig:
         return RefGSConfig(**d)
 
 
+def view_weights(cfg: RefGSConfig, ref_view: Any) -> AdaptiveViewWeights:
+    """The adaptive view weights `cfg` asks for, with `ref_view` the reference's key."""
+    return AdaptiveViewWeights(ref_view, cfg.lambda_r, cfg.first_visit_weight, cfg.adaptive_weights)
+
+
+def anchor_attention(cfg: RefGSConfig, feat_dim: int = 32) -> AnchorAttention:
+    """The anchor attention module `cfg` asks for, over features of width `feat_dim`."""
+    return AnchorAttention(
+        feat_dim,
+        cfg.attn_heads,
+        cfg.attn_head_dim,
+        cfg.attn_max_in,
+        cfg.attn_max_side,
+        cfg.attn_mix,
+        cfg.seed,
+    )
+
+
 def refgs_terms(
     cfg: RefGSConfig,
     ref_index: int,
@@ -134,7 +152,7 @@ def refgs_terms(
         ref_index: the reference's trainer view index; masks: [H, W] bool per trainer view.
         iters: the run's length (attention start and lr schedule).
     """
-    weights = AdaptiveViewWeights.from_config(cfg, ref_index)
+    weights = view_weights(cfg, ref_index)
     terms: list[LossTerm] = [
         PhotometricLoss(loss_cfg or LossConfig(), view_weights=AdaptiveWeightSource(weights)),
         ScaleVolumeReg(),
@@ -146,7 +164,10 @@ def refgs_terms(
             ReferenceDepthTerm(ref_index, depth_prior, masks[ref_index], cfg.lambda_depth, depth_is_disparity)
         )
     if cfg.feature_attention:
-        terms.append(AnchorAttentionTerm(AnchorAttention.from_config(cfg, feat_dim), masks, cfg, iters))
+        # attention_active(step, iters) is step >= attn_from * iters once feature_attention is on
+        terms.append(AnchorAttentionTerm(anchor_attention(cfg, feat_dim), masks, cfg.attn_lr(iters),
+                                         cfg.attn_from * iters, cfg.ring_frac, cfg.ring_min_px,
+                                         cfg.attn_write_back))  # fmt: skip
     return terms
 
 

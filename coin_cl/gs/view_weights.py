@@ -5,14 +5,11 @@ sigmoid of the change of the view's photometric loss since its previous visit fo
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from torch import Tensor
 
 from coin_cl.gs.terms import LossContext, ViewWeights
-
-if TYPE_CHECKING:
-    from coin_cl.gs.refgs import RefGSConfig
 
 
 def stable_sigmoid(x: float) -> float:
@@ -58,10 +55,6 @@ class AdaptiveViewWeights:
         self.enabled = bool(enabled)
         self.prev: dict[Any, float] = {}
         self.history: list[dict[str, Any]] = []
-
-    @staticmethod
-    def from_config(cfg: RefGSConfig, ref_view: Any) -> AdaptiveViewWeights:
-        return AdaptiveViewWeights(ref_view, cfg.lambda_r, cfg.first_visit_weight, cfg.adaptive_weights)
 
     def formula(self, loss_now: float, loss_prev: float) -> float:
         """sigmoid(-lambda_r * (loss_now - loss_prev)) for a non-reference view."""

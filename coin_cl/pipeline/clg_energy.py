@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -44,13 +44,11 @@ import torch.nn.functional as F
 from coin_cl.diffusion.inpaint2d import crop_box
 from coin_cl.diffusion.sampling import Denoiser
 from coin_cl.engine import support_mask, warp_features
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.crop import crop_image, crop_intrinsics, resize_to
 from coin_cl.pipeline.reprojection import depth_tensor
 from coin_cl.scene.conventions import interpolate_pose
 from coin_cl.scene.types import Camera
-
-if TYPE_CHECKING:
-    from coin_cl.pipeline.clg import CLGConfig
 
 MAX_WARP_CHANNELS = 128  # the warp op's channel limit (engine constants.MAX_CHANNELS); DINO is chunked
 MIN_FEATURE_SIDE = 32  # feature images must exceed the analytic extractor's reflect padding (14 px)

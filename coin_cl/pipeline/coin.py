@@ -87,7 +87,7 @@ class CoInConfig:
     inpaint2d: Inpaint2DConfig = field(default_factory=Inpaint2DConfig)
     ted: TEDConfig = field(default_factory=TEDConfig)
     refgs: Any = None  # coin_cl.gs.refgs.RefGSConfig (default built on use)
-    clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
+    clg: Any = None  # coin_cl.pipeline.clg_config.CLGConfig (default built on use)
     edited_ref: str | None = None
     insert: InsertConfig = field(default_factory=InsertConfig)
     inpaint_region: str = "input"
@@ -331,7 +331,7 @@ def _run(
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
                                         "ref": ref, "cfg": _jsonable(cfg.insert)}  # fmt: skip
     refined = cfg.inpaint_region == "refined"
-    from coin_cl.pipeline.clg import CLGConfig
+    from coin_cl.pipeline.clg_config import CLGConfig
 
     clg_cfg = cfg.clg or CLGConfig()  # the defaults in the key too: a changed default reruns CLG
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
