@@ -8,7 +8,12 @@ import pytest
 from coin_cl.diffusion import opencv_inpaint
 
 from coin_cl.pipeline.reference import reference_points
-from coin_cl.pipeline.reprojection import consistency_residual, residual_to_reference, warp_fill
+from coin_cl.pipeline.reprojection import (
+    consistency_residual,
+    reference_in_view,
+    residual_to_reference,
+    warp_fill,
+)
 from coin_cl.scene.synthetic import make_synthetic
 
 
@@ -41,7 +46,8 @@ def test_warp_fill_touches_only_the_mask(room):
     s, train, k, pk = room
     n = train[2]
     render = np.zeros_like(s.absent[n])
-    out, n_sup = warp_fill(s.present[n], render, s.absent[k], s.cameras[n], s.cameras[k], pk, s.masks[n])
+    warped, weight = reference_in_view(s.absent[k], s.cameras[n], s.cameras[k], pk)
+    out, n_sup = warp_fill(s.present[n], render, s.masks[n], warped, weight)
     m = s.masks[n]
     assert np.array_equal(out[~m], s.present[n][~m])
     assert 0 < n_sup <= int(m.sum())

@@ -17,7 +17,7 @@ from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
 from coin_cl.pipeline.crop import resize_to
-from coin_cl.pipeline.reprojection import consistency_residual, warp_fill
+from coin_cl.pipeline.reprojection import consistency_residual, reference_in_view, warp_fill
 from coin_cl.scene.io import to_uint8
 
 
@@ -46,7 +46,8 @@ def residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray, r
 def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, mask: np.ndarray, ref: ReferenceView,
               device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """CLG without a sampler for view n: (output [H, W, 3], record)."""
-    out, n_sup = warp_fill(inp_n, ren_n, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device)
+    warped = reference_in_view(ref.image, cam, ref.cam, ref.points, ref.depth, device)
+    out, n_sup = warp_fill(inp_n, ren_n, mask, *warped)
     r_before, r_after, _ = residuals(inp_n, out, cam, mask, ref, device)
     rec = {"view": n, "status": "warped", "residual_before": r_before, "residual_after": r_after,
            "support_px": n_sup, "hole_px": int(mask.sum())}  # fmt: skip

@@ -68,23 +68,15 @@ def consistency_residual(
 
 
 def warp_fill(
-    image_n: np.ndarray,
-    render_n: np.ndarray,
-    image_k: np.ndarray,
-    cam_n: Any,
-    cam_k: Any,
-    points: np.ndarray,
-    mask_n: np.ndarray,
-    depth_k: np.ndarray | None = None,
-    device: Any = None,
+    image_n: np.ndarray, render_n: np.ndarray, mask_n: np.ndarray, warped: np.ndarray, weight: np.ndarray
 ) -> tuple[np.ndarray, int]:
     """CLG without a sampler (`CLGConfig.sample` False) for one view: inside mask_n (H, W) bool, the
-    reference image_k (Hk, Wk, 3) warped into view n through P_k `points` [M, 3] where supported,
-    render_n elsewhere; outside the mask image_n. Returns ((H, W, 3) float32, supported pixels)."""
-    wk, wt = reference_in_view(image_k, cam_n, cam_k, points, depth_k, device)
+    reference warped into view n (`reference_in_view`'s (H, W, 3) colours and (H, W) weights) where
+    supported (weight > 0), render_n elsewhere; outside the mask image_n.
+    Returns ((H, W, 3) float32, supported pixels)."""
     m = np.asarray(mask_n, bool)
-    sup = m & (wt > 0)
-    fill = np.where(sup[..., None], wk, render_n)
+    sup = m & (weight > 0)
+    fill = np.where(sup[..., None], warped, render_n)
     return np.where(m[..., None], fill, image_n).astype(np.float32), int(sup.sum())
 
 
