@@ -691,7 +691,7 @@ def _stage_eval(ctx: StageContext) -> dict:
 
 
 def share_stages(
-    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "1_inpaint")
+    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "0_refine", "1_inpaint")
 ) -> None:
     """Start run folder `dst` from the `stages` folders of run `src` (and its scene record), so a
     comparison row (a baseline, an ablation) reuses them instead of redoing them. Safe by
