@@ -145,7 +145,8 @@ def test_same_scene_under_another_spelling_or_resolution_is_accepted(room, first
     os.symlink(room, link)
     res = inpaint(link, first_run[0], config=TINY)  # a symlink: the same scene, everything up to date
     assert all(r["status"] == "skipped: up to date" for r in res.stages.values())
-    res = inpaint(str(room) + "/", tmp_path / "half", config=replace(TINY, resolution=0.5, skip=("clg", "ted")))
+    half = replace(TINY, resolution=0.5, skip=("clg", "ted"))
+    res = inpaint(str(room) + "/", tmp_path / "half", config=half)
     assert res.stages["0_scene"]["status"] == "ran"
     # the half-resolution run may share the folder of the full one: another resolution is not another scene
     import shutil
@@ -179,3 +180,10 @@ def test_bad_input_is_a_clear_error(room, tmp_path):
     with pytest.raises(OutputFolderError, match="another scene"):
         inpaint(other, tmp_path / "e", config=TINY)
     assert not any((tmp_path / p).exists() for p in ("a/0_scene", "b/0_scene", "d/0_scene"))
+
+
+def test_render_takes_a_run_folder(first_run, capsys):
+    out, res = first_run
+    assert main(["render", str(out), "--views", "test"]) == 0
+    written = sorted((out / "renders" / "test").glob("*.png"))
+    assert len(written) == 2 * len(load_scene(out / "0_scene" / "scene").test_idx)  # image + depth each
