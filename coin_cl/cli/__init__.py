@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "coin_cl.cli.scene",  # make-scene, eval
     "coin_cl.cli.train",  # train, render
     "coin_cl.cli.run",  # run (CoIn end to end)
+    "coin_cl.cli.prepare",  # prepare (photos -> posed scene + masks)
 ]
 
 

@@ -1,0 +1,421 @@
+"""Structure from motion for a folder of photos (the data preparation that CoIn, paper section 4,
+takes as given: posed views of one scene), through pycolmap.
+
+Steps, each resumable (a second run skips what is already on disk):
+  1. working images: every photo downscaled to `SfmConfig.width` (never upscaled), one size for all;
+  2. SIFT features (one shared camera, SIMPLE_RADIAL by default);
+  3. matching: exhaustive up to `exhaustive_max` images, sequential by file name beyond (no
+     vocabulary tree, so no file to download);
+  4. incremental mapping; the largest model is kept;
+  5. undistortion to PINHOLE at the same size and focal length (COLMAP's undistorter with its scale
+     pinned to 1), written as `SCENE/images/` + `SCENE/sparse/0/` (the plain COLMAP layout of
+     docs/SCENES.md, which `coin_cl.load_scene` reads);
+  6. a report (`SCENE/prepare_report.json` and `.txt`): registered images, mean reprojection error,
+     and each dropped image with the reason.
+
+Scratch files live in `SCENE/.prepare/` (working images, database, raw models).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from ..scene.io import IMAGE_EXTS, read_image, write_png, write_text
+
+log = logging.getLogger(__name__)
+
+WORK = ".prepare"
+REPORT = "prepare_report"
+# Aspect ratios closer than this are the same camera (rounding of a resize); further apart is an error.
+ASPECT_TOL = 0.01
+
+
+@dataclass
+class SfmConfig:
+    """Options of `run_sfm`.
+
+    width: working width in pixels; wider photos are downscaled (area averaging), narrower ones are
+        kept (never upscaled). Every working image gets the size of the first photo scaled to it.
+    exhaustive_max: up to this many images every pair is matched; beyond, each image is matched
+        with its `sequential_overlap` neighbours by file name (photos taken in order).
+    camera_model: COLMAP model fitted to the shared camera before undistortion.
+    max_features: SIFT features per image.
+    num_threads: CPU threads for extraction, matching and mapping.
+    seed: random seed of the mapper (RANSAC), for repeatable runs.
+    """
+
+    width: int = 1008
+    exhaustive_max: int = 80
+    sequential_overlap: int = 15
+    camera_model: str = "SIMPLE_RADIAL"
+    max_features: int = 8192
+    num_threads: int = 2
+    seed: int = 0
+
+
+@dataclass
+class SfmReport:
+    """What `run_sfm` did: registered and dropped images (name -> reason), mean reprojection error
+    (pixels, at the working size), point count, the matching used, the working size, the first
+    photo's size (a box drawn on a photo is scaled by width / photo_width) and seconds per step."""
+
+    n_photos: int
+    registered: list[str]
+    dropped: dict[str, str]
+    mean_reproj_error: float
+    n_points: int
+    matching: str
+    width: int
+    height: int
+    photo_width: int
+    photo_height: int
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def text(self) -> str:
+        lines = [
+            f"registered {len(self.registered)} of {self.n_photos} photos "
+            f"({self.width}x{self.height}, {self.matching} matching)",
+            f"mean reprojection error {self.mean_reproj_error:.3f} px, {self.n_points} sparse points",
+        ]
+        if self.dropped:
+            lines.append("dropped:")
+            lines += [f"  {n}: {why}" for n, why in sorted(self.dropped.items())]
+        lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()))
+        return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------- input checks
+
+
+def list_photos(photos_dir: str | Path) -> list[Path]:
+    """The photos of a folder, sorted by name; clear errors for a missing or unusable folder."""
+    d = Path(photos_dir)
+    if not d.is_dir():
+        raise FileNotFoundError(f"photo folder {d} not found; give a folder of .jpg/.png photos")
+    files = sorted(p for p in d.iterdir() if p.is_file() and p.suffix in IMAGE_EXTS)
+    if not files:
+        raise ValueError(f"photo folder {d} has no .jpg/.png images; put the photos directly in it")
+    if len(files) < 3:
+        raise ValueError(
+            f"photo folder {d} has {len(files)} image(s); structure from motion needs at least 3 "
+            "overlapping photos of the scene (20-100 is typical)"
+        )
+    stems: dict[str, Path] = {}
+    for p in files:
+        if p.stem in stems:
+            raise ValueError(f"{p} and {stems[p.stem]} share a name; rename one (outputs are <name>.png)")
+        stems[p.stem] = p
+    return files
+
+
+def working_size(sizes: list[tuple[int, int]], names: list[str], width: int) -> tuple[int, int]:
+    """(W, H) every photo is resized to: the first photo's aspect at min(width, its width).
+
+    Photos of other sizes with the same aspect ratio (within 1 %) are resized to it; another aspect
+    (a portrait among landscapes, a crop) is an error naming the photo.
+    """
+    if width < 16:
+        raise ValueError(f"working width {width} is too small; use at least 16 (about 1000 is typical)")
+    w0, h0 = sizes[0]
+    for (w, h), n in zip(sizes, names, strict=True):
+        if abs(w / h - w0 / h0) > ASPECT_TOL * (w0 / h0):
+            raise ValueError(
+                f"photo {n} is {w}x{h} but {names[0]} is {w0}x{h0}: mixed aspect ratios; rotate or "
+                "crop the photos to one aspect ratio, or remove the odd ones"
+            )
+    W = min(width, w0)
+    return W, max(1, round(h0 * W / w0))
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(W, H) of an image file without decoding all of it where the format allows."""
+    import imageio.v3 as iio
+
+    try:
+        shape = iio.improps(path).shape
+    except Exception as exc:  # imageio raises plugin-specific errors
+        raise ValueError(f"photo {path} could not be read ({exc}); remove it or re-save it") from exc
+    return int(shape[1]), int(shape[0])
+
+
+# ------------------------------------------------------------------------------------------- steps
+
+
+def _prepare_images(photos: list[Path], imdir: Path, size: tuple[int, int]) -> list[str]:
+    """Working images as <stem>.png at `size` (kept when already there at that size)."""
+    imdir.mkdir(parents=True, exist_ok=True)
+    names = []
+    for p in tqdm(photos, desc="prepare: resize", unit="img", leave=False):
+        dst = imdir / f"{p.stem}.png"
+        names.append(dst.name)
+        if dst.is_file() and _image_size(dst) == size:
+            continue
+        if p.suffix.lower() == ".png" and _image_size(p) == size:
+            shutil.copyfile(p, dst)  # already a PNG of the working size
+            continue
+        img = read_image(p)
+        if (img.shape[1], img.shape[0]) != size:
+            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+        write_png(dst, img)
+    return names
+
+
+def _extract(db_path: Path, imdir: Path, names: list[str], cfg: SfmConfig) -> bool:
+    """Features into the database; False when a complete database for these images was reused."""
+    import pycolmap
+
+    if db_path.is_file():
+        with pycolmap.Database.open(db_path) as db:
+            have = {im.name for im in db.read_all_images()}
+        if have == set(names):
+            log.info("features: reusing %s", db_path)
+            return False
+        db_path.unlink()  # another set of images: start the database afresh
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = cfg.camera_model
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = cfg.num_threads
+    ext.sift.max_num_features = cfg.max_features
+    tmp = db_path.with_suffix(".tmp.db")
+    tmp.unlink(missing_ok=True)
+    pycolmap.extract_features(
+        tmp,
+        imdir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=ext,
+        device=pycolmap.Device.cpu,
+    )
+    tmp.replace(db_path)  # the database is complete only once it has its final name
+    return True
+
+
+def _match(db_path: Path, n: int, cfg: SfmConfig, marker: Path) -> str:
+    import pycolmap
+
+    method = "exhaustive" if n <= cfg.exhaustive_max else "sequential"
+    if marker.is_file() and marker.read_text().strip() == method:
+        log.info("matching: reusing the %s matches in %s", method, db_path)
+        return method
+    opts = pycolmap.FeatureMatchingOptions()
+    opts.num_threads = cfg.num_threads
+    if method == "exhaustive":
+        pycolmap.match_exhaustive(db_path, matching_options=opts, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = cfg.sequential_overlap
+        pairing.loop_detection = False  # loop detection needs a vocabulary tree file
+        pycolmap.match_sequential(db_path, matching_options=opts, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)  # fmt: skip
+    marker.write_text(method)
+    return method
+
+
+def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig) -> tuple[Path, dict[str, int]]:
+    """The largest model in out/best; also name -> size of the other models' images."""
+    import pycolmap
+
+    best = out / "best"
+    others_file = out / "others.json"
+    if (best / "images.bin").is_file() and others_file.is_file():
+        log.info("mapping: reusing %s", best)
+        return best, json.loads(others_file.read_text())
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = cfg.num_threads
+    opts.random_seed = cfg.seed
+    opts.min_model_size = 3
+    recs = pycolmap.incremental_mapping(db_path, imdir, out / "raw", opts)
+    if not recs:
+        raise RuntimeError(
+            f"no model could be built from the photos in {imdir}: no pair of photos shares enough "
+            "matched features; take overlapping photos (each point seen from 3 or more)"
+        )
+    order = sorted(recs, key=lambda k: -recs[k].num_reg_images())
+    others = {}
+    for k in order[1:]:
+        for im in recs[k].images.values():
+            others[im.name] = recs[k].num_reg_images()
+    tmp = out / "best.tmp"
+    tmp.mkdir()
+    recs[order[0]].write_binary(str(tmp))
+    others_file.write_text(json.dumps(others))
+    tmp.rename(best)
+    return best, others
+
+
+def _undistort(model: Path, imdir: Path, work: Path, scene: Path) -> None:
+    """PINHOLE images and model at the same size and focal length into scene/images, scene/sparse/0."""
+    import pycolmap
+
+    und = work / "undistorted"
+    shutil.rmtree(und, ignore_errors=True)
+    opts = pycolmap.UndistortCameraOptions()
+    opts.min_scale = opts.max_scale = 1.0  # same size and focal: a mask drawn on a photo still fits
+    pycolmap.undistort_images(und, model, imdir, undistort_options=opts)
+    for sub, dst in (("images", scene / "images"), ("sparse", scene / "sparse" / "0")):
+        shutil.rmtree(dst, ignore_errors=True)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(und / sub), str(dst))
+    shutil.rmtree(und, ignore_errors=True)
+
+
+def _why_dropped(
+    db_path: Path, names: list[str], registered: set[str], others: dict[str, int]
+) -> dict[str, str]:
+    """name -> reason for every image not in the kept model."""
+    import pycolmap
+
+    with pycolmap.Database.open(db_path) as db:
+        images = {im.image_id: im.name for im in db.read_all_images()}
+        n_kp = {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
+        pair_ids, geoms = db.read_two_view_geometries()
+    partners: dict[str, int] = {n: 0 for n in names}
+    for pid, g in zip(pair_ids, geoms, strict=True):
+        if len(g.inlier_matches) == 0:
+            continue
+        a, b = pycolmap.pair_id_to_image_pair(pid)
+        for i in (a, b):
+            partners[images[i]] = partners.get(images[i], 0) + 1
+    out = {}
+    for n in names:
+        if n in registered:
+            continue
+        if n_kp.get(n, 0) == 0:
+            out[n] = "no features found (blank, blurred or tiny image)"
+        elif partners.get(n, 0) == 0:
+            out[n] = "matched no other photo (not of this scene, or no overlap with the others)"
+        elif n in others:
+            out[n] = (
+                f"registered only in a separate model of {others[n]} photos, disconnected from the "
+                "main one; add photos between the two parts"
+            )
+        else:
+            out[n] = (
+                f"matched {partners[n]} photo(s) but the mapper could not place it (too few 3D points seen)"
+            )
+    return out
+
+
+# ------------------------------------------------------------------------------------------- driver
+
+
+def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | None = None) -> SfmReport:
+    """Photos -> a posed scene folder (plain COLMAP layout, PINHOLE) and its report.
+
+    Resumes: each step whose output exists in `scene_dir/.prepare` is skipped. Raises ValueError /
+    FileNotFoundError on unusable input and RuntimeError when no model can be built.
+    """
+    import pycolmap
+
+    cfg = config or SfmConfig()
+    photos = list_photos(photos_dir)
+    if not log.isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines drown the progress bar
+    scene = Path(scene_dir)
+    work = scene / WORK
+    sizes = [_image_size(p) for p in photos]
+    W, H = working_size(sizes, [p.name for p in photos], cfg.width)
+    work.mkdir(parents=True, exist_ok=True)
+    imdir, db_path = work / "images", work / "database.db"
+    seconds: dict[str, float] = {}
+    steps = tqdm(total=5, desc="prepare", unit="step")
+
+    def step(name: str) -> None:
+        seconds[name] = time.perf_counter() - t0
+        steps.set_postfix_str(f"{name} done in {seconds[name]:.1f} s")
+        steps.update(1)
+
+    t0 = time.perf_counter()
+    steps.set_description("prepare: resize")
+    names = _prepare_images(photos, imdir, (W, H))
+    step("resize")
+    t0 = time.perf_counter()
+    steps.set_description("prepare: features")
+    if _extract(db_path, imdir, names, cfg):
+        # new features: matches, models and outputs of an earlier run are stale
+        (work / "matched.txt").unlink(missing_ok=True)
+        shutil.rmtree(work / "sparse", ignore_errors=True)
+    step("features")
+    t0 = time.perf_counter()
+    steps.set_description("prepare: matching")
+    method = _match(db_path, len(names), cfg, work / "matched.txt")
+    step("matching")
+    t0 = time.perf_counter()
+    steps.set_description("prepare: mapping")
+    mapped_before = (work / "sparse" / "best" / "images.bin").is_file()
+    model, others = _map(db_path, imdir, work / "sparse", cfg)
+    if not mapped_before:
+        shutil.rmtree(scene / "sparse" / "0", ignore_errors=True)
+    step("mapping")
+    t0 = time.perf_counter()
+    steps.set_description("prepare: undistort")
+    rec = pycolmap.Reconstruction(str(model))
+    registered = sorted(im.name for im in rec.images.values() if im.has_pose)
+    if not (scene / "sparse" / "0" / "images.bin").is_file():
+        _undistort(model, imdir, work, scene)
+    _drop_stale_images(scene / "images", set(registered))
+    step("undistort")
+    steps.close()
+    report = SfmReport(
+        n_photos=len(names),
+        registered=registered,
+        dropped=_why_dropped(db_path, names, set(registered), others),
+        mean_reproj_error=float(rec.compute_mean_reprojection_error()),
+        n_points=int(rec.num_points3D()),
+        matching=method,
+        width=W,
+        height=H,
+        photo_width=sizes[0][0],
+        photo_height=sizes[0][1],
+        seconds=seconds,
+    )
+    write_report(scene, report)
+    if len(registered) < 3:
+        raise RuntimeError(
+            f"only {len(registered)} of {len(names)} photos could be posed; see {scene / (REPORT + '.txt')}"
+        )
+    return report
+
+
+def _drop_stale_images(imdir: Path, keep: set[str]) -> None:
+    """Images of a previous run that the model no longer poses would be an error for the loader."""
+    for p in imdir.iterdir():
+        if p.is_file() and p.name not in keep:
+            p.unlink()
+
+
+def write_report(scene: Path, report: SfmReport) -> None:
+    write_text(scene / f"{REPORT}.json", json.dumps(asdict(report), indent=1))
+    write_text(scene / f"{REPORT}.txt", report.text())
+
+
+def read_report(scene: str | Path) -> SfmReport:
+    return SfmReport(**json.loads((Path(scene) / f"{REPORT}.json").read_text()))
+
+
+def visible_point_ids(scene_dir: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The prepared model's points (N, 3) sorted by point id (the order `load_scene` uses) and,
+    per image name, the indices (into those points) of the points that image observes."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(Path(scene_dir) / "sparse" / "0"))
+    ids = sorted(rec.points3D.keys())
+    row = {pid: i for i, pid in enumerate(ids)}
+    xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
+    seen = {}
+    for im in rec.images.values():
+        idx = [row[p.point3D_id] for p in im.points2D if p.has_point3D()]
+        seen[im.name] = np.array(sorted(set(idx)), np.int64)
+    return xyz, seen

@@ -1,0 +1,127 @@
+"""coin_cl.prepare.sfm (+ align): structure from motion on a capture rendered from the synthetic
+room with known cameras, an image that matches nothing, bad photo folders."""
+
+import numpy as np
+import pytest
+
+from coin_cl.prepare.align import pose_errors
+from coin_cl.prepare.sfm import SfmConfig, list_photos, read_report, run_sfm, working_size
+from coin_cl.scene.io import write_png
+
+# Poses recovered up to a similarity: the synthetic capture (12 views, 256x192) gives about
+# 0.05 deg and 0.002 units (room 6 units wide); the floors leave a wide margin for other CPUs.
+MAX_ROT_DEG = 0.5
+MAX_CENTRE = 0.02
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """Photos of the room (with its object) from 12 known cameras on a 90 degree arc, plus an
+    image of noise that matches nothing."""
+    from coin_cl.scene.synthetic import make_synthetic
+
+    s = make_synthetic(coverage=90, n_views=12, width=256, height=192, supersample=1, n_points=100)
+    d = tmp_path_factory.mktemp("photos")
+    for cam, img in zip(s.cameras, s.present, strict=True):
+        write_png(d / cam.name, img)
+    noise = np.random.default_rng(0).uniform(0, 1, (48, 64, 3)).astype(np.float32)
+    import cv2
+
+    write_png(d / "zz_noise.png", cv2.resize(noise, (256, 192), interpolation=cv2.INTER_NEAREST))
+    return d, {c.name: c for c in s.cameras}
+
+
+@pytest.fixture(scope="module")
+def prepared(capture, tmp_path_factory):
+    photos, _ = capture
+    out = tmp_path_factory.mktemp("scene")
+    return out, run_sfm(photos, out, SfmConfig(width=256, num_threads=2))
+
+
+def test_poses_recovered_up_to_similarity(capture, prepared):
+    import coin_cl
+
+    _, truth = capture
+    out, report = prepared
+    scene = coin_cl.load_scene(out)
+    assert sorted(scene.names) == sorted(truth)  # all 12 rendered views, not the noise image
+    err = pose_errors([c.viewmat for c in scene.cameras], [truth[c.name].viewmat for c in scene.cameras])
+    assert err.rot_deg.max() < MAX_ROT_DEG, err.rot_deg
+    assert err.centre.max() < MAX_CENTRE, err.centre
+    assert report.mean_reproj_error < 1.0
+    # undistorted to PINHOLE at the working size, focal within 3 % of the truth
+    f_true = next(iter(truth.values())).K[0, 0]
+    assert scene.cameras[0].width == 256 and abs(scene.cameras[0].K[0, 0] / f_true - 1) < 0.03
+
+
+def test_unmatched_image_is_reported(prepared):
+    out, report = prepared
+    assert "zz_noise.png" not in report.registered
+    assert "matched no other photo" in report.dropped["zz_noise.png"]
+    assert "zz_noise.png" in (out / "prepare_report.txt").read_text()
+    assert read_report(out).dropped == report.dropped
+
+
+def test_second_run_resumes(capture, prepared):
+    photos, _ = capture
+    out, first = prepared
+    again = run_sfm(photos, out, SfmConfig(width=256, num_threads=2))
+    assert again.registered == first.registered
+    assert sum(again.seconds.values()) < 0.5 * sum(first.seconds.values())
+
+
+def test_pose_errors_are_zero_for_a_similar_copy():
+    from coin_cl.scene.conventions import look_at
+
+    rng = np.random.default_rng(0)
+    V = [look_at(rng.normal(0, 3, 3), np.zeros(3), up=(0, 0, 1)) for _ in range(6)]
+    # world' = 2 R world + t: viewmat' = viewmat @ inverse of that similarity, rescaled
+    a = 0.7
+    Rw = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    t = np.array([1.0, -2.0, 0.5])
+    W = []
+    for v in V:
+        R, c = v[:3, :3], -v[:3, :3].T @ v[:3, 3]
+        R2, c2 = R @ Rw.T, 2 * Rw @ c + t
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = R2, -R2 @ c2
+        W.append(m)
+    err = pose_errors(W, V)
+    assert err.rot_deg.max() < 1e-6 and err.centre.max() < 1e-6 and abs(err.scale - 0.5) < 1e-9
+    W[0] = W[0] @ np.diag([1.0, 1.0, 1.0, 1.0])
+    W[0][:3, :3] = W[0][:3, :3] @ np.array(
+        [[1, 0, 0], [0, np.cos(0.1), -np.sin(0.1)], [0, np.sin(0.1), np.cos(0.1)]]
+    )
+    assert abs(pose_errors(W, V).rot_deg[0] - np.degrees(0.1)) < 1e-6
+
+
+def test_empty_folder(tmp_path):
+    with pytest.raises(ValueError, match="no .jpg/.png"):
+        list_photos(tmp_path)
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        list_photos(tmp_path / "nope")
+
+
+def test_one_image(tmp_path):
+    write_png(tmp_path / "a.png", np.zeros((8, 8, 3), np.float32))
+    with pytest.raises(ValueError, match="at least 3"):
+        list_photos(tmp_path)
+
+
+def test_mixed_sizes():
+    # same aspect ratio: resized to one size; another aspect: an error naming the photo
+    assert working_size([(400, 300), (800, 600)], ["a", "b"], 200) == (200, 150)
+    assert working_size([(100, 75), (800, 600)], ["a", "b"], 200) == (100, 75)  # never upscaled
+    with pytest.raises(ValueError, match="b.jpg is 300x400.*mixed aspect"):
+        working_size([(400, 300), (300, 400)], ["a.jpg", "b.jpg"], 200)
+
+
+def test_mixed_sizes_end_to_end(tmp_path):
+    for i, (w, h) in enumerate([(64, 48), (64, 48), (48, 64)]):
+        write_png(tmp_path / f"p{i}.png", np.zeros((h, w, 3), np.float32))
+    with pytest.raises(ValueError, match="p2.png is 48x64"):
+        run_sfm(tmp_path, tmp_path / "out", SfmConfig(width=64))
+    assert not (tmp_path / "out").exists()  # nothing half written
