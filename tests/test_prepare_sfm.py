@@ -8,10 +8,12 @@ from coin_cl.prepare.align import pose_errors
 from coin_cl.prepare.sfm import SfmConfig, list_photos, read_report, run_sfm, working_size
 from coin_cl.scene.io import write_png
 
-# Poses recovered up to a similarity: the synthetic capture (12 views, 256x192) gives about
-# 0.05 deg and 0.002 units (room 6 units wide); the floors leave a wide margin for other CPUs.
-MAX_ROT_DEG = 0.5
-MAX_CENTRE = 0.02
+# Poses recovered up to a similarity. The synthetic capture (12 views, 256x192, 2x2 rays per
+# pixel, cameras 2 units from the object) gave 0.35 deg median / 0.44 deg max rotation error and
+# 0.008 units worst centre error; its repeating textures make it harder than real photos.
+MAX_ROT_DEG = 1.5
+MEDIAN_ROT_DEG = 1.0
+MAX_CENTRE = 0.05
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +22,7 @@ def capture(tmp_path_factory):
     image of noise that matches nothing."""
     from coin_cl.scene.synthetic import make_synthetic
 
-    s = make_synthetic(coverage=90, n_views=12, width=256, height=192, supersample=1, n_points=100)
+    s = make_synthetic(coverage=90, n_views=12, width=256, height=192, supersample=2, n_points=100)
     d = tmp_path_factory.mktemp("photos")
     for cam, img in zip(s.cameras, s.present, strict=True):
         write_png(d / cam.name, img)
@@ -46,7 +48,7 @@ def test_poses_recovered_up_to_similarity(capture, prepared):
     scene = coin_cl.load_scene(out)
     assert sorted(scene.names) == sorted(truth)  # all 12 rendered views, not the noise image
     err = pose_errors([c.viewmat for c in scene.cameras], [truth[c.name].viewmat for c in scene.cameras])
-    assert err.rot_deg.max() < MAX_ROT_DEG, err.rot_deg
+    assert err.rot_deg.max() < MAX_ROT_DEG and err.median_rot_deg < MEDIAN_ROT_DEG, err.rot_deg
     assert err.centre.max() < MAX_CENTRE, err.centre
     assert report.mean_reproj_error < 1.0
     # undistorted to PINHOLE at the working size, focal within 3 % of the truth
@@ -88,10 +90,11 @@ def test_pose_errors_are_zero_for_a_similar_copy():
         W.append(m)
     err = pose_errors(W, V)
     assert err.rot_deg.max() < 1e-6 and err.centre.max() < 1e-6 and abs(err.scale - 0.5) < 1e-9
-    W[0] = W[0] @ np.diag([1.0, 1.0, 1.0, 1.0])
-    W[0][:3, :3] = W[0][:3, :3] @ np.array(
-        [[1, 0, 0], [0, np.cos(0.1), -np.sin(0.1)], [0, np.sin(0.1), np.cos(0.1)]]
-    )
+    # turn camera 0 by 0.1 rad about its own centre: the alignment (on centres) is unchanged
+    c = -W[0][:3, :3].T @ W[0][:3, 3]
+    Rx = np.array([[1, 0, 0], [0, np.cos(0.1), -np.sin(0.1)], [0, np.sin(0.1), np.cos(0.1)]])
+    W[0][:3, :3] = Rx @ W[0][:3, :3]
+    W[0][:3, 3] = -W[0][:3, :3] @ c
     assert abs(pose_errors(W, V).rot_deg[0] - np.degrees(0.1)) < 1e-6
 
 
@@ -125,3 +128,13 @@ def test_mixed_sizes_end_to_end(tmp_path):
     with pytest.raises(ValueError, match="p2.png is 48x64"):
         run_sfm(tmp_path, tmp_path / "out", SfmConfig(width=64))
     assert not (tmp_path / "out").exists()  # nothing half written
+
+
+def test_image_pairs():
+    from coin_cl.prepare.sfm import image_pairs
+
+    names = [f"{i:02d}" for i in range(40)]
+    assert len(image_pairs(names, "exhaustive", 5)) == 40 * 39 // 2
+    seq = image_pairs(names, "sequential", 5)
+    assert ("00", "05") in seq and ("00", "06") not in seq and ("00", "08") in seq and ("00", "32") in seq
+    assert all(a < b for a, b in seq) and len(set(seq)) == len(seq)

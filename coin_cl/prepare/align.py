@@ -27,6 +27,12 @@ class PoseErrors:
         return float(np.median(self.centre))
 
 
+def rotation_angle_deg(d: np.ndarray) -> float:
+    """Angle of a rotation (3, 3) in degrees; atan2 of sine and cosine keeps small angles exact."""
+    s = 0.5 * np.linalg.norm([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
+    return float(np.degrees(np.arctan2(s, (np.trace(d) - 1) / 2)))
+
+
 def pose_errors(est_viewmats: list[np.ndarray], ref_viewmats: list[np.ndarray]) -> PoseErrors:
     """Recovered vs reference world-to-camera matrices (4, 4), paired by position in the lists.
 
@@ -52,6 +58,6 @@ def pose_errors(est_viewmats: list[np.ndarray], ref_viewmats: list[np.ndarray]) 
     for e, r, c_e, c_r in zip(E, R, ce, cr, strict=True):
         # world_ref = s Rs world_est + t, so the aligned rotation is R_est Rs^T.
         d = r[:3, :3] @ (e[:3, :3] @ Rs.T).T
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+        rot.append(rotation_angle_deg(d))
         cen.append(np.linalg.norm(M[:, :3] @ c_e + M[:, 3] - c_r))
     return PoseErrors(np.array(rot), np.array(cen), s)

@@ -200,28 +200,45 @@ def _extract(db_path: Path, imdir: Path, names: list[str], cfg: SfmConfig) -> bo
     return True
 
 
-def _match(db_path: Path, n: int, cfg: SfmConfig, marker: Path) -> str:
+def image_pairs(names: list[str], method: str, overlap: int) -> list[tuple[str, str]]:
+    """Pairs to match: every pair ("exhaustive"), or each image with its `overlap` successors by
+    name plus successors at distances 2^k beyond ("sequential", as COLMAP's quadratic overlap)."""
+    n = len(names)
+    if method == "exhaustive":
+        return [(names[i], names[j]) for i in range(n) for j in range(i + 1, n)]
+    steps = sorted(set(range(1, overlap + 1)) | {2**k for k in range(int(np.log2(max(n, 2))) + 1)})
+    return [(names[i], names[i + d]) for i in range(n) for d in steps if i + d < n]
+
+
+def _match(db_path: Path, names: list[str], cfg: SfmConfig, marker: Path, work: Path) -> str:
+    """Match in chunks of pairs (progress per chunk; COLMAP skips pairs already in the database,
+    so an interrupted run resumes where it stopped)."""
     import pycolmap
 
-    method = "exhaustive" if n <= cfg.exhaustive_max else "sequential"
+    method = "exhaustive" if len(names) <= cfg.exhaustive_max else "sequential"
     if marker.is_file() and marker.read_text().strip() == method:
         log.info("matching: reusing the %s matches in %s", method, db_path)
         return method
+    pairs = image_pairs(names, method, cfg.sequential_overlap)
     opts = pycolmap.FeatureMatchingOptions()
     opts.num_threads = cfg.num_threads
-    if method == "exhaustive":
-        pycolmap.match_exhaustive(db_path, matching_options=opts, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = cfg.sequential_overlap
-        pairing.loop_detection = False  # loop detection needs a vocabulary tree file
-        pycolmap.match_sequential(db_path, matching_options=opts, pairing_options=pairing,
-                                  device=pycolmap.Device.cpu)  # fmt: skip
+    chunk = max(16, len(pairs) // 40)
+    pair_file = work / "pairs.txt"
+    with tqdm(total=len(pairs), desc=f"prepare: {method} matching", unit="pair", leave=False) as bar:
+        for k in range(0, len(pairs), chunk):
+            part = pairs[k : k + chunk]
+            write_text(pair_file, "".join(f"{a} {b}\n" for a, b in part))
+            pairing = pycolmap.ImportedPairingOptions()
+            pairing.match_list_path = str(pair_file)
+            pycolmap.match_image_pairs(db_path, matching_options=opts, pairing_options=pairing,
+                                       device=pycolmap.Device.cpu)  # fmt: skip
+            bar.update(len(part))
+    pair_file.unlink(missing_ok=True)
     marker.write_text(method)
     return method
 
 
-def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig) -> tuple[Path, dict[str, int]]:
+def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig, n_images: int) -> tuple[Path, dict[str, int]]:
     """The largest model in out/best; also name -> size of the other models' images."""
     import pycolmap
 
@@ -236,7 +253,10 @@ def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig) -> tuple[Path, d
     opts.num_threads = cfg.num_threads
     opts.random_seed = cfg.seed
     opts.min_model_size = 3
-    recs = pycolmap.incremental_mapping(db_path, imdir, out / "raw", opts)
+    with tqdm(total=n_images, desc="prepare: mapping", unit="img", leave=False) as bar:
+        recs = pycolmap.incremental_mapping(db_path, imdir, out / "raw", opts,
+                                            initial_image_pair_callback=lambda: bar.update(2),
+                                            next_image_callback=lambda: bar.update(1))  # fmt: skip
     if not recs:
         raise RuntimeError(
             f"no model could be built from the photos in {imdir}: no pair of photos shares enough "
@@ -350,12 +370,12 @@ def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | N
     step("features")
     t0 = time.perf_counter()
     steps.set_description("prepare: matching")
-    method = _match(db_path, len(names), cfg, work / "matched.txt")
+    method = _match(db_path, names, cfg, work / "matched.txt", work)
     step("matching")
     t0 = time.perf_counter()
     steps.set_description("prepare: mapping")
     mapped_before = (work / "sparse" / "best" / "images.bin").is_file()
-    model, others = _map(db_path, imdir, work / "sparse", cfg)
+    model, others = _map(db_path, imdir, work / "sparse", cfg, len(names))
     if not mapped_before:
         shutil.rmtree(scene / "sparse" / "0", ignore_errors=True)
     step("mapping")
