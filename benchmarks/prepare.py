@@ -114,9 +114,8 @@ def main(argv: list[str] | None = None) -> dict:
     print("|---|---|---|")
     n_photos = report.n_photos
     print(f"| registered views | {len(report.registered)} / {n_photos} | all |")
-    print(
-        f"| rotation error, median / max (deg) | {err.median_rot_deg:.3f} / {err.rot_deg.max():.3f} | < 1 median |"
-    )
+    rot = f"{err.median_rot_deg:.3f} / {err.rot_deg.max():.3f}"
+    print(f"| rotation error, median / max (deg) | {rot} | < 1 median |")
     print(
         f"| camera-centre error, median (dataset units) | {err.median_centre:.4g} "
         f"({err.median_centre / spread:.2%} of the camera spread {spread:.3g}) | |"
@@ -125,9 +124,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(
         f"| mask IoU mean / min ({len(ious)} views) | {ious.mean():.3f} / {ious.min():.3f} | >= 0.85 / >= 0.6 |"
     )
-    print(
-        f"| minutes: SfM / masks / total | {t_sfm / 60:.2f} / {t_masks / 60:.2f} / {(t_sfm + t_masks) / 60:.2f} | < 10 |"
-    )
+    mins = f"{t_sfm / 60:.2f} / {t_masks / 60:.2f} / {(t_sfm + t_masks) / 60:.2f}"
+    print(f"| minutes: SfM / masks / total | {mins} | < 10 |")
     print(f"| SfM seconds per step | {', '.join(f'{k} {v:.0f}' for k, v in report.seconds.items())} | |")
     summary = {
         "registered": len(report.registered),
