@@ -121,9 +121,8 @@ def main(argv: list[str] | None = None) -> dict:
         f"({err.median_centre / spread:.2%} of the camera spread {spread:.3g}) | |"
     )
     print(f"| mean reprojection error (px at {report.width} wide) | {report.mean_reproj_error:.3f} | |")
-    print(
-        f"| mask IoU mean / min ({len(ious)} views) | {ious.mean():.3f} / {ious.min():.3f} | >= 0.85 / >= 0.6 |"
-    )
+    score = f"{ious.mean():.3f} / {ious.min():.3f}"
+    print(f"| mask IoU mean / min ({len(ious)} views) | {score} | >= 0.85 / >= 0.6 |")
     mins = f"{t_sfm / 60:.2f} / {t_masks / 60:.2f} / {(t_sfm + t_masks) / 60:.2f}"
     print(f"| minutes: SfM / masks / total | {mins} | < 10 |")
     print(f"| SfM seconds per step | {', '.join(f'{k} {v:.0f}' for k, v in report.seconds.items())} | |")
