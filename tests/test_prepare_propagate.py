@@ -9,10 +9,11 @@ from coin_cl.prepare.propagate import PropagateConfig, depth_range, iou, propaga
 from coin_cl.scene.io import write_png
 from coin_cl.scene.masks import bbox
 
-# Mean IoU over the non-annotated training views. Measured on this room (12 views, 256x192):
-# mask 0.96, box 0.95, scribble 0.95; the floors leave room for GrabCut's variation.
+# IoU over the non-annotated training views. Measured on this room (12 views, 256x192), mean /
+# worst: mask 0.952 / 0.827, box 0.949 / 0.828, scribble 0.949 / 0.827 (the floors on
+# real data are 0.85 mean, 0.6 worst; here the worst floor is raised to 0.7).
 FLOOR = {"mask": 0.85, "box": 0.85, "scribble": 0.85}
-WORST = 0.6
+WORST = 0.7
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +64,7 @@ def test_segment_hook_is_used(room):
     cams, imgs, gt, ref, points = room
     calls = []
 
-    def segment(image, prior, seeds):  # a user's segmenter: here, the prior as is
+    def segment(image, prior, seeds, bg_seeds):  # a user's segmenter: here, the prior as is
         calls.append(prior.shape)
         return prior
 

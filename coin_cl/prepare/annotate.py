@@ -95,7 +95,7 @@ def box_mask(image: np.ndarray, box: tuple[int, int, int, int], segment: Segment
     rect = np.zeros((H, W), bool)
     rect[y0:y1, x0:x1] = True
     if segment is not None:
-        return np.asarray(segment(image, rect, np.zeros((0, 2))), bool)
+        return np.asarray(segment(image, rect, np.zeros((0, 2)), np.zeros((0, 2))), bool)
     gc = np.zeros((H, W), np.uint8)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     img8 = np.ascontiguousarray((np.clip(image, 0, 1) * 255).astype(np.uint8))
@@ -121,7 +121,7 @@ def scribble_mask(image: np.ndarray, strokes: np.ndarray, segment: Segmenter | N
     prior[y0:y1, x0:x1] = True
     seeds = np.stack([xs, ys], axis=1).astype(np.float64)
     if segment is not None:
-        return np.asarray(segment(image, prior, seeds), bool) | strokes
+        return np.asarray(segment(image, prior, seeds, np.zeros((0, 2))), bool) | strokes
     margin = max(3, int(0.02 * np.hypot(W, H)))
     # grabcut_segment marks the prior probable-object and seeds sure-object; strokes are the seeds.
-    return grabcut_segment(image, prior, seeds, margin, iters) | strokes
+    return grabcut_segment(image, prior, seeds, None, margin, iters) | strokes

@@ -27,10 +27,11 @@ from ..scene.types import Camera
 
 log = logging.getLogger(__name__)
 
-# segment(image (H, W, 3) float32 in [0, 1], prior (H, W) bool, seeds (N, 2) float pixel (x, y) of
-# object points) -> (H, W) bool. The hook for a user's segmenter: SAM prompted with the prior's box
-# and the seeds as positive points fits it. `grabcut_segment` is the default.
-Segmenter = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+# segment(image (H, W, 3) float32 in [0, 1], prior (H, W) bool, seeds (N, 2), bg_seeds (M, 2))
+# -> (H, W) bool. seeds / bg_seeds: pixel (x, y) of sparse points known to be on the object / off
+# it. The hook for a user's segmenter: SAM prompted with the prior's box, the seeds as positive and
+# the bg_seeds as negative points fits it. `grabcut_segment` is the default.
+Segmenter = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass
@@ -164,11 +165,12 @@ def sample_spacing(cam: Camera, ref: Camera, pts: np.ndarray, n_per_depth: int) 
 # ------------------------------------------------------------------------------------ segmenting
 
 
-def grabcut_segment(image: np.ndarray, prior: np.ndarray, seeds: np.ndarray, margin_px: int = 12,
-                    iters: int = 4) -> np.ndarray:  # fmt: skip
+def grabcut_segment(image: np.ndarray, prior: np.ndarray, seeds: np.ndarray, bg_seeds: np.ndarray | None = None,
+                    margin_px: int = 12, iters: int = 4, seed_radius: int = 2) -> np.ndarray:  # fmt: skip
     """GrabCut seeded by a prior: probable object inside `prior`, probable background in a band of
-    `margin_px` around it, background beyond, object at the `seeds` (N, 2) pixel (x, y). Runs on a
-    crop around the prior. (H, W) bool; the prior itself when GrabCut cannot run."""
+    `margin_px` around it, background beyond; object at the `seeds` (N, 2) pixel (x, y) inside the
+    prior, background in discs of `seed_radius` at the `bg_seeds` (M, 2). Runs on a crop around the
+    prior. (H, W) bool; the prior itself when GrabCut cannot run."""
     H, W = prior.shape
     if not prior.any():
         return prior.copy()
@@ -181,9 +183,15 @@ def grabcut_segment(image: np.ndarray, prior: np.ndarray, seeds: np.ndarray, mar
     gc = np.full((y1 - y0, x1 - x0), cv2.GC_BGD, np.uint8)
     gc[band[y0:y1, x0:x1]] = cv2.GC_PR_BGD
     gc[prior[y0:y1, x0:x1]] = cv2.GC_PR_FGD
+    if bg_seeds is not None:
+        for x, y in np.asarray(bg_seeds, np.float64).reshape(-1, 2).astype(np.int64):
+            if y0 <= y < y1 and x0 <= x < x1:
+                cv2.circle(gc, (int(x - x0), int(y - y0)), seed_radius, int(cv2.GC_BGD), -1)
     for x, y in np.asarray(seeds, np.float64).reshape(-1, 2).astype(np.int64):
         if y0 <= y < y1 and x0 <= x < x1 and prior[y, x]:
             gc[y - y0, x - x0] = cv2.GC_FGD
+    if not (gc == cv2.GC_PR_FGD).any() and not (gc == cv2.GC_FGD).any():
+        return np.zeros_like(prior)
     if not (gc == cv2.GC_BGD).any():
         # The prior fills the image: GrabCut has no background to learn from.
         return prior.copy()
@@ -266,25 +274,49 @@ def propagate_masks(
     log.info("object: %d points, depth %.3g..%.3g in view %s, %d hull samples",
              len(obj_idx), near, far, cam.name, len(hull))  # fmt: skip
 
-    def seeds_in(v: int) -> np.ndarray:
+    # Background for sure: points that project into the annotated view off the (slightly grown)
+    # annotation; the whole object projects inside it. (Depth cannot tell: the object's far side,
+    # hidden in that view, lies beyond the depth range of its visible points.)
+    uvr, zr = cam.project(points)
+    okr = cam.in_image(uvr) & (zr > 0)
+    grown = cv2.dilate(ref_mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    bg_set = okr.copy()
+    bg_set[okr] = ~grown[uvr[okr, 1].astype(int), uvr[okr, 0].astype(int)]
+
+    def seeds_in(v: int, which: np.ndarray, behind: np.ndarray | None = None) -> np.ndarray:
         s = np.asarray(seen[v], np.int64)
-        s = s[obj_set[s]]
-        uvs, _ = cameras[v].project(points[s])
-        return uvs[cameras[v].in_image(uvs)]
+        s = s[which[s]]
+        uvs, zs = cameras[v].project(points[s])
+        ok = cameras[v].in_image(uvs)
+        if behind is not None:
+            # drop points the object may hide (visibility without tracks is approximate)
+            ok[ok] = zs[ok] < behind[uvs[ok, 1].astype(int), uvs[ok, 0].astype(int)]
+        return uvs[ok]
 
     seg = segment
     masks: list[np.ndarray] = [np.zeros((c.height, c.width), bool) for c in cameras]
     masks[ref] = ref_mask.copy()
     radius = [sample_spacing(c, cam, hull, n_per_depth) for c in cameras]
 
+    def hull_depth(v: int) -> np.ndarray:
+        """(H, W) nearest hull depth in view v (inf off the hull), spread over the splat radius."""
+        c = cameras[v]
+        uvh, zh = c.project(hull)
+        ok = c.in_image(uvh) & (zh > 0)
+        zmap = np.full((c.height, c.width), np.inf, np.float32)
+        np.minimum.at(zmap, (uvh[ok, 1].astype(int), uvh[ok, 0].astype(int)), zh[ok].astype(np.float32))
+        r = max(1, int(np.ceil(radius[v])))
+        return cv2.erode(zmap, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+
     def run(v: int, prior: np.ndarray) -> np.ndarray:
         c = cameras[v]
         if not prior.any():
             return prior
         margin = max(3, int(cfg.margin * np.hypot(c.width, c.height)))
+        fg, bg = seeds_in(v, obj_set), seeds_in(v, bg_set, hull_depth(v))
         if seg is not None:
-            return np.asarray(seg(images[v], prior, seeds_in(v)), bool)
-        return grabcut_segment(images[v], prior, seeds_in(v), margin, cfg.grabcut_iters)
+            return np.asarray(seg(images[v], prior, fg, bg), bool)
+        return grabcut_segment(images[v], prior, fg, bg, margin, cfg.grabcut_iters)
 
     others = [v for v in range(n) if v != ref]
     for v in tqdm(others, desc="masks: first pass", unit="view", leave=False):
