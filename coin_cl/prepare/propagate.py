@@ -165,8 +165,15 @@ def sample_spacing(cam: Camera, ref: Camera, pts: np.ndarray, n_per_depth: int) 
 # ------------------------------------------------------------------------------------ segmenting
 
 
-def grabcut_segment(image: np.ndarray, prior: np.ndarray, seeds: np.ndarray, bg_seeds: np.ndarray | None = None,
-                    margin_px: int = 12, iters: int = 4, seed_radius: int = 2) -> np.ndarray:  # fmt: skip
+def grabcut_segment(
+    image: np.ndarray,
+    prior: np.ndarray,
+    seeds: np.ndarray,
+    bg_seeds: np.ndarray | None = None,
+    margin_px: int = 12,
+    iters: int = 4,
+    seed_radius: int = 2,
+) -> np.ndarray:
     """GrabCut seeded by a prior: probable object inside `prior`, probable background in a band of
     `margin_px` around it, background beyond; object at the `seeds` (N, 2) pixel (x, y) inside the
     prior, background in discs of `seed_radius` at the `bg_seeds` (M, 2). Runs on a crop around the
