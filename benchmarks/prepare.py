@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> dict:
     import coin_cl
     from coin_cl.gs.refgs import choose_reference
     from coin_cl.prepare import Annotation, PropagateConfig, SfmConfig, make_masks, run_sfm
-    from coin_cl.prepare.align import pose_errors
+    from coin_cl.prepare.align import pose_errors, relative_rotation_errors
     from coin_cl.prepare.propagate import iou
     from coin_cl.prepare.scene_masks import load_prepared
     from coin_cl.scene.colmap import Undistorter, pinhole_for, read_cameras
@@ -72,6 +72,10 @@ def main(argv: list[str] | None = None) -> dict:
     by_stem = {Path(n).stem: i for i, n in enumerate(prepared.names)}
     common = [i for i, n in enumerate(dataset.names) if Path(n).stem in by_stem]
     err = pose_errors(
+        [prepared.cameras[by_stem[Path(dataset.names[i]).stem]].viewmat for i in common],
+        [dataset.cameras[i].viewmat for i in common],
+    )
+    rel = relative_rotation_errors(
         [prepared.cameras[by_stem[Path(dataset.names[i]).stem]].viewmat for i in common],
         [dataset.cameras[i].viewmat for i in common],
     )
@@ -115,7 +119,9 @@ def main(argv: list[str] | None = None) -> dict:
     n_photos = report.n_photos
     print(f"| registered views | {len(report.registered)} / {n_photos} | all |")
     rot = f"{err.median_rot_deg:.3f} / {err.rot_deg.max():.3f}"
-    print(f"| rotation error, median / max (deg) | {rot} | < 1 median |")
+    print(f"| rotation error after the similarity (on centres), median / max (deg) | {rot} | < 1 median |")
+    print(f"| relative rotation error over all view pairs, median / max (deg) | "
+          f"{np.median(rel):.3f} / {rel.max():.3f} | |")  # fmt: skip
     print(
         f"| camera-centre error, median (dataset units) | {err.median_centre:.4g} "
         f"({err.median_centre / spread:.2%} of the camera spread {spread:.3g}) | |"
@@ -131,6 +137,7 @@ def main(argv: list[str] | None = None) -> dict:
         "n_photos": n_photos,
         "rot_err_deg": round(err.median_rot_deg, 4),
         "rot_err_deg_max": round(float(err.rot_deg.max()), 4),
+        "rel_rot_err_deg": round(float(np.median(rel)), 4),
         "centre_err": round(err.median_centre, 5),
         "centre_err_rel": round(err.median_centre / spread, 5),
         "mask_iou_mean": round(float(ious.mean()), 4),

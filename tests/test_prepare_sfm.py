@@ -4,7 +4,7 @@ room with known cameras, an image that matches nothing, bad photo folders."""
 import numpy as np
 import pytest
 
-from coin_cl.prepare.align import pose_errors
+from coin_cl.prepare.align import pose_errors, relative_rotation_errors
 from coin_cl.prepare.sfm import SfmConfig, list_photos, read_report, run_sfm, working_size
 from coin_cl.scene.io import write_png
 
@@ -96,6 +96,8 @@ def test_pose_errors_are_zero_for_a_similar_copy():
     W[0][:3, :3] = Rx @ W[0][:3, :3]
     W[0][:3, 3] = -W[0][:3, :3] @ c
     assert abs(pose_errors(W, V).rot_deg[0] - np.degrees(0.1)) < 1e-6
+    rel = relative_rotation_errors(W, V)  # pairs (0, j) are off by 0.1 rad, the others exact
+    assert np.allclose(rel[:5], np.degrees(0.1)) and np.allclose(rel[5:], 0, atol=1e-6)
 
 
 def test_empty_folder(tmp_path):

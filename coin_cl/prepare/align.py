@@ -61,3 +61,13 @@ def pose_errors(est_viewmats: list[np.ndarray], ref_viewmats: list[np.ndarray]) 
         rot.append(rotation_angle_deg(d))
         cen.append(np.linalg.norm(M[:, :3] @ c_e + M[:, 3] - c_r))
     return PoseErrors(np.array(rot), np.array(cen), s)
+
+
+def relative_rotation_errors(est_viewmats: list[np.ndarray], ref_viewmats: list[np.ndarray]) -> np.ndarray:
+    """Gauge-free rotation errors: for every pair of views, the angle (degrees) between the
+    recovered and the reference relative rotation R_i R_j^T. (n (n - 1) / 2,)."""
+    E = [np.asarray(v, np.float64)[:3, :3] for v in est_viewmats]
+    R = [np.asarray(v, np.float64)[:3, :3] for v in ref_viewmats]
+    n = len(E)
+    return np.array([rotation_angle_deg((E[i] @ E[j].T) @ (R[i] @ R[j].T).T)
+                     for i in range(n) for j in range(i + 1, n)])  # fmt: skip
