@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from coin_cl.prepare.align import pose_errors, relative_rotation_errors
-from coin_cl.prepare.sfm import SfmConfig, list_photos, read_report, run_sfm, working_size
+from coin_cl.prepare.sfm import SfmConfig, list_photos, run_sfm, working_size
+from coin_cl.prepare.sfm_report import read_report
 from coin_cl.scene.io import write_png
 
 # Poses recovered up to a similarity. The synthetic capture (12 views, 256x192, 2x2 rays per
@@ -37,7 +38,8 @@ def capture(tmp_path_factory):
 def prepared(capture, tmp_path_factory):
     photos, _ = capture
     out = tmp_path_factory.mktemp("scene")
-    return out, run_sfm(photos, out, SfmConfig(width=256, num_threads=2))
+    # 13 photos above exhaustive_max: the sequential path (its 15 neighbours still cover every pair)
+    return out, run_sfm(photos, out, SfmConfig(width=256, num_threads=2, exhaustive_max=8))
 
 
 def test_poses_recovered_up_to_similarity(capture, prepared):
@@ -50,7 +52,7 @@ def test_poses_recovered_up_to_similarity(capture, prepared):
     err = pose_errors([c.viewmat for c in scene.cameras], [truth[c.name].viewmat for c in scene.cameras])
     assert err.rot_deg.max() < MAX_ROT_DEG and err.median_rot_deg < MEDIAN_ROT_DEG, err.rot_deg
     assert err.centre.max() < MAX_CENTRE, err.centre
-    assert report.mean_reproj_error < 1.0
+    assert report.mean_reproj_error < 1.0 and report.matching == "sequential"
     # undistorted to PINHOLE at the working size, focal within 3 % of the truth
     f_true = next(iter(truth.values())).K[0, 0]
     assert scene.cameras[0].width == 256 and abs(scene.cameras[0].K[0, 0] / f_true - 1) < 0.03
@@ -64,12 +66,22 @@ def test_unmatched_image_is_reported(prepared):
     assert read_report(out).dropped == report.dropped
 
 
-def test_second_run_resumes(capture, prepared):
+def test_second_run_resumes(capture, prepared, tmp_path):
     photos, _ = capture
     out, first = prepared
-    again = run_sfm(photos, out, SfmConfig(width=256, num_threads=2))
+    again = run_sfm(photos, out, SfmConfig(width=256, num_threads=2, exhaustive_max=8))
     assert again.registered == first.registered
     assert sum(again.seconds.values()) < 0.5 * sum(first.seconds.values())
+    # another working size in the same folder is not a resume: everything is redone at that size
+    import shutil
+
+    import coin_cl
+
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    smaller = run_sfm(photos, copy, SfmConfig(width=192, num_threads=2, exhaustive_max=8))
+    assert (smaller.width, smaller.height) == (192, 144) and smaller.seconds["features"] > 0.05
+    assert {c.width for c in coin_cl.load_scene(copy).cameras} == {192}
 
 
 def test_pose_errors_are_zero_for_a_similar_copy():

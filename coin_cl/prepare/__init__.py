@@ -8,7 +8,8 @@ from pathlib import Path
 
 from .propagate import PropagateConfig, PropagateResult, Segmenter, propagate_masks
 from .scene_masks import Annotation, make_masks
-from .sfm import SfmConfig, SfmReport, read_report, run_sfm
+from .sfm import SfmConfig, run_sfm
+from .sfm_report import SfmReport, read_report
 
 __all__ = [
     "Annotation",

@@ -20,7 +20,6 @@ from ..scene.io import read_image, to_uint8, write_png, write_text
 from ..scene.types import Camera
 from .annotate import box_mask, check_box, read_annotation, resolve_view, scribble_mask
 from .propagate import PropagateConfig, PropagateResult, Segmenter, propagate_masks
-from .sfm import visible_point_ids
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +59,22 @@ class PreparedViews:
     images: list[np.ndarray]
     points: np.ndarray
     seen: list[np.ndarray]
+
+
+def visible_point_ids(scene_dir: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The prepared model's points (N, 3) sorted by point id (the order `load_scene` uses) and,
+    per image name, the indices (into those points) of the points that image observes."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(Path(scene_dir) / "sparse" / "0"))
+    ids = sorted(rec.points3D.keys())
+    row = {pid: i for i, pid in enumerate(ids)}
+    xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
+    seen = {}
+    for im in rec.images.values():
+        idx = [row[p.point3D_id] for p in im.points2D if p.has_point3D()]
+        seen[im.name] = np.array(sorted(set(idx)), np.int64)
+    return xyz, seen
 
 
 def load_prepared(scene_dir: str | Path) -> PreparedViews:

@@ -22,7 +22,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -30,11 +30,11 @@ import numpy as np
 from tqdm import tqdm
 
 from ..scene.io import IMAGE_EXTS, read_image, write_png, write_text
+from .sfm_report import SfmReport, why_dropped, write_report
 
 log = logging.getLogger(__name__)
 
 WORK = ".prepare"
-REPORT = "prepare_report"
 # Aspect ratios closer than this are the same camera (rounding of a resize); further apart is an error.
 ASPECT_TOL = 0.01
 
@@ -60,37 +60,6 @@ class SfmConfig:
     max_features: int = 8192
     num_threads: int = 2
     seed: int = 0
-
-
-@dataclass
-class SfmReport:
-    """What `run_sfm` did: registered and dropped images (name -> reason), mean reprojection error
-    (pixels, at the working size), point count, the matching used, the working size, the first
-    photo's size (a box drawn on a photo is scaled by width / photo_width) and seconds per step."""
-
-    n_photos: int
-    registered: list[str]
-    dropped: dict[str, str]
-    mean_reproj_error: float
-    n_points: int
-    matching: str
-    width: int
-    height: int
-    photo_width: int
-    photo_height: int
-    seconds: dict[str, float] = field(default_factory=dict)
-
-    def text(self) -> str:
-        lines = [
-            f"registered {len(self.registered)} of {self.n_photos} photos "
-            f"({self.width}x{self.height}, {self.matching} matching)",
-            f"mean reprojection error {self.mean_reproj_error:.3f} px, {self.n_points} sparse points",
-        ]
-        if self.dropped:
-            lines.append("dropped:")
-            lines += [f"  {n}: {why}" for n, why in sorted(self.dropped.items())]
-        lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()))
-        return "\n".join(lines) + "\n"
 
 
 # ------------------------------------------------------------------------------------- input checks
@@ -291,43 +260,6 @@ def _undistort(model: Path, imdir: Path, work: Path, scene: Path) -> None:
     shutil.rmtree(und, ignore_errors=True)
 
 
-def _why_dropped(
-    db_path: Path, names: list[str], registered: set[str], others: dict[str, int]
-) -> dict[str, str]:
-    """name -> reason for every image not in the kept model."""
-    import pycolmap
-
-    with pycolmap.Database.open(db_path) as db:
-        images = {im.image_id: im.name for im in db.read_all_images()}
-        n_kp = {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}
-        pair_ids, geoms = db.read_two_view_geometries()
-    partners: dict[str, int] = {n: 0 for n in names}
-    for pid, g in zip(pair_ids, geoms, strict=True):
-        if len(g.inlier_matches) == 0:
-            continue
-        a, b = pycolmap.pair_id_to_image_pair(pid)
-        for i in (a, b):
-            partners[images[i]] = partners.get(images[i], 0) + 1
-    out = {}
-    for n in names:
-        if n in registered:
-            continue
-        if n_kp.get(n, 0) == 0:
-            out[n] = "no features found (blank, blurred or tiny image)"
-        elif partners.get(n, 0) == 0:
-            out[n] = "matched no other photo (not of this scene, or no overlap with the others)"
-        elif n in others:
-            out[n] = (
-                f"registered only in a separate model of {others[n]} photos, disconnected from the "
-                "main one; add photos between the two parts"
-            )
-        else:
-            out[n] = (
-                f"matched {partners[n]} photo(s) but the mapper could not place it (too few 3D points seen)"
-            )
-    return out
-
-
 # ------------------------------------------------------------------------------------------- driver
 
 
@@ -339,16 +271,32 @@ def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | N
     """
     import pycolmap
 
-    cfg = config or SfmConfig()
-    photos = list_photos(photos_dir)
+    old = pycolmap.logging.minloglevel
     if not log.isEnabledFor(logging.DEBUG):
         pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines drown the progress bar
-    scene = Path(scene_dir)
+    try:
+        return _run_steps(list_photos(photos_dir), Path(scene_dir), config or SfmConfig())
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig) -> SfmReport:
+    import pycolmap
+
     work = scene / WORK
     sizes = [_image_size(p) for p in photos]
     W, H = working_size(sizes, [p.name for p in photos], cfg.width)
     work.mkdir(parents=True, exist_ok=True)
     imdir, db_path = work / "images", work / "database.db"
+    size_file = work / "size.txt"
+    if size_file.is_file() and size_file.read_text().strip() != f"{W}x{H}":
+        # another working size: features, matches and models of the earlier run do not apply
+        log.info("working size changed to %dx%d; starting the SfM afresh", W, H)
+        db_path.unlink(missing_ok=True)
+        (work / "matched.txt").unlink(missing_ok=True)
+        for d in (work / "sparse", scene / "sparse" / "0"):
+            shutil.rmtree(d, ignore_errors=True)
+    write_text(size_file, f"{W}x{H}")
     seconds: dict[str, float] = {}
     steps = tqdm(total=5, desc="prepare", unit="step")
 
@@ -391,7 +339,7 @@ def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | N
     report = SfmReport(
         n_photos=len(names),
         registered=registered,
-        dropped=_why_dropped(db_path, names, set(registered), others),
+        dropped=why_dropped(db_path, names, set(registered), others),
         mean_reproj_error=float(rec.compute_mean_reprojection_error()),
         n_points=int(rec.num_points3D()),
         matching=method,
@@ -403,9 +351,8 @@ def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | N
     )
     write_report(scene, report)
     if len(registered) < 3:
-        raise RuntimeError(
-            f"only {len(registered)} of {len(names)} photos could be posed; see {scene / (REPORT + '.txt')}"
-        )
+        why = scene / "prepare_report.txt"
+        raise RuntimeError(f"only {len(registered)} of {len(names)} photos could be posed; see {why}")
     return report
 
 
@@ -414,28 +361,3 @@ def _drop_stale_images(imdir: Path, keep: set[str]) -> None:
     for p in imdir.iterdir():
         if p.is_file() and p.name not in keep:
             p.unlink()
-
-
-def write_report(scene: Path, report: SfmReport) -> None:
-    write_text(scene / f"{REPORT}.json", json.dumps(asdict(report), indent=1))
-    write_text(scene / f"{REPORT}.txt", report.text())
-
-
-def read_report(scene: str | Path) -> SfmReport:
-    return SfmReport(**json.loads((Path(scene) / f"{REPORT}.json").read_text()))
-
-
-def visible_point_ids(scene_dir: str | Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The prepared model's points (N, 3) sorted by point id (the order `load_scene` uses) and,
-    per image name, the indices (into those points) of the points that image observes."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(Path(scene_dir) / "sparse" / "0"))
-    ids = sorted(rec.points3D.keys())
-    row = {pid: i for i, pid in enumerate(ids)}
-    xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
-    seen = {}
-    for im in rec.images.values():
-        idx = [row[p.point3D_id] for p in im.points2D if p.has_point3D()]
-        seen[im.name] = np.array(sorted(set(idx)), np.int64)
-    return xyz, seen
