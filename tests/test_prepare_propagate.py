@@ -116,3 +116,23 @@ def test_resolve_view():
     assert resolve_view("b", names) == 1 and resolve_view("b.jpg", names) == 1 and resolve_view(0, names) == 0
     with pytest.raises(ValueError, match="not a prepared view"):
         resolve_view("c", names)
+
+
+def test_box_in_photo_pixels(room, tmp_path):
+    """A box drawn on a photo twice the prepared size lands on the same object."""
+    import cv2
+
+    from coin_cl.prepare.scene_masks import Annotation, PreparedViews, reference_mask
+
+    cams, imgs, gt, ref, points = room
+    names = [c.name for c in cams]
+    views = PreparedViews(names, cams, imgs, points, [np.zeros(0, np.int64)] * len(cams))
+    write_png(tmp_path / names[ref].replace(".png", ".jpg"), cv2.resize(imgs[ref], (512, 384)))
+    y0, y1, x0, x1 = bbox(gt[ref])
+    box = (2 * (x0 - 4), 2 * (y0 - 4), 2 * (x1 + 4), 2 * (y1 + 4))
+    k, m = reference_mask(views, Annotation(view=names[ref], box=box, photos_dir=tmp_path))
+    assert k == ref and iou(m, gt[ref]) > 0.8
+    with pytest.raises(ValueError, match="outside view"):  # the same box without the photo's scale
+        reference_mask(views, Annotation(view=names[ref], box=(300, 200, 400, 300)))
+    with pytest.raises(ValueError, match="exactly one"):
+        Annotation(view=0, box=box, mask="m.png")

@@ -40,6 +40,6 @@ def prepare(
     report = run_sfm(photos_dir, scene_dir, sfm)
     if annotation is None:
         return report, None
-    if annotation.box is not None:
-        annotation.box_scale = report.width / report.photo_width
+    if annotation.box is not None and annotation.photos_dir is None:
+        annotation.photos_dir = Path(photos_dir)
     return report, make_masks(scene_dir, annotation, masks, segment)

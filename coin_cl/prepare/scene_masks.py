@@ -16,10 +16,11 @@ import cv2
 import numpy as np
 
 from ..scene.colmap import pinhole_for, read_model
-from ..scene.io import read_image, to_uint8, write_png, write_text
+from ..scene.io import IMAGE_EXTS, read_image, to_uint8, write_png, write_text
 from ..scene.types import Camera
 from .annotate import box_mask, check_box, read_annotation, resolve_view, scribble_mask
 from .propagate import PropagateConfig, PropagateResult, Segmenter, propagate_masks
+from .sfm import image_size
 
 log = logging.getLogger(__name__)
 
@@ -36,13 +37,14 @@ COLOURS = {
 @dataclass
 class Annotation:
     """The object in one view: exactly one of box (x0, y0, x1, y1), scribble (image path) or mask
-    (image path). `box_scale` multiplies the box (photo pixels -> prepared pixels)."""
+    (image path). With `photos_dir` the box is in the pixels of that folder's photo of the view
+    (scaled here to the prepared image); without, in the prepared image's pixels."""
 
     view: str | int
     box: tuple[float, float, float, float] | None = None
     scribble: str | Path | None = None
     mask: str | Path | None = None
-    box_scale: float = 1.0
+    photos_dir: str | Path | None = None
 
     def __post_init__(self) -> None:
         given = [k for k in ("box", "scribble", "mask") if getattr(self, k) is not None]
@@ -107,7 +109,14 @@ def reference_mask(
     ref = resolve_view(ann.view, views.names)
     img, cam = views.images[ref], views.cameras[ref]
     if ann.box is not None:
-        box = check_box([v * ann.box_scale for v in ann.box], cam.width, cam.height, views.names[ref])
+        scale = 1.0
+        if ann.photos_dir is not None:
+            stem = Path(views.names[ref]).stem
+            photo = next((p for p in Path(ann.photos_dir).glob(f"{stem}.*") if p.suffix in IMAGE_EXTS), None)
+            if photo is None:
+                raise FileNotFoundError(f"no photo named {stem}.* in {ann.photos_dir}")
+            scale = cam.width / image_size(photo)[0]
+        box = check_box([v * scale for v in ann.box], cam.width, cam.height, views.names[ref])
         return ref, box_mask(img, box, segment)
     if ann.scribble is not None:
         return ref, scribble_mask(img, read_annotation(ann.scribble, cam.width, cam.height), segment)

@@ -105,7 +105,7 @@ def working_size(sizes: list[tuple[int, int]], names: list[str], width: int) -> 
     return W, max(1, round(h0 * W / w0))
 
 
-def _image_size(path: Path) -> tuple[int, int]:
+def image_size(path: Path) -> tuple[int, int]:
     """(W, H) of an image file without decoding all of it where the format allows."""
     import imageio.v3 as iio
 
@@ -126,9 +126,9 @@ def _prepare_images(photos: list[Path], imdir: Path, size: tuple[int, int]) -> l
     for p in tqdm(photos, desc="prepare: resize", unit="img", leave=False):
         dst = imdir / f"{p.stem}.png"
         names.append(dst.name)
-        if dst.is_file() and _image_size(dst) == size:
+        if dst.is_file() and image_size(dst) == size:
             continue
-        if p.suffix.lower() == ".png" and _image_size(p) == size:
+        if p.suffix.lower() == ".png" and image_size(p) == size:
             shutil.copyfile(p, dst)  # already a PNG of the working size
             continue
         img = read_image(p)
@@ -284,7 +284,7 @@ def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig) -> SfmReport:
     import pycolmap
 
     work = scene / WORK
-    sizes = [_image_size(p) for p in photos]
+    sizes = [image_size(p) for p in photos]
     W, H = working_size(sizes, [p.name for p in photos], cfg.width)
     work.mkdir(parents=True, exist_ok=True)
     imdir, db_path = work / "images", work / "database.db"

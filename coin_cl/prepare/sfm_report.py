@@ -16,7 +16,7 @@ REPORT = "prepare_report"
 class SfmReport:
     """What `run_sfm` did: registered and dropped images (name -> reason), mean reprojection error
     (pixels, at the working size), point count, the matching used, the working size, the first
-    photo's size (a box drawn on a photo is scaled by width / photo_width) and seconds per step."""
+    photo's size and seconds per step."""
 
     n_photos: int
     registered: list[str]
