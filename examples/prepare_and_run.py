@@ -19,19 +19,16 @@ import numpy as np
 from coin_cl.prepare import Annotation, SfmConfig, prepare
 
 
-def synthetic_photos(folder: Path, n: int = 12, width: int = 256, height: int = 192) -> tuple[str, list[int]]:
-    """Render the synthetic room from `n` cameras on a 90 degree arc into `folder`; returns the
-    name of the photo where the object is largest and its box (x0, y0, x1, y1)."""
-    from coin_cl.scene.io import write_png
+def synthetic_photos(folder: Path) -> tuple[str, list[int]]:
+    """Photos of the synthetic room (12 cameras on a 90 degree arc, 256x192) into `folder`; returns
+    the photo where the object is largest and its box (x0, y0, x1, y1) from the true mask."""
+    from coin_cl.prepare.capture import synthetic_capture
     from coin_cl.scene.masks import bbox
-    from coin_cl.scene.synthetic import make_synthetic
 
-    s = make_synthetic(coverage=90, n_views=n, width=width, height=height, supersample=2, n_points=100)
-    for cam, img in zip(s.cameras, s.present, strict=True):
-        write_png(folder / cam.name, img)
-    k = int(np.argmax([m.sum() for m in s.masks]))
-    y0, y1, x0, x1 = bbox(s.masks[k])
-    return s.cameras[k].name, [x0 - 3, y0 - 3, x1 + 3, y1 + 3]
+    cap = synthetic_capture(folder)
+    k = int(np.argmax([m.sum() for m in cap.masks]))
+    y0, y1, x0, x1 = bbox(cap.masks[k])
+    return cap.photos[k].name, [x0 - 3, y0 - 3, x1 + 3, y1 + 3]
 
 
 def main(argv: list[str] | None = None) -> dict:
