@@ -30,8 +30,8 @@ def main(argv: list[str] | None = None):
 
     check_sd2_folder(args.sd_path)  # names the missing file before any work starts
     cfg = CoInConfig(sd_path=str(args.sd_path))
-    result = coin_cl.inpaint(coin_cl.load_scene(args.scene), args.out, masks=args.mask, prompt=args.prompt,
-                             budget=args.budget, config=cfg)  # fmt: skip
+    result = coin_cl.inpaint(coin_cl.load_scene(args.scene), args.out, mask_kind=args.mask,
+                             prompt=args.prompt, budget=args.budget, config=cfg)  # fmt: skip
     print(f"final Gaussians: {result.ply}")
     return result
 
