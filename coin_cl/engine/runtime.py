@@ -569,6 +569,12 @@ class Runtime:
             self._in_flight.append(host)  # the copy reads it until the next finish
         return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout"))
 
+    def reuse(self, tensor: torch.Tensor, buf) -> DeviceArray:
+        """The buffer an earlier launch filled for `tensor`, read again by a later one (the
+        backward reading what its forward uploaded or computed): nothing crosses. Only for a
+        tensor nobody has written since that launch."""
+        return DeviceArray(tensor, buf)
+
     def empty(self, *shape: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """An output tensor; filled with NaN (floats) or INT32_MIN (ints) when poisoning."""
         if not self.poison:

@@ -91,10 +91,14 @@ class _Rasterize(torch.autograd.Function):
         last = rt.empty(rows, stride, dtype=torch.int32)
         src, _ = raster_variant(rt)
         local, variant = fit_variant(rt, src, "rasterize_fwd", kernel_variant(C, defines))
+        # Kept for the backward, which reads them again without another copy (discrete memory).
+        kept = [rt.array(t, mode) for t, mode in ((m2, "in"), (con, "in"), (op, "in"), (ft, "in"),
+                                                  (bg, "in"), (t_final, "out"), (last, "out"))]  # fmt: skip
+        a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
         rt.run(
             src, "rasterize_fwd", (bins.n_tiles * local,), (local,),
-            [i32(bins.tiles_x), i32(stride), i32(plane), bins.tile_start, bins.tile_end, bins.ids,
-             m2, con, op, bins.extents, ft, bg, (img, "out"), (t_final, "out"), (last, "out")],
+            [i32(bins.tiles_x), i32(stride), i32(plane), *bins.arrays(rt, "tile_start", "tile_end", "ids"),
+             a_m2, a_con, a_op, *bins.arrays(rt, "extents"), a_ft, a_bg, (img, "out"), a_t, a_last],
             defines=variant,
         )  # fmt: skip
         if stats is not None:
@@ -103,6 +107,7 @@ class _Rasterize(torch.autograd.Function):
             stats.update(n_pairs=bins.n_pairs, n_visible=bins.n_visible, last=last[:height, :width])
         ctx.save_for_backward(m2, con, op, ft, bg, t_final, last)
         ctx.meta = (width, height, rt, defines, bins, features.dtype, background is not None)
+        ctx.bufs = [a.buf for a in kept]  # buffers only: a tensor here could make a reference cycle
         out_img = img[:, :height, :width].permute(1, 2, 0).to(features.dtype)
         out_alpha = (1.0 - t_final[:height, :width]).to(features.dtype)
         return out_img, out_alpha
@@ -135,17 +140,21 @@ class _Rasterize(torch.autograd.Function):
             torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]  # fmt: skip
         contrib = rt.array(rt.empty(bins.ids.numel() if det else 1, 6 + C), mode="scratch")
         if bins.ids.numel():
+            kept = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
+            a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
+            a_bins = bins.arrays(rt, "tile_start", "tile_end", "ids")
             rt.run(
                 src, "rasterize_bwd", (bins.n_tiles * local,), (local,),
-                [i32(bins.tiles_x), i32(stride), i32(plane), bins.tile_start, bins.tile_end, bins.ids,
-                 m2, con, op, bins.extents, ft, bg, t_final, last, g_img, g_alpha,
+                [i32(bins.tiles_x), i32(stride), i32(plane), *a_bins,
+                 a_m2, a_con, a_op, *bins.arrays(rt, "extents"), a_ft, a_bg, a_t, a_last, g_img, g_alpha,
                  (torch.empty(C, rows, stride), "scratch"), contrib,
-                 *[(t, "out" if det else "inout") for t in outs]],
+                 # deterministic: the kernel writes `contrib`, not these (reduce.cl does)
+                 *[(t, "scratch" if det else "inout") for t in outs]],
                 defines=variant,
                 wait=not det,  # the reduction reads `contrib` next on the same in-order queue
             )  # fmt: skip
         if det:
-            reduce_pair_grads(rt, bins.pair_start, bins.pair_slot, contrib, outs, C)
+            reduce_pair_grads(rt, bins, contrib, outs, C)
         v_bg = None
         if has_bg:
             v_bg = (g_img * t_final).sum(dim=(1, 2)).to(dtype)
