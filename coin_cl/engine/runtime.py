@@ -502,7 +502,7 @@ class Runtime:
         """Launch kernel `name` with a declarative argument list, then wait for its outputs.
 
         Each entry of `args` is a numpy scalar (passed by value), a tensor (read by the kernel:
-        mode "in"), a (tensor, mode) pair with mode "out", "inout" or "scratch" (see `array`), or
+        mode "in"), a (tensor, mode) pair with mode "out", "inout", "acc" or "scratch" (see `array`), or
         a `DeviceArray` from `array` when one buffer must outlive a launch (a scratch buffer one
         kernel writes and the next reads).
         With `wait` (the default) the queue is finished and outputs copied back when the host is
@@ -521,7 +521,7 @@ class Runtime:
             if isinstance(a, tuple):
                 arr = self.array(a[0], mode=a[1])
                 bufs.append(arr.buf)
-                if a[1] in ("out", "inout"):
+                if arr.copy_back:
                     outs.append(arr)
             else:
                 bufs.append(a)
@@ -538,13 +538,18 @@ class Runtime:
         """Wrap a contiguous CPU tensor as a device buffer (aliased when memory is unified).
 
         mode says what crosses when memory is not unified: "in" (the kernel reads it), "out" (the
-        kernel writes every element; copied back by `finish`), "inout" (read-modify-write, e.g.
-        accumulators; both ways) or "scratch" (device-only working memory; neither way).
+        kernel writes every element; copied back by `finish`), "inout" (read-modify-write; both
+        ways), "acc" (an accumulator the kernel adds into: the tensor holds zeros, the device
+        buffer is zero-filled there rather than copied in; copied back) or "scratch" (device-only
+        working memory; neither way).
         """
+        import numpy as np
         import pyopencl as cl
 
-        if mode not in ("in", "out", "inout", "scratch"):
+        if mode not in ("in", "out", "inout", "acc", "scratch"):
             raise ValueError(f"unknown buffer mode {mode!r}")
+        if mode == "acc" and self.poison and bool(tensor.any()):  # tests check the promise
+            raise ValueError("runtime.array(mode='acc') needs a tensor of zeros")
         if not tensor.is_contiguous() or tensor.device.type != "cpu":
             raise ValueError("runtime.array needs a contiguous CPU tensor")
         mf = cl.mem_flags
@@ -567,7 +572,9 @@ class Runtime:
             ev = cl.enqueue_copy(self.queue, buf, host, is_blocking=False)
             self.transfers.add(nbytes, ev, inbound=True)
             self._in_flight.append(host)  # the copy reads it until the next finish
-        return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout"))
+        elif mode == "acc":
+            cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint8), 0, nbytes)
+        return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout", "acc"))
 
     def reuse(self, tensor: torch.Tensor, buf) -> DeviceArray:
         """The buffer an earlier launch filled for `tensor`, read again by a later one (the

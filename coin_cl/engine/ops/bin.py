@@ -149,9 +149,10 @@ def bin_tiles(
     chunk = (n_vis + n_chunks - 1) // n_chunks
     n_chunks = (n_vis + chunk - 1) // chunk
     hist = torch.zeros(n_chunks, n_tiles, dtype=torch.int32)
+    a_rects = rt.array(rects)  # read by both passes below: crosses once
     rt.run(
         "bin.cl", "bin_count", (n_chunks,), None,
-        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), rects, (hist, "inout")],
+        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), a_rects, (hist, "acc")],
     )  # fmt: skip
     counts = hist.t().reshape(-1)  # tile-major
     offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).contiguous()
@@ -165,7 +166,7 @@ def bin_tiles(
     a_ids, a_slot = rt.array(bins.ids, "out"), rt.array(bins.pair_slot, "out")
     rt.run(
         "bin.cl", "bin_scatter", (n_chunks,), None,
-        [i32(n_vis), i32(chunk), i32(n_chunks), i32(bins.tiles_x), rects, order, offsets,
+        [i32(n_vis), i32(chunk), i32(n_chunks), i32(bins.tiles_x), a_rects, order, offsets,
          *bins.arrays(rt, "pair_start"), a_ids, a_slot],
     )  # fmt: skip
     bins.keep(rt, "ids", a_ids)

@@ -149,7 +149,7 @@ class _Rasterize(torch.autograd.Function):
                  a_m2, a_con, a_op, *bins.arrays(rt, "extents"), a_ft, a_bg, a_t, a_last, g_img, g_alpha,
                  (torch.empty(C, rows, stride), "scratch"), contrib,
                  # deterministic: the kernel writes `contrib`, not these (reduce.cl does)
-                 *[(t, "scratch" if det else "inout") for t in outs]],
+                 *[(t, "scratch" if det else "acc") for t in outs]],
                 defines=variant,
                 wait=not det,  # the reduction reads `contrib` next on the same in-order queue
             )  # fmt: skip
