@@ -16,7 +16,9 @@ initialisation on the same view sequence, `--steps` steps each; prints the media
 every part (anchor decode, project, bin, rasterize, loss, backward, optimiser, densification,
 the rest), steps/s and the held-out PSNR after those steps, and ends with one JSON line
 (scaffold_steps_s_old/new, gs3d_steps_s_old/new, psnr_old/new, ...):
-    python benchmarks/train.py --throughput [--steps 200] [--models scaffold,3dgs]
+    python benchmarks/train.py --throughput [--steps 200] [--models scaffold,3dgs] [--discrete]
+The run table's "copy MB/step" and "copy ms/step" are the host <-> device copies per step (0 on a
+host-unified-memory device; `--discrete` forces the discrete-GPU path, COIN_CL_DISCRETE=1).
 """
 
 import os

@@ -177,3 +177,14 @@ def test_bytes_counted_are_the_tensors_that_cross():
     assert rt.transfers.bytes_in == 4 * (2 * n + 2 * window)
     assert rt.transfers.bytes_out == 4 * (n + 3 * n)
     assert rt.bytes_transferred == rt.transfers.bytes
+
+
+def test_an_accumulator_must_start_at_zero():
+    """mode="acc" promises zeros (the discrete path fills the device buffer instead of copying
+    them); with poisoning on, as in the tests, the promise is checked."""
+    rt = Runtime(get_runtime().device, discrete=True)
+    rt.poison = True
+    with pytest.raises(ValueError, match="mode='acc'.*zeros"):
+        rt.array(torch.ones(4), mode="acc")
+    acc = rt.array(torch.zeros(4), mode="acc")
+    assert acc.copy_back and rt.transfers.bytes_in == 0  # nothing crossed to zero it
