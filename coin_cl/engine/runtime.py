@@ -160,19 +160,18 @@ def probe_device(device) -> Probe:
     return result
 
 
-def probe_float_atomics(device) -> bool:
-    """Whether `device` builds and runs a float atomic add (cl_ext_float_atomics, OpenCL C 3.0)."""
+def _adds_exactly(device, source: str, options: list[str], what: str) -> bool:
+    """Whether `device` builds `source` (a kernel `probe` adding 0.5 to one float from each of its
+    256 work-items, all at once) and the float ends at exactly 128; never raises."""
     import numpy as np
     import pyopencl as cl
 
-    if "cl_ext_float_atomics" not in device.extensions:
-        return False
     try:
         ctx = cl.Context([device])
         queue = cl.CommandQueue(ctx)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", cl.CompilerWarning)
-            prg = cl.Program(ctx, _PROBE_ATOMICS).build(options=list(FLOAT_ATOMICS_OPTIONS))
+            prg = cl.Program(ctx, source).build(options=options)
         out = np.zeros(1, np.float32)
         buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=out)
         prg.probe(queue, (256,), None, buf)
@@ -180,8 +179,15 @@ def probe_float_atomics(device) -> bool:
         queue.finish()
         return bool(out[0] == 128.0)
     except Exception as exc:
-        log.info("float atomics unusable on %s: %s", device_label(device), " ".join(str(exc).split())[:200])
+        log.info("%s unusable on %s: %s", what, device_label(device), " ".join(str(exc).split())[:200])
         return False
+
+
+def probe_float_atomics(device) -> bool:
+    """Whether `device` builds and runs a float atomic add (cl_ext_float_atomics, OpenCL C 3.0)."""
+    if "cl_ext_float_atomics" not in device.extensions:
+        return False
+    return _adds_exactly(device, _PROBE_ATOMICS, list(FLOAT_ATOMICS_OPTIONS), "float atomics")
 
 
 # The compare-and-swap float add every backward falls back to (kernels/common.h), run under
@@ -194,24 +200,7 @@ __kernel void probe(__global float *x) { atomic_add_float(x, 0.5f); }
 
 def probe_cas_atomics(device) -> bool:
     """Whether `device` builds and runs the compare-and-swap float add of kernels/common.h exactly."""
-    import numpy as np
-    import pyopencl as cl
-
-    try:
-        ctx = cl.Context([device])
-        queue = cl.CommandQueue(ctx)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", cl.CompilerWarning)
-            prg = cl.Program(ctx, _PROBE_CAS).build(options=[f"-I{kernel_dir()}"])
-        out = np.zeros(1, np.float32)
-        buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=out)
-        prg.probe(queue, (256,), None, buf)
-        cl.enqueue_copy(queue, out, buf)
-        queue.finish()
-        return bool(out[0] == 128.0)
-    except Exception as exc:
-        log.info("CAS float add unusable on %s: %s", device_label(device), " ".join(str(exc).split())[:200])
-        return False
+    return _adds_exactly(device, _PROBE_CAS, [f"-I{kernel_dir()}"], "CAS float add")
 
 
 _GPU_CHECKS: dict[tuple[str, str, str], str] = {}
