@@ -179,3 +179,10 @@ def test_bad_input_is_a_clear_error(room, tmp_path):
     with pytest.raises(OutputFolderError, match="another scene"):
         inpaint(other, tmp_path / "e", config=TINY)
     assert not any((tmp_path / p).exists() for p in ("a/0_scene", "b/0_scene", "d/0_scene"))
+
+
+def test_render_takes_a_run_folder(first_run, capsys):
+    out, res = first_run
+    assert main(["render", str(out), "--views", "test"]) == 0
+    written = sorted((out / "renders" / "test").glob("*.png"))
+    assert len(written) == 2 * len(load_scene(out / "0_scene" / "scene").test_idx)  # image + depth each

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from coin_cl.gs.carve import CarveConfig
 from coin_cl.pipeline.budget import (
     MAX_WORK_PIXELS,
     PRIOR_MIN_SECONDS,
@@ -66,7 +67,11 @@ class CoInConfig:
     `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
     inpaint_region: "input" (inpaint the whole masks) or "refined" (3D-first, supplement C.2: stage
     0_refine narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for
-    removal on wide captures). refine: its settings."""
+    removal on wide captures). refine: its settings.
+    carve: removal carves the object's volume out of the GS for good (`coin_cl.gs.carve`: what the
+    masks cut out of space in front of the background surface gets no Gaussian, in Ref-GS, TE-D
+    and the exported model) and seeds anchors on the background behind it; not with insertion or
+    the naive / w/o Ref-GS rows. carve_cfg: its settings."""
 
     mask_kind: str = "seg"
     mask_dilate: int = 0
@@ -91,6 +96,8 @@ class CoInConfig:
     insert: InsertConfig = field(default_factory=InsertConfig)
     inpaint_region: str = "input"
     refine: RefineConfig = field(default_factory=RefineConfig)
+    carve: bool = True
+    carve_cfg: CarveConfig = field(default_factory=CarveConfig)
 
     def with_iters(self, n: int | None) -> CoInConfig:
         """This config with every GS training stage set to `n` steps (None: unchanged)."""
@@ -342,6 +349,7 @@ def _run(
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
         Stage("2_refgs", _stage_refgs, ["0_scene", *r, "1_inpaint"],
               {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,
+               "carve": _jsonable(cfg.carve_cfg) if _carves(cfg, edited) else None,
                "plain": "refgs" in cfg.skip}),
         Stage("3_clg", _stage_clg, ["0_scene", *r, "1_inpaint", "2_refgs"],
               {"cfg": _jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
@@ -498,14 +506,56 @@ def _stage_refgs(ctx: StageContext) -> dict:
     ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
              f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
+    attach, bg = _carve_hook(ctx, scene_m, masks, train)
+    seed_points = None if lift is None else (lift.points, lift.colors)
+    if bg is not None and len(bg):
+        k = ctx.shared["ref"]
+        uv, _ = scene.cameras[k].project(bg)
+        iu = np.clip(uv[:, 0].astype(int), 0, scene.cameras[k].width - 1)
+        iv = np.clip(uv[:, 1].astype(int), 0, scene.cameras[k].height - 1)
+        seed_points = (bg, np.asarray(full[k], np.float32)[iv, iu, :3])  # the reference's inpaint colours
     if lift is not None:
         ctx.note(
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
                      max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
-                     seed_points=None if lift is None else (lift.points, lift.colors),
+                     seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth)  # fmt: skip
+
+
+def _carves(cfg: CoInConfig, edited: Any) -> bool:
+    """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
+    return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
+
+
+def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
+    """(trainer callback that gives the model the carve volume, seed points on the background
+    behind the object in the reference view), or (None, None) when this run does not carve."""
+    cfg: CoInConfig = ctx.shared["cfg"]
+    if not _carves(cfg, ctx.shared.get("edited")):
+        return None, None
+    from coin_cl.gs.carve import background_points, build_carve
+
+    cams = [scene.cameras[i] for i in train]
+    vol = build_carve(cams, [masks[i] for i in train], np.asarray(scene.points), cfg.carve_cfg)
+    if vol is None:
+        return None, None
+    ref = ctx.shared["ref"]
+    with_mask = [i for i in train if np.asarray(masks[i]).any()]
+    pts = background_points(vol, with_mask.index(ref)) if ref in with_mask else np.zeros((0, 3), np.float32)
+    import torch
+
+    inside = vol.contains(torch.as_tensor(pts)).numpy() if len(pts) else np.zeros(0, bool)
+    pts = pts[~inside]  # on the background surface, not in front of it
+    ctx.note(f"carving the object's volume: D_bg from {len(scene.points)} sparse points in {len(vol)} views; "
+             f"{len(pts)} background points behind the object seed anchors")  # fmt: skip
+
+    def attach(trainer, step):
+        if getattr(trainer.model, "carve", "n/a") is None:
+            trainer.model.carve = vol
+
+    return attach, pts
 
 
 def _stage_clg(ctx: StageContext) -> dict:
