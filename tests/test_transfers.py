@@ -25,7 +25,11 @@ W, H = (36, 20) if SMALL else (100, 67)
 def runtimes():
     """(unified, discrete) runtimes on the default device, outputs poisoned (NaN / INT32_MIN):
     on the discrete path too, an element a kernel leaves unwritten shows."""
+    from coin_cl.engine.runtime import host_unified
+
     dev = get_runtime().device
+    if not host_unified(dev):  # a discrete GPU: every other kernel test runs the discrete path
+        pytest.skip(f"{get_runtime().name} has no host-unified memory: no aliasing path to compare with")
     pair = Runtime(dev, discrete=False), Runtime(dev, discrete=True)
     for r in pair:
         r.poison = True
@@ -188,3 +192,11 @@ def test_an_accumulator_must_start_at_zero():
         rt.array(torch.ones(4), mode="acc")
     acc = rt.array(torch.zeros(4), mode="acc")
     assert acc.copy_back and rt.transfers.bytes_in == 0  # nothing crossed to zero it
+
+
+def test_the_aliasing_path_is_refused_without_host_unified_memory(monkeypatch):
+    from coin_cl.engine import runtime
+
+    monkeypatch.setattr(runtime, "host_unified", lambda d: False)
+    with pytest.raises(ValueError, match="no host-unified memory: it runs the discrete path only"):
+        Runtime(get_runtime().device, discrete=False)

@@ -341,6 +341,10 @@ class Runtime:
         if self.discrete is None:
             forced = _env_flag("COIN_CL_DISCRETE") or _env_flag("COIN_CL_NO_ZERO_COPY")
             self.discrete = forced or not host_unified(self.device)
+        elif not self.discrete and not host_unified(self.device):
+            # Aliasing host memory is coherent only where the device shares it; elsewhere
+            # USE_HOST_PTR needs map/unmap around every host access, which this runtime never does.
+            raise ValueError(f"{self.name} has no host-unified memory: it runs the discrete path only")
         self.unified = not self.discrete
         # Profiling times the copies of the discrete path (and the kernels with COIN_CL_PROFILE).
         props = cl.command_queue_properties.PROFILING_ENABLE if self.profile or self.discrete else 0
