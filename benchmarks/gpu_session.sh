@@ -22,6 +22,11 @@ WHEELS="pyopencl==2026.1.4 pytools==2026.1.1 platformdirs==4.14.7 siphash24==1.9
 PLATFORMS="--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64
   --platform manylinux2014_x86_64 --platform manylinux1_x86_64"
 
+# NVIDIA's OpenCL library wherever the driver mount put it (the usual library folders only: fast).
+nvidia_ocl_libs() {
+  find -H /usr/lib /usr/lib64 /lib /lib64 /usr/local /opt -name 'libnvidia-opencl.so*' 2>/dev/null | sort -u
+}
+
 prepare() {
   local data=${COIN_DATA:-../shared/data}/spinnerf_scene1
   [ -d "$data" ] || { echo "prepare: $data not found; set COIN_DATA"; return 1; }
@@ -55,7 +60,7 @@ setup() {
   # hold the library without the file, so one is written in a folder of ours when none names it.
   if ! grep -qs nvidia /etc/OpenCL/vendors/*.icd; then
     local lib
-    lib=$(find / \( -path /proc -o -path /sys \) -prune -o -name 'libnvidia-opencl.so*' -print 2>/dev/null | sort | head -n 1)
+    lib=$(nvidia_ocl_libs | head -n 1)
     if [ -z "$lib" ]; then
       echo "setup: NO NVIDIA OpenCL library (libnvidia-opencl.so*) on this machine;" \
         "/etc/OpenCL/vendors holds: $(ls /etc/OpenCL/vendors 2>&1)"
@@ -73,7 +78,7 @@ check() {
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
   echo "== /etc/OpenCL/vendors"; ls -l /etc/OpenCL/vendors 2>&1; cat /etc/OpenCL/vendors/*.icd 2>&1
   echo "== NVIDIA OpenCL libraries"
-  find / \( -path /proc -o -path /sys \) -prune -o -name 'libnvidia-opencl.so*' -print 2>/dev/null
+  nvidia_ocl_libs
   echo "== OpenCL devices (rank: the default order; limits the kernels depend on)"
   python3 - <<'EOF'
 from coin_cl.engine import runtime
