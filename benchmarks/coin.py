@@ -66,7 +66,7 @@ ROWS = {
     "default": {},  # run through the CLI, see run_default
     "default_baseline": {},  # see run_default
     "coin": {},
-    "baseline": {"skip": ("refgs", "clg", "ted")},
+    "baseline": {"skip": ("refgs", "clg", "ted"), "inpaint_region": "input"},
     "no_refgs": {"skip": ("refgs",)},
     "no_weights": {"refgs": RefGSConfig(adaptive_weights=False)},
     "no_attn": {"refgs": RefGSConfig(feature_attention=False)},

@@ -44,6 +44,7 @@ def test_every_stage_shows_progress(tmp_path, capsys):
     from dataclasses import replace
 
     from coin_cl.diffusion.scene_prior import ScenePriorConfig
+
     from coin_cl.gs.refgs import RefGSConfig
     from coin_cl.pipeline.clg import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig, inpaint

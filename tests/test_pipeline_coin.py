@@ -145,7 +145,8 @@ def test_same_scene_under_another_spelling_or_resolution_is_accepted(room, first
     os.symlink(room, link)
     res = inpaint(link, first_run[0], config=TINY)  # a symlink: the same scene, everything up to date
     assert all(r["status"] == "skipped: up to date" for r in res.stages.values())
-    res = inpaint(str(room) + "/", tmp_path / "half", config=replace(TINY, resolution=0.5, skip=("clg", "ted")))
+    half = replace(TINY, resolution=0.5, skip=("clg", "ted"))
+    res = inpaint(str(room) + "/", tmp_path / "half", config=half)
     assert res.stages["0_scene"]["status"] == "ran"
     # the half-resolution run may share the folder of the full one: another resolution is not another scene
     import shutil

@@ -13,10 +13,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mask-kind", choices=("seg", "bbox", "scribble"), default="seg",
                    help="the shape of the object's masks: the scene's segmentation, or its bounding box / "
                         "scribbles derived from it (default seg)")  # fmt: skip
-    p.add_argument("--inpaint-region", choices=("input", "refined"), default="input",
-                   help="input: inpaint the whole masks (default); refined: 3D-first (wide/360 "
-                        "captures, removal): inpaint only the mask pixels no other view sees "
-                        "(stage 0_refine)")  # fmt: skip
+    p.add_argument("--inpaint-region", choices=("auto", "input", "refined"), default="auto",
+                   help="input: inpaint the whole masks; refined: 3D-first (wide/360 captures, "
+                        "removal): inpaint only the mask pixels no other view sees (stage 0_refine); "
+                        "auto (default): refined when other views see at least 30%% of the masks "
+                        "(estimated, logged)")  # fmt: skip
     p.add_argument("--ref", default=None,
                    help="reference view: a view name (with or without extension) or an index; a name that "
                         "exists wins (default: chosen by rule)")  # fmt: skip

@@ -207,3 +207,37 @@ def background_points(vol: CarveVolume, view: int, stride: int = 2) -> np.ndarra
     K, c2w = vol.Ks[view], torch.linalg.inv(vol.viewmats[view])
     pc = torch.stack([(xs + 0.5 - K[0, 2]) / K[0, 0] * z, (ys + 0.5 - K[1, 2]) / K[1, 1] * z, z], -1)
     return (pc @ c2w[:3, :3].T + c2w[:3, 3]).numpy().astype(np.float32)
+
+
+@torch.no_grad()
+def observed_share(vol: CarveVolume, stride: int = 4, tol: float = 0.1) -> tuple[float, list[float]]:
+    """How much of the masks other views see (issue 21's cheap visibility estimate, before any fit).
+
+    For each view, points on its background depth D_bg inside its mask (every `stride`-th stored
+    pixel) are projected into every other view; a point counts as observed when some other view has
+    it in frame, outside that view's (dilated) mask and not hidden (its depth at most (1 + tol) x that
+    view's D_bg, which outside a mask is the sparse surface the view sees). Returns (the share over
+    all sampled mask pixels, the share per view)."""
+    per_view, hits, total = [], 0, 0
+    for n in range(len(vol)):
+        pts = torch.as_tensor(background_points(vol, n, stride))
+        if len(pts) == 0:
+            per_view.append(0.0)
+            continue
+        seen = torch.zeros(len(pts), dtype=torch.bool)
+        for m in range(len(vol)):
+            if m == n:
+                continue
+            pc = pts @ vol.viewmats[m, :3, :3].T + vol.viewmats[m, :3, 3]
+            z = pc[:, 2]
+            zs = z.clamp_min(1e-6)
+            u = pc[:, 0] / zs * vol.Ks[m, 0, 0] + vol.Ks[m, 0, 2]
+            v = pc[:, 1] / zs * vol.Ks[m, 1, 1] + vol.Ks[m, 1, 2]
+            W, H = int(vol.sizes[m, 0]), int(vol.sizes[m, 1])
+            ok = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            iu, iv = u.clamp(0, W - 1).long(), v.clamp(0, H - 1).long()
+            seen |= ok & ~vol.masks[m, iv, iu] & (z <= vol.depths[m, iv, iu] * (1.0 + tol))
+        per_view.append(float(seen.float().mean()))
+        hits += int(seen.sum())
+        total += len(pts)
+    return (hits / total if total else 0.0), per_view

@@ -49,6 +49,10 @@ from coin_cl.pipeline.ted import TEDConfig
 
 log = logging.getLogger(__name__)
 
+# Share of the masks that other views must see (estimated) for "auto" to choose refined masks:
+# measured 0.16 on the forward-facing SPIn-NeRF scene, 0.65 / 0.78 / 0.82 on the synthetic room's 90 /
+# 180 / 360-degree arcs (exact: 0.78 / 0.83 / 0.83; tests/test_carve.py).
+AUTO_REFINE_SHARE = 0.3
 STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 
 
@@ -65,9 +69,11 @@ class CoInConfig:
     replaces the budget plan's figure; see `coin_cl.pipeline.budget`). seed, device: as everywhere.
     edited_ref: path of the reference view edited by the user (insertion without weights,
     `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
-    inpaint_region: "input" (inpaint the whole masks) or "refined" (3D-first, supplement C.2: stage
+    inpaint_region: "input" (inpaint the whole masks), "refined" (3D-first, supplement C.2: stage
     0_refine narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for
-    removal on wide captures). refine: its settings.
+    removal on wide captures) or "auto" (removal: "refined" when the cheap estimate
+    `coin_cl.gs.carve.observed_share` finds at least AUTO_REFINE_SHARE of the masks seen by other
+    views, else "input"; logged with its figure). refine: its settings.
     carve: removal carves the object's volume out of the GS for good (`coin_cl.gs.carve`: what the
     masks cut out of space in front of the background surface gets no Gaussian, in Ref-GS, TE-D
     and the exported model) and seeds anchors on the background behind it; not with insertion or
@@ -94,7 +100,7 @@ class CoInConfig:
     clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
     edited_ref: str | None = None
     insert: InsertConfig = field(default_factory=InsertConfig)
-    inpaint_region: str = "input"
+    inpaint_region: str = "auto"
     refine: RefineConfig = field(default_factory=RefineConfig)
     carve: bool = True
     carve_cfg: CarveConfig = field(default_factory=CarveConfig)
@@ -236,8 +242,10 @@ def inpaint(
 
         env = resolve_sd2_path(None)  # COIN_SD2_PATH
         cfg = replace(cfg, sd_path=None if env is None else str(env))
-    if cfg.inpaint_region not in ("input", "refined"):
-        raise ValueError(f"inpaint_region must be 'input' or 'refined', got {cfg.inpaint_region!r}")
+    if cfg.inpaint_region not in ("input", "refined", "auto"):
+        raise ValueError(f"inpaint_region must be 'auto', 'input' or 'refined', got {cfg.inpaint_region!r}")
+    if cfg.inpaint_region == "auto" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+        cfg = replace(cfg, inpaint_region="input")  # insertion: nothing to recover from other views
     if cfg.mask_kind not in ("seg", "bbox", "scribble"):
         raise ValueError(f"mask_kind must be 'seg', 'bbox' or 'scribble', got {cfg.mask_kind!r}")
     if cfg.inpaint_region == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
@@ -295,12 +303,35 @@ def _plan(scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan:
                     lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
 
 
+def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
+    """'refined' when other views see at least AUTO_REFINE_SHARE of the masks (a cheap estimate from
+    the cameras and the sparse points, seconds; `coin_cl.gs.carve.observed_share`), else 'input'."""
+    from coin_cl.gs.carve import build_carve, observed_share
+
+    train = list(scene.train_idx)
+    try:
+        vol = build_carve([scene.cameras[i] for i in train], [masks[i] for i in train],
+                          np.asarray(scene.points), cfg.carve_cfg)  # fmt: skip
+    except ValueError as exc:
+        log.info("inpaint region: input (no visibility estimate: %s)", exc)
+        return "input"
+    share = observed_share(vol)[0] if vol is not None else 0.0
+    region = "refined" if share >= AUTO_REFINE_SHARE else "input"
+    log.info(
+        "inpaint region: %s (other views see an estimated %.0f%% of the masks; refined from %.0f%%; "
+        "--inpaint-region overrides)", region, 100 * share, 100 * AUTO_REFINE_SHARE,
+    )  # fmt: skip
+    return region
+
+
 def _run(
     scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
 ) -> CoInResult:
     from coin_cl.gs.refgs import RefGSConfig, choose_reference
 
     masks = _train_masks(scene, cfg)
+    if cfg.inpaint_region == "auto":
+        cfg = replace(cfg, inpaint_region=_choose_region(scene, masks, cfg))
     train = list(scene.train_idx)
     if edited is not None:
         from coin_cl.pipeline.insert import check_edit, find_reference
@@ -506,7 +537,8 @@ def _stage_refgs(ctx: StageContext) -> dict:
     ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
              f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
-    attach, bg = _carve_hook(ctx, scene_m, masks, train)
+    # The carve is the object's volume: the input masks, also when refined masks narrow what is inpainted.
+    attach, bg = _carve_hook(ctx, ctx.shared["scene"], ctx.shared["masks"], train)
     seed_points = None if lift is None else (lift.points, lift.colors)
     if bg is not None and len(bg):
         k = ctx.shared["ref"]
@@ -659,7 +691,7 @@ def _stage_eval(ctx: StageContext) -> dict:
 
 
 def share_stages(
-    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "1_inpaint")
+    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "0_refine", "1_inpaint")
 ) -> None:
     """Start run folder `dst` from the `stages` folders of run `src` (and its scene record), so a
     comparison row (a baseline, an ablation) reuses them instead of redoing them. Safe by
