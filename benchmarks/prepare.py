@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> dict:
     import numpy as np
 
     import coin_cl
-    from coin_cl.gs.refgs import choose_reference
+    from coin_cl.pipeline.reference import choose_reference
     from coin_cl.prepare import Annotation, PropagateConfig, SfmConfig, make_masks, run_sfm
     from coin_cl.prepare.align import pose_errors, relative_rotation_errors
     from coin_cl.prepare.propagate import iou
