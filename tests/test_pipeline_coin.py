@@ -206,3 +206,19 @@ def test_auto_region_follows_the_visibility_estimate(room, tmp_path, caplog):
     want = "refined" if share >= AUTO_REFINE_SHARE else "input"
     assert f"inpaint region: {want} (other views see an estimated {100 * share:.0f}%" in caplog.text
     assert ("0_refine" in res.stages) == (want == "refined")
+
+
+def test_carve_keeps_the_object_volume_empty_in_the_final_model(room, first_run, tmp_path):
+    """With carve=True nothing the densification grows inside the carve volume survives: the final
+    model carries the volume and exports no Gaussian inside it (TE-D included)."""
+    import shutil
+
+    out = tmp_path / "carve"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=replace(TINY, carve=True, skip=("clg",)))
+    assert res.stages["1_inpaint"]["status"] == "skipped: up to date"  # carving starts at Ref-GS
+    assert any("carving the object's volume" in n for n in res.stages["2_refgs"]["notes"])
+    vol = res.model.carve
+    assert vol is not None and len(vol) > 0
+    g = res.model.export_gaussians()
+    assert not vol.contains(g["means"]).any()
