@@ -41,7 +41,8 @@ def room():
 
 def _run(room, out, views=None, masks=None, denoiser=None, guidance_scale=None, **kw):
     s = room["s"]
-    cfg = CLGConfig(**({"steps": 4, "progress": False} | kw))
+    # keep_if_worse off: these tests look at what guidance writes; test_keeps_the_input_... turns it on
+    cfg = CLGConfig(**({"steps": 4, "progress": False, "keep_if_worse": False} | kw))
     if guidance_scale is not None:
         cfg = replace(cfg, sampler=replace(cfg.sampler, guidance_scale=guidance_scale))
     return run_clg(
@@ -186,6 +187,53 @@ def test_stage_clg_reads_the_stage_folders(tmp_path):
     res = stage_clg(ctx)
     written = sorted(p.stem for p in (ctx.out / "images").iterdir())
     expect = sorted(scene.cameras[i].name.rsplit(".", 1)[0] for i in train[2:])
-    assert written == expect and res["n_guided"] == len(expect) and res["n_skipped"] == 2
+    assert written == expect and res["n_skipped"] == 2
+    assert res["n_guided"] + res["n_kept_input"] == len(expect)
     assert any("P_k" in n for n in ctx.notes) and any("skipped" in n for n in ctx.notes)
     assert not list(inp_dir.glob("scene_prior_*.pt"))  # nothing written into stage 1's folder
+
+
+def _textured(seed=0, h=48, w=64):
+    rng = np.random.default_rng(seed)
+    base = np.stack(np.meshgrid(np.linspace(0, 1, w), np.linspace(0, 1, h)), -1)
+    img = np.concatenate([base, base[..., :1] * 0.5], -1) * 0.5 + 0.25
+    return np.clip(img + 0.08 * rng.standard_normal((h, w, 1)), 0, 1).astype(np.float32)
+
+
+def test_no_worse_names_each_way_an_output_can_be_worse():
+    import cv2
+
+    from coin_cl.pipeline.clg import no_worse
+    from coin_cl.pipeline.clg_config import CLGConfig
+
+    cfg = CLGConfig()
+    inp = _textured()
+    mask = np.zeros(inp.shape[:2], bool)
+    mask[14:34, 20:44] = True
+    assert no_worse(inp, inp.copy(), mask, {"residual_before": 0.1, "residual_after": 0.08}, cfg) == []
+    blur = inp.copy()
+    blur[mask] = cv2.GaussianBlur(inp, (0, 0), 4)[mask]
+    assert any(w.startswith("texture") for w in no_worse(inp, blur, mask, {}, cfg))
+    hue = inp.copy()
+    rng = np.random.default_rng(1)
+    hue[mask] = rng.uniform(0, 1, (int(mask.sum()), 3))  # colour noise of hues the scene lacks
+    assert any(w.startswith("colour") for w in no_worse(inp, hue, mask, {}, cfg))
+    why = no_worse(inp, inp.copy(), mask, {"residual_before": 0.05, "residual_after": 0.09}, cfg)
+    assert why == ["residual to the reference 0.0500 -> 0.0900"]
+
+
+def test_a_view_never_leaves_clg_worse_than_it_came(room, tmp_path):
+    """With the guard on, each view either passes the checks or keeps I^_n (its PNG is the input)."""
+    from coin_cl.scene.io import read_image, to_uint8
+
+    res = _run(room, tmp_path, views=room["train"][1:4], keep_if_worse=True)
+    for stem, rec in res["views"].items():
+        n = rec["view"]
+        written = read_image(tmp_path / "images" / f"{stem}.png")
+        if rec["status"] == "kept input":
+            assert rec["kept_because"]
+            assert np.array_equal(to_uint8(written), to_uint8(room["inp"][n]))
+        else:
+            assert rec["residual_after"] <= rec["residual_before"]
+            assert rec["texture_output"] >= 0.9 * rec["texture_input"]
+    assert res["n_kept_input"] + res["n_guided"] == 3

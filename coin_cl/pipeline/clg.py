@@ -88,6 +88,44 @@ def _check_sequences(reference: int, views: Sequence[int], cameras: Sequence[Any
         raise ValueError(f"unknown views {bad} (the scene has {n_views})")
 
 
+def _colour_distance(img: np.ndarray, mask: np.ndarray, ring_px: int = 8) -> float:
+    """Distance between the colour statistics (Lab mean and standard deviation per channel) inside
+    `mask` and in a ring of `ring_px` around it: a fill of hues its surroundings do not have scores
+    high. NaN without a ring."""
+    import cv2
+
+    m = np.asarray(mask, bool)
+    ring = cv2.dilate(m.astype(np.uint8), np.ones((2 * ring_px + 1,) * 2, np.uint8)).astype(bool) & ~m
+    if not m.any() or not ring.any():
+        return float("nan")
+    lab = cv2.cvtColor(np.clip(img, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)
+    a, b = lab[m], lab[ring]
+    return float(np.abs(a.mean(0) - b.mean(0)).sum() + np.abs(a.std(0) - b.std(0)).sum())
+
+
+def no_worse(
+    inp: np.ndarray, out: np.ndarray, mask: np.ndarray, rec: dict[str, Any], cfg: CLGConfig
+) -> list[str]:
+    """Why `out` is worse than the input `inp` of a view (empty: it is not), on the measures CLG can
+    compute without ground truth: the consistency residual to the reference (from `rec`), the
+    texture inside the mask (`metrics.mask_texture`) and the colour distance to the surroundings."""
+    from coin_cl.metrics import mask_texture
+
+    why = []
+    rb, ra = rec.get("residual_before"), rec.get("residual_after")
+    if rb is not None and ra is not None and np.isfinite(rb) and np.isfinite(ra) and ra > rb:
+        why.append(f"residual to the reference {rb:.4f} -> {ra:.4f}")
+    t_in, t_out = mask_texture(inp, mask), mask_texture(out, mask)
+    rec["texture_input"], rec["texture_output"] = t_in, t_out
+    if t_out < (1.0 - cfg.texture_tol) * t_in:
+        why.append(f"texture {t_in:.4f} -> {t_out:.4f}")
+    c_in, c_out = _colour_distance(inp, mask), _colour_distance(out, mask)
+    rec["colour_input"], rec["colour_output"] = c_in, c_out
+    if np.isfinite(c_in) and np.isfinite(c_out) and c_out > (1.0 + cfg.colour_tol) * c_in + 1.0:
+        why.append(f"colour distance to the surroundings {c_in:.1f} -> {c_out:.1f}")
+    return why
+
+
 def _write_view(js: Path, png: Path, rec: dict[str, Any], out: np.ndarray) -> None:
     # the JSON first: a PNG present means the view is complete (resume checks the PNG)
     atomic_write(js, lambda p, r=rec: p.write_text(json.dumps(r, indent=1)))
@@ -175,20 +213,30 @@ def run_clg(
             log.info("CLG: view %d (%s) already written: kept", n, stem)
             continue
         t0 = time.perf_counter()
-        inp_n = _check_image(inpaints[n], cam.height, cam.width, f"inpaint of view {n}")
-        if renders[n] is None:
-            raise ValueError(f"view {n} has no render R_n")
-        ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
-        depth_n = _depth_of(depths, n, cam.height, cam.width, f"depth of view {n}")
-        if not cfg.sample:
-            out, rec = warp_view(n, cam, inp_n, ren_n, mask, ref, device)
-            log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
-                     "residual %.4f -> %.4f", n, stem, rec["support_px"], rec["hole_px"],
-                     rec["residual_before"], rec["residual_after"])  # fmt: skip
-        else:
-            assert denoiser is not None and features is not None
-            out, rec = sample_view(n, stem, cam, inp_n, ren_n, depth_n, mask, ref, denoiser, features, cfg,
-                                    device)  # fmt: skip
+        try:
+            inp_n = _check_image(inpaints[n], cam.height, cam.width, f"inpaint of view {n}")
+            if renders[n] is None:
+                raise ValueError(f"view {n} has no render R_n")
+            ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
+            depth_n = _depth_of(depths, n, cam.height, cam.width, f"depth of view {n}")
+            if not cfg.sample:
+                out, rec = warp_view(n, cam, inp_n, ren_n, mask, ref, device)
+                log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
+                         "residual %.4f -> %.4f", n, stem, rec["support_px"], rec["hole_px"],
+                         rec["residual_before"], rec["residual_after"])  # fmt: skip
+            else:
+                assert denoiser is not None and features is not None
+                out, rec = sample_view(n, stem, cam, inp_n, ren_n, depth_n, mask, ref, denoiser, features,
+                                       cfg, device)  # fmt: skip
+        except (ValueError, RuntimeError) as exc:  # say which view, whatever failed inside
+            raise type(exc)(f"CLG, view {n} ({stem}): {exc}") from exc
+        if cfg.sample and cfg.keep_if_worse:
+            why = no_worse(inp_n, out, mask, rec, cfg)
+            if why:
+                out = inp_n
+                rec.update(status="kept input", kept_because=why, residual_written=rec.get("residual_before"))
+                log.info("CLG: view %d (%s) keeps its input I^_n: the guided image is worse (%s)", n, stem,
+                         "; ".join(why))  # fmt: skip
         rec["seconds"] = time.perf_counter() - t0
         _write_view(js, png, rec, out)
         records[stem] = rec
@@ -201,6 +249,7 @@ def run_clg(
     return {
         "views": records,
         "n_guided": sum(s in ("guided", "unguided", "warped") for s in status),
+        "n_kept_input": status.count("kept input"),
         "n_skipped": status.count("skipped"),
         "n_resumed": status.count("resumed"),
         "steps": cfg.num_steps(denoiser) if cfg.sample else 0,

@@ -43,6 +43,11 @@ class CLGConfig:
         minimiser of E(X) with the RGB term alone (`warp_fill`). The pipeline uses it for an
         edited reference (`coin_cl.pipeline.insert`), where no model can draw the inserted object
         and a sampler would paint the hole with the scene's own textures.
+    keep_if_worse: a view's output must not be worse than its input I^_n on what can be measured
+        without ground truth (issue 22): a larger consistency residual to the reference, less
+        texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
+        mask's surroundings (more than (1 + colour_tol) x the input's distance). Such a view keeps
+        I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg.no_worse`).
     """
 
     steps: int | None = None
@@ -60,6 +65,9 @@ class CLGConfig:
     seed: int = 0
     progress: bool = True
     sample: bool = True
+    keep_if_worse: bool = True
+    texture_tol: float = 0.1
+    colour_tol: float = 0.25
 
     def __post_init__(self) -> None:
         if self.sampler.num_steps != SamplerConfig().num_steps:
