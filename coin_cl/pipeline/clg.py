@@ -353,4 +353,14 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
     for stem, r in res["views"].items():
         if r["status"] == "skipped":
             ctx.note(f"view {stem} skipped: {r['reason']}")
+        elif r["status"] == "kept input":
+            ctx.note(f"view {stem} keeps its initial inpaint: {'; '.join(r['kept_because'])}")
+    done = [r for r in res["views"].values() if "texture_input" in r]
+    if done:
+        t_in = float(np.mean([r["texture_input"] for r in done]))
+        t_out = float(np.mean([r["texture_input" if r["status"] == "kept input" else "texture_output"]
+                               for r in done]))  # fmt: skip
+        res["texture_input"], res["texture_written"] = t_in, t_out
+        ctx.note(f"texture in the masks: initial inpaints {t_in:.4f}, CLG's images {t_out:.4f} "
+                 f"({res['n_kept_input']} of {len(done)} views kept their input)")  # fmt: skip
     return res
