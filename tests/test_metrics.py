@@ -157,6 +157,7 @@ def test_eval_ground_truth_against_itself(eval_scene, tmp_path, monkeypatch):
     doc = json.loads((pred / "eval" / "metrics.json").read_text())
     assert doc["mean"]["psnr"] == "inf" and doc["mean"]["m_psnr"] == "inf"
     assert doc["mean"]["ssim"] == pytest.approx(1.0) and doc["mean"]["m_ssim"] == pytest.approx(1.0)
+    assert doc["mean"]["swd"] == 0.0 and doc["mean"]["color_dist"] == 0.0
     assert doc["mean"]["lpips"] is None and "COIN_LPIPS" in doc["lpips"]
     assert doc["mean"]["fid"] is None and "COIN_FID_WEIGHTS" in doc["fid"]
     assert set(doc["per_view"]) == {"view_000.png", "view_001.png"}
@@ -182,6 +183,7 @@ def test_eval_scores_a_worse_prediction_lower(eval_scene, tmp_path):
     doc = evaluate_folder(pred, eval_scene, tmp_path / "out")
     assert 10 < doc["mean"]["psnr"] < 60 and doc["mean"]["m_psnr"] < doc["mean"]["psnr"]
     assert doc["mean"]["m_ssim"] < doc["mean"]["ssim"] < 1
+    assert doc["mean"]["swd"] > 0 and doc["mean"]["color_dist"] > 0
 
 
 def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
