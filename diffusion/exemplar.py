@@ -164,7 +164,8 @@ def _vote(L: _Level, nnf: np.ndarray, cost: np.ndarray, vote_h: float = 1.0) -> 
     grid[L.act_idx] = nnf
     wgrid = np.zeros(L.hp * L.wp, np.float32)
     h2 = max(vote_h * float(np.median(cost)), 1e-8)
-    wgrid[L.act_idx] = np.exp(-cost / (2 * h2))
+    # exponent capped: a pixel covered only by poor matches must keep a (tiny) weight, not 0/0
+    wgrid[L.act_idx] = np.exp(-np.minimum(cost / (2 * h2), 60.0))
     acc = np.zeros((len(L.hole_idx), 3), np.float32)
     wsum = np.zeros(len(L.hole_idx), np.float32)
     for o in L.off:
@@ -174,7 +175,7 @@ def _vote(L: _Level, nnf: np.ndarray, cost: np.ndarray, vote_h: float = 1.0) -> 
         w = wgrid[p[ok]]
         acc[ok] += w[:, None] * L.S[src[ok] + o]
         wsum[ok] += w
-    return acc / np.maximum(wsum, 1e-12)[:, None]
+    return acc / np.maximum(wsum, 1e-35)[:, None]
 
 
 def _upsample_nnf(Lc: _Level, nnf_c: np.ndarray, Lf: _Level, rng) -> np.ndarray:
