@@ -45,7 +45,8 @@ class Inpaint2DConfig:
     index, nearest first) it copies patches from besides the view itself.
     use_prior: with inpainter "prior", train and use the scene prior (False: OpenCV).
     prior: the scene prior's settings (its time budget is scaled by the pipeline).
-    inpaint: crop/paste/sampler settings. seed: sampling seed (view n uses seed + n)."""
+    inpaint: crop/paste/sampler settings. seed: an offset to the run's seed for sampling (view n
+    uses run seed + seed + n)."""
 
     use_dataset: bool = True
     inpainter: str = "auto"
@@ -89,7 +90,8 @@ def effective_config(
             "1_inpaint: scene prior patch %d -> %d to fit %dx%d images", cfg.prior.patch, patch, width, height
         )
     prior = replace(cfg.prior, train_seconds=prior_seconds, seed=seed, patch=patch)
-    return replace(cfg, prior=prior)
+    # The run's seed reaches stage 1's sampling too: `cfg.seed` is an offset to it.
+    return replace(cfg, prior=prior, seed=seed + cfg.seed)
 
 
 def stage_prior(scene, masks: list[np.ndarray], views: list[int], cfg: Inpaint2DConfig, folder: Path):
