@@ -31,7 +31,7 @@ from .inpaint2d import check_image_mask, opencv_inpaint
 
 log = logging.getLogger(__name__)
 
-EXEMPLAR_NAME = "exemplar patches + smooth structure"
+EXEMPLAR_NAME = "embedded exemplar inpainting (smooth structure + the scene's patches)"
 
 
 @dataclass
