@@ -11,15 +11,16 @@ depth map as `src_depth`. Times are medians of --runs after a warm-up. "err" is 
 max |x_ref| against the twin: features where the weight is >= 1/4, weighted sums everywhere, the
 gradient to the source features for a random cotangent. The knob table's error is against the
 analytic answer (the plane's homography, OpenCV warpPerspective), mean absolute over covered
-pixels. "bytes copied" is what a non-unified device (a discrete GPU) moves per forward+backward,
-measured on the copying code path; on PoCL buffers alias the tensors and nothing is copied.
+pixels. "bytes copied" is what a discrete device moves per forward+backward and the copies' device
+time, measured on the discrete-memory path (Runtime(discrete=True): device-only buffers, counted
+copies); on a unified-memory CPU device buffers alias the tensors and nothing is copied.
 
 CLG part (`--clg`, or `--clg-only` to skip the op rows): the CLG stage per view on the shared
 SPIn-NeRF scene (images_4 at --clg-scale, default 0.5 = 504x283). I^_n: the dataset's LaMa
 inpaints (RGB_inpainted/) composited with the capture outside the mask. R_n and depths: stand-in
 for Ref-GS (not merged yet): a short Scaffold-GS fit (--clg-gs-iters, default 300) on those
 inpaints via `coin_cl.gs.trainer.make_trainer`, rendered with depth; P_k: its reference depth
-unprojected by `coin_cl.pipeline.clg.reference_points` (the Ref-GS margin rule). Denoiser: the
+unprojected by `coin_cl.pipeline.reference.reference_points` (the Ref-GS margin rule). Denoiser: the
 scene prior (fixed --clg-prior-steps optimizer steps, cached); features: the analytic default.
 Time per view against the number of DDIM steps; the consistency residual (mean |I_n - warp(I_k)|
 over the support of view n's mask through P_k, `consistency_residual`) of I^_n (before), of the
@@ -141,9 +142,10 @@ def clg_part(args) -> dict:
 
     from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, train_scene_prior
 
-    from coin_cl.gs.refgs import choose_reference
     from coin_cl.gs.trainer import TrainConfig, make_trainer
-    from coin_cl.pipeline.clg import CLGConfig, reference_points, run_clg
+    from coin_cl.pipeline.clg import run_clg
+    from coin_cl.pipeline.clg_config import CLGConfig
+    from coin_cl.pipeline.reference import choose_reference, reference_points
     from coin_cl.scene import load_scene
 
     logging.basicConfig(level=logging.WARNING)
@@ -201,10 +203,11 @@ def clg_part(args) -> dict:
     others = [i for i in train if i != k]
     views = [others[j] for j in np.linspace(0, len(others) - 1, min(args.clg_views, len(others))).astype(int)]
     base = CLGConfig(progress=False)
+    sc = base.sampler
     steps_list = [int(x) for x in args.clg_steps.split(",")]
     print()
     print(f"CLG per view, {len(views)} views {views}, scene prior (work {prior.work_size} px), analytic features, "  # noqa: E501
-          f"c = {base.guidance_scale}, window [{base.guidance_start}, {base.guidance_end}), 'quad'. "
+          f"c = {sc.guidance_scale}, window [{sc.guidance_start}, {sc.guidance_end}), 'quad'. "
           "residual = mean |I_n - warp(I^_k)| over the supported mask pixels ([0, 1] RGB):")  # fmt: skip
     print()
     print(
@@ -213,12 +216,12 @@ def clg_part(args) -> dict:
     print("|---|---|---|---|---|---|---|")
     res: dict = {}
     for steps in steps_list:
-        for c in (0.0, base.guidance_scale):
+        for c in (0.0, base.sampler.guidance_scale):
             out = work / f"clg_{steps}_{c}"
             import shutil
 
             shutil.rmtree(out, ignore_errors=True)
-            cfg = replace(base, steps=steps, guidance_scale=c)
+            cfg = replace(base, steps=steps, sampler=replace(base.sampler, guidance_scale=c))
             t0 = time.perf_counter()
             r = run_clg(
                 k, views, scene.cameras, inp, renders, depths, scene.masks, pk, prior, feats, out, cfg
@@ -271,7 +274,8 @@ def main() -> None:
           f"commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}")  # fmt: skip
     print(f"# {W}x{H}, medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (twin)")
     print()
-    print("| points | C | valid | fwd s | fwd+bwd s | err feat | err weighted | err grad | bytes copied |")
+    print("| points | C | valid | fwd s | fwd+bwd s | err feat | err weighted | err grad "
+          "| bytes copied, copy time |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
     res: dict[str, float] = {}
     errs = []
@@ -289,10 +293,9 @@ def main() -> None:
             t_f = median_time(fwd, args.runs)
             t_fb = median_time(lambda a=(pts, k, phi, img, depth, v): run_op(warp, *a), args.runs)
             out, wt, _, _ = run_op(warp, pts, k, phi, img, depth, v)
-            copying = Runtime(rt.device)
-            copying.unified = False
+            copying = Runtime(rt.device, discrete=True)
             run_op(warp, pts, k, phi, img, depth, v, rt=copying)
-            nbytes = copying.bytes_transferred
+            nbytes, copy_ms = copying.bytes_transferred, 1000 * copying.transfers.seconds
             e = [math.nan] * 3
             if not (n == 500_000 and C == 64):  # the twin would need several GiB there
                 dbl = (pts.double(), k, phi, img.double(), depth.double())
@@ -307,7 +310,7 @@ def main() -> None:
                 e = [rel(out, rout, full), rel(out * wt[..., None], rout * rwt[..., None]), rel(g, rg)]
                 errs += e
             print(f"| {n // 1000}k | {C} | {st['n_ok']} | {t_f:.3f} | {t_fb:.3f} | {e[0]:.2e} | {e[1]:.2e} | "
-                  f"{e[2]:.2e} | {nbytes / 1e6:.1f} MB |", flush=True)  # fmt: skip
+                  f"{e[2]:.2e} | {nbytes / 1e6:.1f} MB, {copy_ms:.1f} ms |", flush=True)  # fmt: skip
             res[f"warp_fwd_s_{n // 1000}k_c{C}"] = round(t_f, 4)
             res[f"warp_fwd_bwd_s_{n // 1000}k_c{C}"] = round(t_fb, 4)
             res[f"warp_bytes_{n // 1000}k_c{C}"] = nbytes
