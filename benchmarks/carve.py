@@ -30,7 +30,8 @@ from common import cpu_model, default_data, git_commit  # noqa: E402
 from ghost import ghost_of_run, reference_depths  # noqa: E402
 
 from coin_cl.gs.carve import build_carve, observed_share  # noqa: E402
-from coin_cl.pipeline.coin import CoInConfig, inpaint, share_stages  # noqa: E402
+from coin_cl.pipeline.coin import CoInConfig, inpaint  # noqa: E402
+from coin_cl.pipeline.runner import share_stages  # noqa: E402
 from coin_cl.scene import load_scene, write_synthetic  # noqa: E402
 from coin_cl.scene.synthetic import make_synthetic  # noqa: E402
 

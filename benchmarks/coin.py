@@ -59,8 +59,9 @@ from common import cpu_model, default_data, git_commit, mean_std, other_referenc
 
 from coin_cl import load_scene  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
-from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint, share_stages  # noqa: E402
+from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint  # noqa: E402
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
+from coin_cl.pipeline.runner import share_stages  # noqa: E402
 
 ROWS = {
     "default": {},  # run through the CLI, see run_default

@@ -122,7 +122,8 @@ def room(
       (no inpainting at all).
 
     Writes `out/scene/`, one folder per method, and `out/results.md`; returns the table as a dict."""
-    from coin_cl.pipeline.coin import CoInConfig, inpaint, share_stages
+    from coin_cl.pipeline.coin import CoInConfig, inpaint
+    from coin_cl.pipeline.runner import share_stages
     from coin_cl.scene.io import write_text
     from coin_cl.scene.synthetic import write_synthetic
 

@@ -87,8 +87,8 @@ def test_ablation_skips_stages_and_says_why(room, tmp_path):
 def test_refgs_trains_around_the_pipeline_reference(room, first_run, tmp_path):
     # Ref-GS used to choose its reference again by its own rule (ignoring --ref, and on refined masks
     # or insertion footprints possibly another view), so P_k came from another view than CLG's camera k.
-    from coin_cl.pipeline.coin import share_stages
     from coin_cl.pipeline.reference import choose_reference
+    from coin_cl.pipeline.runner import share_stages
 
     scene = load_scene(room)
     rule = choose_reference(scene)

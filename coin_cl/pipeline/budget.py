@@ -229,3 +229,44 @@ def replan_ted(
         seconds = max(0.0, pool * BUDGET_SHARES[k] / total_share)
         out[k] = int(seconds / (spp * TED_PER_REFGS_STEP[k]))
     return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# the plan of a CoIn run (`coin_cl.pipeline.coin`)
+
+
+def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
+    """The plan of a CoIn run (`cfg` a `CoInConfig`, `train` its training views): `plan_run` keyed by
+    the settings the step counts depend on, probing `scene` at its working size."""
+    cam = scene.cameras[train[0]]
+    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
+           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
+           "explicit": [cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial,
+                        cfg.prior_seconds]}  # fmt: skip
+    explicit = {"refgs": cfg.iters_refgs, "ted_finetune": cfg.iters_ted_finetune,
+                "ted_adversarial": cfg.iters_ted_adversarial}  # fmt: skip
+    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
+                    lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
+
+
+def ted_iters(out: Path, shared: dict) -> list[int]:
+    """TE-D's [fine-tune, adversarial] steps, planned again from Ref-GS's measured rate
+    (`budget.replan_ted`; the measurement is in 2_refgs's manifest, so a rerun gets the same counts);
+    also sets the phases' time caps. Explicit counts are kept."""
+    plan: Plan = shared["plan"]
+    cfg = shared["cfg"]
+    man = json.loads((out / "2_refgs" / "manifest.json").read_text())
+    res = man.get("result", {})
+    steps = replan_ted(plan, int(res.get("steps", 0)), 60.0 * float(res.get("train_minutes", 0.0)),
+                       cfg.budget_minutes)  # fmt: skip
+    caps = {}
+    if res.get("steps"):
+        spp = 60.0 * float(res["train_minutes"]) / int(res["steps"])
+        for k in steps:
+            if plan.minutes.get(k) is not None:
+                caps[k] = CAP_FACTOR * steps[k] * spp * TED_PER_REFGS_STEP[k]
+                log.info("TE-D %s: %d steps (planned from Ref-GS's %.3f s/step; was %d from the probe)",
+                         k, steps[k], spp, plan.steps[k])  # fmt: skip
+    shared["iters"].update(steps)
+    shared["ted_caps"] = caps
+    return [steps["ted_finetune"], steps["ted_adversarial"]]

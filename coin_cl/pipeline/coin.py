@@ -26,7 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,19 +34,27 @@ import numpy as np
 
 from coin_cl.gs.carve import CarveConfig
 from coin_cl.pipeline.budget import (
-    CAP_FACTOR,
     MAX_WORK_PIXELS,
     PRIOR_MIN_SECONDS,
-    Plan,
-    plan_run,
-    probe_seconds_per_step,
+    plan_for,
+    ted_iters,
     working_resolution,
 )
-from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config, read_inpaints, run_inpaint2d
+from coin_cl.pipeline.eval_stage import stage_eval
+from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.insert import InsertConfig
-from coin_cl.pipeline.models import sd2_denoiser
 from coin_cl.pipeline.refine_masks import RefineConfig
-from coin_cl.pipeline.runner import Stage, StageContext, check_output_folder, run_stages
+from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
+from coin_cl.pipeline.stages import (
+    carves,
+    load_model,
+    stage_clg_adapter,
+    stage_inpaint,
+    stage_refgs,
+    stage_refine,
+    stage_scene,
+    stage_ted,
+)
 from coin_cl.pipeline.ted import TEDConfig
 
 log = logging.getLogger(__name__)
@@ -129,16 +137,6 @@ class CoInResult:
     metrics: dict | None
     model: Any
     stages: dict[str, dict]
-
-
-def _jsonable(obj: Any) -> Any:
-    if hasattr(obj, "__dataclass_fields__"):
-        return _jsonable(asdict(obj))
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    return obj if isinstance(obj, str | int | float | bool | type(None)) else str(obj)
 
 
 def scene_id(scene) -> dict[str, Any]:
@@ -294,20 +292,6 @@ def inpaint(
     return _run(scene, out, cfg, force, edited)
 
 
-def _plan(scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan:
-    """The run's step counts (`coin_cl.pipeline.budget.plan_run`): reused from out/plan.json when
-    made for the same settings, else from a timing probe on this machine (or the explicit counts)."""
-    cam = scene.cameras[train[0]]
-    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
-           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
-           "explicit": [cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial,
-                        cfg.prior_seconds]}  # fmt: skip
-    explicit = {"refgs": cfg.iters_refgs, "ted_finetune": cfg.iters_ted_finetune,
-                "ted_adversarial": cfg.iters_ted_adversarial}  # fmt: skip
-    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
-                    lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
-
-
 def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
     """'refined' when other views see at least AUTO_REFINE_SHARE of the masks (a cheap estimate from
     the cameras and the sparse points, seconds; `coin_cl.gs.carve.observed_share`), else 'input'."""
@@ -327,31 +311,6 @@ def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
         "--inpaint-region overrides)", region, 100 * share, 100 * AUTO_REFINE_SHARE,
     )  # fmt: skip
     return region
-
-
-def _ted_iters(out: Path, shared: dict) -> list[int]:
-    """TE-D's [fine-tune, adversarial] steps, planned again from Ref-GS's measured rate
-    (`budget.replan_ted`; the measurement is in 2_refgs's manifest, so a rerun gets the same counts);
-    also sets the phases' time caps. Explicit counts are kept."""
-    from coin_cl.pipeline.budget import TED_PER_REFGS_STEP, replan_ted
-
-    plan: Plan = shared["plan"]
-    cfg: CoInConfig = shared["cfg"]
-    man = json.loads((out / "2_refgs" / "manifest.json").read_text())
-    res = man.get("result", {})
-    steps = replan_ted(plan, int(res.get("steps", 0)), 60.0 * float(res.get("train_minutes", 0.0)),
-                       cfg.budget_minutes)  # fmt: skip
-    caps = {}
-    if res.get("steps"):
-        spp = 60.0 * float(res["train_minutes"]) / int(res["steps"])
-        for k in steps:
-            if plan.minutes.get(k) is not None:
-                caps[k] = CAP_FACTOR * steps[k] * spp * TED_PER_REFGS_STEP[k]
-                log.info("TE-D %s: %d steps (planned from Ref-GS's %.3f s/step; was %d from the probe)",
-                         k, steps[k], spp, plan.steps[k])  # fmt: skip
-    shared["iters"].update(steps)
-    shared["ted_caps"] = caps
-    return [steps["ted_finetune"], steps["ted_adversarial"]]
 
 
 def _run(
@@ -374,7 +333,7 @@ def _run(
     else:
         ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
-    plan = _plan(scene, out, cfg, train)
+    plan = plan_for(scene, out, cfg, train)
     iters = {"prior_seconds": plan.prior_seconds, **plan.steps}
     if iters["prior_seconds"] < PRIOR_MIN_SECONDS and not cfg.sd_path:
         log.warning(
@@ -396,39 +355,39 @@ def _run(
     base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask_kind, "dilate": cfg.mask_dilate}
     # The edited image's content (not its path) decides whether stage 1 and what follows rerun.
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
-                                        "ref": ref, "cfg": _jsonable(cfg.insert)}  # fmt: skip
+                                        "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
     refined = cfg.inpaint_region == "refined"
     from coin_cl.pipeline.clg_config import CLGConfig
 
     clg_cfg = cfg.clg or CLGConfig()  # the defaults in the key too: a changed default reruns CLG
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     stages = [
-        Stage("0_scene", _stage_scene, settings=base),
-        *([Stage("0_refine", _stage_refine, ["0_scene"],
-                 {"cfg": _jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
-        Stage("1_inpaint", _stage_inpaint, ["0_scene", *r],
-              {"cfg": _jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
+        Stage("0_scene", stage_scene, settings=base),
+        *([Stage("0_refine", stage_refine, ["0_scene"],
+                 {"cfg": jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
+        Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
+              {"cfg": jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
-        Stage("2_refgs", _stage_refgs, ["0_scene", *r, "1_inpaint"],
-              {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,
-               "carve": _jsonable(cfg.carve_cfg) if _carves(cfg, edited) else None,
+        Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
+              {"cfg": jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,
+               "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
                "plain": "refgs" in cfg.skip}),
-        Stage("3_clg", _stage_clg, ["0_scene", *r, "1_inpaint", "2_refgs"],
-              {"cfg": _jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
+        Stage("3_clg", stage_clg_adapter, ["0_scene", *r, "1_inpaint", "2_refgs"],
+              {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt},
               skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
-        Stage("4_ted", _stage_ted,
+        Stage("4_ted", stage_ted,
               ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
-              lambda: {"cfg": _jsonable(cfg.ted), "iters": _ted_iters(out, shared), "seed": cfg.seed},
+              lambda: {"cfg": jsonable(cfg.ted), "iters": ted_iters(out, shared), "seed": cfg.seed},
               skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
     final = "2_refgs" if "ted" in cfg.skip else "4_ted"
-    stages.append(Stage("eval", _stage_eval, ["0_scene", final], {"final": final}))
+    stages.append(Stage("eval", stage_eval, ["0_scene", final], {"final": final}))
     records = run_stages(out, stages, shared, force)
     ev = records["eval"].get("result", {})
     from coin_cl.gs.trainer import CKPT_NAME, model_from_state
 
-    model = _load_model(out / final, CKPT_NAME, model_from_state)
+    model = load_model(out / final, CKPT_NAME, model_from_state)
     return CoInResult(
         out=out,
         ply=out / "eval" / "point_cloud.ply",
@@ -437,323 +396,6 @@ def _run(
         model=model,
         stages=records,
     )
-
-
-def _latest_ckpt(folder: Path, ckpt_name: str) -> Path:
-    cands = sorted(folder.rglob(ckpt_name), key=lambda p: p.stat().st_mtime)
-    if not cands:
-        raise FileNotFoundError(f"no {ckpt_name} under {folder}")
-    return cands[-1]
-
-
-def _load_model(folder: Path, ckpt_name: str, model_from_state):
-    import torch
-
-    state = torch.load(_latest_ckpt(folder, ckpt_name), weights_only=False)
-    return model_from_state(state["model"])
-
-
-# -- stages -----------------------------------------------------------------------------------------
-
-
-def _stage_scene(ctx: StageContext) -> dict:
-    from coin_cl.scene import save_scene
-
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
-    save_scene(replace(scene, masks=masks), ctx.out / "scene")
-    empty = [scene.cameras[i].name for i in scene.train_idx if not masks[i].any()]
-    if empty:
-        ctx.note(f"{len(empty)} training views have no mask and are kept as captured: {empty[:5]}...")
-    area = [float(masks[i].mean()) for i in scene.train_idx]
-    return {"views": len(scene), "train": len(scene.train_idx), "test": len(scene.test_idx),
-            "mask": ctx.shared["cfg"].mask_kind, "mean_mask_area": float(np.mean(area))}  # fmt: skip
-
-
-def _scene_views(ctx: StageContext):
-    """(scene, masks, training views) as the stage sees them: the input masks; with refined masks
-    (stage 0_refine) M^rmv_n and the captures with R^rmv_n in the rest of the input mask; after an
-    insertion's stage 1 the object's footprints F_n (`coin_cl.pipeline.insert`), which are the only
-    pixels that change (the rest of the input mask is captured background)."""
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
-    if "0_refine" in ctx.inputs:
-        from coin_cl.pipeline.refine_masks import read_refined
-
-        images, masks = read_refined(scene, ctx.inputs["0_refine"], list(scene.train_idx), masks)
-        scene = replace(scene, images=images)
-    feet = ctx.inputs.get("1_inpaint", Path("-")) / "footprints"
-    if ctx.name != "1_inpaint" and feet.is_dir():
-        from coin_cl.scene.masks import read_mask
-
-        masks = list(masks)
-        for i in scene.train_idx:
-            p = feet / (Path(scene.cameras[i].name).stem + ".png")
-            masks[i] = read_mask(p, masks[i].shape)
-    return scene, masks, list(scene.train_idx)
-
-
-def _stage_refine(ctx: StageContext) -> dict:
-    from coin_cl.pipeline.refine_masks import refine_masks
-
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
-    cfg: CoInConfig = ctx.shared["cfg"]
-    res = refine_masks(scene, masks, list(scene.train_idx), ctx.out, cfg.refine, ctx.settings["iters"],
-                       cfg.seed, cfg.device)  # fmt: skip
-    ctx.note(f"refined masks: {res['refined_px']} of {res['input_px']} mask px left to inpaint "
-             f"({res['refined_ratio']:.0%}); per view in 0_refine/areas.json")  # fmt: skip
-    return res
-
-
-def _stage_inpaint(ctx: StageContext) -> dict:
-    scene, masks, train = _scene_views(ctx)
-    cfg: CoInConfig = ctx.shared["cfg"]
-    if ctx.shared.get("edited") is not None:
-        from coin_cl.pipeline.insert import run_insert
-
-        res = run_insert(scene, masks, train, ctx.shared["ref"], ctx.shared["edited"], ctx.out, cfg.insert,
-                         cfg.device)  # fmt: skip
-        ctx.note(f"initial images: {res['source']}; {res['views_without_object']} views without the object")
-        return res
-    cam = scene.cameras[train[0]]
-    icfg = effective_config(
-        cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
-    )
-    sd2 = sd2_denoiser(cfg.sd_path)
-    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt)
-    for s in res["sources"]:
-        ctx.note(f"initial inpainting source: {s}")
-    return res
-
-
-def _targets(ctx: StageContext, folder: Path) -> dict[int, np.ndarray]:
-    scene, masks, train = _scene_views(ctx)
-    from coin_cl.gs.targets import composite_targets
-
-    inp = read_inpaints(scene, folder, train)
-    # Outside the mask the captured image is the truth (paper 5.1).
-    return {i: composite_targets(inp[i], scene.images[i], masks[i]) for i in train}
-
-
-def _stage_refgs(ctx: StageContext) -> dict:
-    from coin_cl.pipeline.refgs import run_refgs
-
-    scene, masks, train = _scene_views(ctx)
-    cfg: CoInConfig = ctx.shared["cfg"]
-    targets = _targets(ctx, ctx.inputs["1_inpaint"])
-    rcfg = ctx.shared["refgs_cfg"]
-    if "refgs" in cfg.skip:
-        from coin_cl.gs.refgs import RefGSConfig
-
-        rcfg = RefGSConfig(
-            adaptive_weights=False,
-            feature_attention=False,
-            depth_loss=False,
-            prune_points=False,
-            ref=ctx.shared["ref"],
-        )
-        ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
-    scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
-    full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
-    from coin_cl.pipeline.insert import read_lift
-
-    plan: Plan = ctx.shared["plan"]
-    m = plan.minutes.get("refgs")
-    ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
-             f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
-    lift = read_lift(ctx.inputs["1_inpaint"])
-    # The carve is the object's volume: the input masks, also when refined masks narrow what is inpainted.
-    attach, bg = _carve_hook(ctx, ctx.shared["scene"], ctx.shared["masks"], train)
-    seed_points = None if lift is None else (lift.points, lift.colors)
-    if bg is not None and len(bg):
-        k = ctx.shared["ref"]
-        uv, _ = scene.cameras[k].project(bg)
-        iu = np.clip(uv[:, 0].astype(int), 0, scene.cameras[k].width - 1)
-        iv = np.clip(uv[:, 1].astype(int), 0, scene.cameras[k].height - 1)
-        seed_points = (bg, np.asarray(full[k], np.float32)[iv, iu, :3])  # the reference's inpaint colours
-    if lift is not None:
-        ctx.note(
-            f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
-        )
-    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
-                     max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
-                     seed_points=seed_points, callback=attach,
-                     known_depth=None if lift is None else lift.depth)  # fmt: skip
-
-
-def _carves(cfg: CoInConfig, edited: Any) -> bool:
-    """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
-    return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
-
-
-def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
-    """(trainer callback that gives the model the carve volume, seed points on the background
-    behind the object in the reference view), or (None, None) when this run does not carve."""
-    cfg: CoInConfig = ctx.shared["cfg"]
-    if not _carves(cfg, ctx.shared.get("edited")):
-        return None, None
-    from coin_cl.gs.carve import background_points, build_carve
-
-    cams = [scene.cameras[i] for i in train]
-    vol = build_carve(cams, [masks[i] for i in train], np.asarray(scene.points), cfg.carve_cfg)
-    if vol is None:
-        return None, None
-    ref = ctx.shared["ref"]
-    with_mask = [i for i in train if np.asarray(masks[i]).any()]
-    pts = background_points(vol, with_mask.index(ref)) if ref in with_mask else np.zeros((0, 3), np.float32)
-    import torch
-
-    inside = vol.contains(torch.as_tensor(pts)).numpy() if len(pts) else np.zeros(0, bool)
-    pts = pts[~inside]  # on the background surface, not in front of it
-    ctx.note(f"carving the object's volume: D_bg from {len(scene.points)} sparse points in {len(vol)} views; "
-             f"{len(pts)} background points behind the object seed anchors")  # fmt: skip
-
-    def attach(trainer, step):
-        if getattr(trainer.model, "carve", "n/a") is None:
-            trainer.model.carve = vol
-
-    return attach, pts
-
-
-def _stage_clg(ctx: StageContext) -> dict:
-    from coin_cl.pipeline.clg import stage_clg
-
-    scene, masks, _ = _scene_views(ctx)
-    return stage_clg(ctx, scene, masks)
-
-
-def _stage_ted(ctx: StageContext) -> dict:
-    import torch
-
-    from coin_cl.gs.data import views_from_scene
-    from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, model_from_state
-    from coin_cl.pipeline.ted import run_ted
-    from coin_cl.scene.io import read_image
-
-    scene, masks, train = _scene_views(ctx)
-    cfg: CoInConfig = ctx.shared["cfg"]
-    inp = _targets(ctx, ctx.inputs["1_inpaint"])
-    guided = dict(inp)
-    if "3_clg" in ctx.inputs:
-        for i in train:
-            p = ctx.inputs["3_clg"] / "images" / (Path(scene.cameras[i].name).stem + ".png")
-            if p.is_file():
-                guided[i] = read_image(p)
-    else:
-        ctx.note("w/o CLG: TE-D fine-tunes on the initial inpaints I^_n")
-    views = views_from_scene(scene, train, [guided.get(i, scene.images[i]) for i in range(len(scene))])
-    for v, i in zip(views, train, strict=True):
-        v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i])
-    model = _load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
-    model.device = cfg.device
-    it = ctx.shared["iters"]
-    ctx.note("TE-D: " + ", ".join(
-        f"{k} {it[k]} steps" + ("" if k not in ctx.shared.get("ted_caps", {})
-                                else f" (~{ctx.shared['ted_caps'][k] / 60 / CAP_FACTOR:.1f} min)")
-        for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
-    tcfg = replace(
-        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
-    )
-    tc = ctx.shared.get("ted_caps", {})
-    caps = {"finetune": tc.get("ted_finetune", 0.0), "adversarial": tc.get("ted_adversarial", 0.0)}
-    res, _ = run_ted(
-        model,
-        views,
-        [],
-        ctx.out,
-        tcfg,
-        TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
-        max_seconds=caps,
-    )
-    if not any(ctx.out.rglob(CKPT_NAME)):
-        # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the
-        # Ref-GS scene through unchanged, so that eval and resumption find a checkpoint here.
-        import shutil
-
-        shutil.copy2(_latest_ckpt(ctx.inputs["2_refgs"], CKPT_NAME), ctx.out / CKPT_NAME)
-        ctx.note("TE-D ran 0 iterations: the Ref-GS scene is passed through unchanged")
-        res["passed_through"] = True
-    return _jsonable(res)
-
-
-def _stage_eval(ctx: StageContext) -> dict:
-    import torch
-
-    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
-    from coin_cl.scene.io import to_uint8, write_png
-
-    scene = ctx.shared["scene"]
-    cfg: CoInConfig = ctx.shared["cfg"]
-    final = ctx.settings["final"]
-    folder = [p for n, p in ctx.inputs.items() if n == final][0]
-    model = _load_model(folder, CKPT_NAME, model_from_state)
-    model.device = cfg.device
-    rdir = ctx.out / "renders"
-    rdir.mkdir(parents=True, exist_ok=True)
-
-    from tqdm import tqdm
-
-    views = list(scene.test_idx) + list(scene.train_idx)
-    for i in tqdm(views, desc="eval renders", unit="view"):
-        with torch.no_grad():
-            r = model.render(scene.cameras[i], 10**9)
-        write_png(rdir / (Path(scene.cameras[i].name).stem + ".png"), to_uint8(r.image.clamp(0, 1).numpy()))
-    from coin_cl.gs.trainer import write_model_ply
-
-    orbit_gif(model, [scene.cameras[i] for i in scene.train_idx], ctx.out / "orbit.gif")
-    ply = ctx.out / "point_cloud.ply"
-    centers = torch.stack([scene.cameras[i].center_t for i in scene.train_idx])
-    write_model_ply(model, ply, centers.mean(0))
-    result: dict[str, Any] = {"final_stage": final, "ply": str(ply)}
-    gt_ok = scene.test_idx and all(scene.masks[i].any() for i in scene.test_idx)
-    if gt_ok:
-        from coin_cl.evaluation import evaluate_folder
-
-        doc = evaluate_folder(rdir, ctx.inputs["0_scene"] / "scene", ctx.out / "metrics")
-        result["metrics"] = doc["mean"]
-    else:
-        ctx.note("no ground-truth test views with masks: metrics skipped")
-    return _jsonable(result)
-
-
-def share_stages(
-    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "0_refine", "1_inpaint")
-) -> None:
-    """Start run folder `dst` from the `stages` folders of run `src` (and its scene record), so a
-    comparison row (a baseline, an ablation) reuses them instead of redoing them. Safe by
-    construction: the runner reruns any copied stage whose manifest does not match `dst`'s settings.
-    Existing folders in `dst` are left alone."""
-    import shutil
-
-    src, dst = Path(src), Path(dst)
-    dst.mkdir(parents=True, exist_ok=True)
-    if (src / "run.json").is_file() and not (dst / "run.json").exists():
-        shutil.copy2(src / "run.json", dst / "run.json")
-    for name in stages:
-        if (src / name / "manifest.json").is_file() and not (dst / name).exists():
-            shutil.copytree(src / name, dst / name)
-
-
-def orbit_gif(model, cameras: list, path: Path, frames: int = 36) -> None:
-    """Render `model` along the path through `cameras` (in the given order; slerped rotations,
-    interpolated centres: `coin_cl.scene.conventions.interpolate_pose`) into a looping GIF."""
-    import imageio.v3 as iio
-    import torch
-
-    from coin_cl.scene.conventions import interpolate_pose
-    from coin_cl.scene.io import atomic_write, to_uint8
-
-    if not cameras:
-        return
-    from tqdm import tqdm
-
-    images = []
-    for j in tqdm(range(frames), desc="orbit", unit="frame"):
-        u = j * max(1, len(cameras) - 1) / frames
-        a, b = cameras[min(int(u), len(cameras) - 1)], cameras[min(int(u) + 1, len(cameras) - 1)]
-        vm = interpolate_pose(a.viewmat, b.viewmat, u - int(u))
-        with torch.no_grad():
-            r = model.render(replace(a, viewmat=vm, name=f"orbit_{j:03d}"), 10**9)
-        images.append(to_uint8(r.image.clamp(0, 1).numpy()))
-    atomic_write(path, lambda p: iio.imwrite(p, images, extension=".gif", duration=80, loop=0))
 
 
 def summary(out: Path) -> dict:

@@ -27,7 +27,7 @@ import logging
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -191,3 +191,32 @@ def run_stages(
         _write_json(log_path, {"stages": records})
     _write_json(log_path, {"stages": records})
     return records
+
+
+def jsonable(obj: Any) -> Any:
+    """`obj` with dataclasses as dicts and anything not JSON-able as its str (stage settings)."""
+    if hasattr(obj, "__dataclass_fields__"):
+        return jsonable(asdict(obj))
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    return obj if isinstance(obj, str | int | float | bool | type(None)) else str(obj)
+
+
+def share_stages(
+    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "0_refine", "1_inpaint")
+) -> None:
+    """Start run folder `dst` from the `stages` folders of run `src` (and its scene record), so a
+    comparison row (a baseline, an ablation) reuses them instead of redoing them. Safe by
+    construction: the runner reruns any copied stage whose manifest does not match `dst`'s settings.
+    Existing folders in `dst` are left alone."""
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    dst.mkdir(parents=True, exist_ok=True)
+    if (src / "run.json").is_file() and not (dst / "run.json").exists():
+        shutil.copy2(src / "run.json", dst / "run.json")
+    for name in stages:
+        if (src / name / "manifest.json").is_file() and not (dst / name).exists():
+            shutil.copytree(src / name, dst / name)

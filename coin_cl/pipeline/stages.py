@@ -1,0 +1,264 @@
+"""The CoIn stage functions (paper 4.1-4.4 and supplement C.2): each reads the folders of the stages
+before it and writes its own; `coin_cl.pipeline.coin` builds the stage graph and the runner
+(`coin_cl.pipeline.runner`) decides what runs. What every stage sees is in `ctx.shared`: the scene,
+the input masks, the reference, the run's `CoInConfig`, its step counts and its `budget.Plan`.
+
+    stage_scene    0_scene    the scene with the chosen masks, in coin-cl's own layout
+    stage_refine   0_refine   refined masks (`refine_masks`), when the run takes them
+    stage_inpaint  1_inpaint  initial 2D inpaints I^_n (`inpaint2d`), or an insertion's stage 1
+    stage_refgs    2_refgs    Ref-GS (`pipeline.refgs`), with the optional carve (`gs.carve`)
+    stage_clg_adapter 3_clg   CLG (`pipeline.clg`)
+    stage_ted      4_ted      TE-D (`pipeline.ted`)
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from coin_cl.pipeline.budget import CAP_FACTOR
+from coin_cl.pipeline.inpaint2d import effective_config, read_inpaints, run_inpaint2d
+from coin_cl.pipeline.models import sd2_denoiser
+from coin_cl.pipeline.runner import StageContext, jsonable
+
+if TYPE_CHECKING:
+    from coin_cl.pipeline.budget import Plan
+    from coin_cl.pipeline.coin import CoInConfig
+
+log = logging.getLogger(__name__)
+
+
+def latest_ckpt(folder: Path, ckpt_name: str) -> Path:
+    cands = sorted(folder.rglob(ckpt_name), key=lambda p: p.stat().st_mtime)
+    if not cands:
+        raise FileNotFoundError(f"no {ckpt_name} under {folder}")
+    return cands[-1]
+
+
+def load_model(folder: Path, ckpt_name: str, model_from_state):
+    import torch
+
+    state = torch.load(latest_ckpt(folder, ckpt_name), weights_only=False)
+    return model_from_state(state["model"])
+
+
+def stage_scene(ctx: StageContext) -> dict:
+    from coin_cl.scene import save_scene
+
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    save_scene(replace(scene, masks=masks), ctx.out / "scene")
+    empty = [scene.cameras[i].name for i in scene.train_idx if not masks[i].any()]
+    if empty:
+        ctx.note(f"{len(empty)} training views have no mask and are kept as captured: {empty[:5]}...")
+    area = [float(masks[i].mean()) for i in scene.train_idx]
+    return {"views": len(scene), "train": len(scene.train_idx), "test": len(scene.test_idx),
+            "mask": ctx.shared["cfg"].mask_kind, "mean_mask_area": float(np.mean(area))}  # fmt: skip
+
+
+def _scene_views(ctx: StageContext):
+    """(scene, masks, training views) as the stage sees them: the input masks; with refined masks
+    (stage 0_refine) M^rmv_n and the captures with R^rmv_n in the rest of the input mask; after an
+    insertion's stage 1 the object's footprints F_n (`coin_cl.pipeline.insert`), which are the only
+    pixels that change (the rest of the input mask is captured background)."""
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    if "0_refine" in ctx.inputs:
+        from coin_cl.pipeline.refine_masks import read_refined
+
+        images, masks = read_refined(scene, ctx.inputs["0_refine"], list(scene.train_idx), masks)
+        scene = replace(scene, images=images)
+    feet = ctx.inputs.get("1_inpaint", Path("-")) / "footprints"
+    if ctx.name != "1_inpaint" and feet.is_dir():
+        from coin_cl.scene.masks import read_mask
+
+        masks = list(masks)
+        for i in scene.train_idx:
+            p = feet / (Path(scene.cameras[i].name).stem + ".png")
+            masks[i] = read_mask(p, masks[i].shape)
+    return scene, masks, list(scene.train_idx)
+
+
+def stage_refine(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.refine_masks import refine_masks
+
+    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    cfg: CoInConfig = ctx.shared["cfg"]
+    res = refine_masks(scene, masks, list(scene.train_idx), ctx.out, cfg.refine, ctx.settings["iters"],
+                       cfg.seed, cfg.device)  # fmt: skip
+    ctx.note(f"refined masks: {res['refined_px']} of {res['input_px']} mask px left to inpaint "
+             f"({res['refined_ratio']:.0%}); per view in 0_refine/areas.json")  # fmt: skip
+    return res
+
+
+def stage_inpaint(ctx: StageContext) -> dict:
+    scene, masks, train = _scene_views(ctx)
+    cfg: CoInConfig = ctx.shared["cfg"]
+    if ctx.shared.get("edited") is not None:
+        from coin_cl.pipeline.insert import run_insert
+
+        res = run_insert(scene, masks, train, ctx.shared["ref"], ctx.shared["edited"], ctx.out, cfg.insert,
+                         cfg.device)  # fmt: skip
+        ctx.note(f"initial images: {res['source']}; {res['views_without_object']} views without the object")
+        return res
+    cam = scene.cameras[train[0]]
+    icfg = effective_config(
+        cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
+    )
+    sd2 = sd2_denoiser(cfg.sd_path)
+    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt)
+    for s in res["sources"]:
+        ctx.note(f"initial inpainting source: {s}")
+    return res
+
+
+def _targets(ctx: StageContext, folder: Path) -> dict[int, np.ndarray]:
+    scene, masks, train = _scene_views(ctx)
+    from coin_cl.gs.targets import composite_targets
+
+    inp = read_inpaints(scene, folder, train)
+    # Outside the mask the captured image is the truth (paper 5.1).
+    return {i: composite_targets(inp[i], scene.images[i], masks[i]) for i in train}
+
+
+def stage_refgs(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.refgs import run_refgs
+
+    scene, masks, train = _scene_views(ctx)
+    cfg: CoInConfig = ctx.shared["cfg"]
+    targets = _targets(ctx, ctx.inputs["1_inpaint"])
+    rcfg = ctx.shared["refgs_cfg"]
+    if "refgs" in cfg.skip:
+        from coin_cl.gs.refgs import RefGSConfig
+
+        rcfg = RefGSConfig(
+            adaptive_weights=False,
+            feature_attention=False,
+            depth_loss=False,
+            prune_points=False,
+            ref=ctx.shared["ref"],
+        )
+        ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
+    scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
+    full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
+    from coin_cl.pipeline.insert import read_lift
+
+    plan: Plan = ctx.shared["plan"]
+    m = plan.minutes.get("refgs")
+    ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
+             f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
+    lift = read_lift(ctx.inputs["1_inpaint"])
+    # The carve is the object's volume: the input masks, also when refined masks narrow what is inpainted.
+    attach, bg = _carve_hook(ctx, ctx.shared["scene"], ctx.shared["masks"], train)
+    seed_points = None if lift is None else (lift.points, lift.colors)
+    if bg is not None and len(bg):
+        k = ctx.shared["ref"]
+        uv, _ = scene.cameras[k].project(bg)
+        iu = np.clip(uv[:, 0].astype(int), 0, scene.cameras[k].width - 1)
+        iv = np.clip(uv[:, 1].astype(int), 0, scene.cameras[k].height - 1)
+        seed_points = (bg, np.asarray(full[k], np.float32)[iv, iu, :3])  # the reference's inpaint colours
+    if lift is not None:
+        ctx.note(
+            f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
+        )
+    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
+                     max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
+                     seed_points=seed_points, callback=attach,
+                     known_depth=None if lift is None else lift.depth)  # fmt: skip
+
+
+def carves(cfg: CoInConfig, edited: Any) -> bool:
+    """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
+    return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
+
+
+def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
+    """(trainer callback that gives the model the carve volume, seed points on the background
+    behind the object in the reference view), or (None, None) when this run does not carve."""
+    cfg: CoInConfig = ctx.shared["cfg"]
+    if not carves(cfg, ctx.shared.get("edited")):
+        return None, None
+    from coin_cl.gs.carve import background_points, build_carve
+
+    cams = [scene.cameras[i] for i in train]
+    vol = build_carve(cams, [masks[i] for i in train], np.asarray(scene.points), cfg.carve_cfg)
+    if vol is None:
+        return None, None
+    ref = ctx.shared["ref"]
+    with_mask = [i for i in train if np.asarray(masks[i]).any()]
+    pts = background_points(vol, with_mask.index(ref)) if ref in with_mask else np.zeros((0, 3), np.float32)
+    import torch
+
+    inside = vol.contains(torch.as_tensor(pts)).numpy() if len(pts) else np.zeros(0, bool)
+    pts = pts[~inside]  # on the background surface, not in front of it
+    ctx.note(f"carving the object's volume: D_bg from {len(scene.points)} sparse points in {len(vol)} views; "
+             f"{len(pts)} background points behind the object seed anchors")  # fmt: skip
+
+    def attach(trainer, step):
+        if getattr(trainer.model, "carve", "n/a") is None:
+            trainer.model.carve = vol
+
+    return attach, pts
+
+
+def stage_clg_adapter(ctx: StageContext) -> dict:
+    from coin_cl.pipeline.clg import stage_clg
+
+    scene, masks, _ = _scene_views(ctx)
+    return stage_clg(ctx, scene, masks)
+
+
+def stage_ted(ctx: StageContext) -> dict:
+    import torch
+
+    from coin_cl.gs.data import views_from_scene
+    from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, model_from_state
+    from coin_cl.pipeline.ted import run_ted
+    from coin_cl.scene.io import read_image
+
+    scene, masks, train = _scene_views(ctx)
+    cfg: CoInConfig = ctx.shared["cfg"]
+    inp = _targets(ctx, ctx.inputs["1_inpaint"])
+    guided = dict(inp)
+    if "3_clg" in ctx.inputs:
+        for i in train:
+            p = ctx.inputs["3_clg"] / "images" / (Path(scene.cameras[i].name).stem + ".png")
+            if p.is_file():
+                guided[i] = read_image(p)
+    else:
+        ctx.note("w/o CLG: TE-D fine-tunes on the initial inpaints I^_n")
+    views = views_from_scene(scene, train, [guided.get(i, scene.images[i]) for i in range(len(scene))])
+    for v, i in zip(views, train, strict=True):
+        v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i])
+    model = load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
+    model.device = cfg.device
+    it = ctx.shared["iters"]
+    ctx.note("TE-D: " + ", ".join(
+        f"{k} {it[k]} steps" + ("" if k not in ctx.shared.get("ted_caps", {})
+                                else f" (~{ctx.shared['ted_caps'][k] / 60 / CAP_FACTOR:.1f} min)")
+        for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
+    tcfg = replace(
+        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
+    )
+    tc = ctx.shared.get("ted_caps", {})
+    caps = {"finetune": tc.get("ted_finetune", 0.0), "adversarial": tc.get("ted_adversarial", 0.0)}
+    res, _ = run_ted(
+        model,
+        views,
+        [],
+        ctx.out,
+        tcfg,
+        TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
+        max_seconds=caps,
+    )
+    if not any(ctx.out.rglob(CKPT_NAME)):
+        # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the
+        # Ref-GS scene through unchanged, so that eval and resumption find a checkpoint here.
+        import shutil
+
+        shutil.copy2(latest_ckpt(ctx.inputs["2_refgs"], CKPT_NAME), ctx.out / CKPT_NAME)
+        ctx.note("TE-D ran 0 iterations: the Ref-GS scene is passed through unchanged")
+        res["passed_through"] = True
+    return jsonable(res)
