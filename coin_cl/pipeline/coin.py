@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from coin_cl.gs.carve import CarveConfig
+from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.budget import (
     MAX_WORK_PIXELS,
     PRIOR_MIN_SECONDS,
@@ -40,6 +41,7 @@ from coin_cl.pipeline.budget import (
     ted_iters,
     working_resolution,
 )
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.insert import InsertConfig
@@ -109,8 +111,8 @@ class CoInConfig:
     prior_seconds: float | None = None
     inpaint2d: Inpaint2DConfig = field(default_factory=Inpaint2DConfig)
     ted: TEDConfig = field(default_factory=TEDConfig)
-    refgs: Any = None  # coin_cl.gs.refgs.RefGSConfig (default built on use)
-    clg: Any = None  # coin_cl.pipeline.clg_config.CLGConfig (default built on use)
+    refgs: RefGSConfig | None = None  # None: RefGSConfig() with the run's reference
+    clg: CLGConfig | None = None  # None: CLGConfig()
     edited_ref: str | None = None
     insert: InsertConfig = field(default_factory=InsertConfig)
     inpaint_region: str = "auto"
@@ -316,7 +318,6 @@ def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
 def _run(
     scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
 ) -> CoInResult:
-    from coin_cl.gs.refgs import RefGSConfig
     from coin_cl.pipeline.reference import choose_reference
 
     masks = _train_masks(scene, cfg)
@@ -357,8 +358,6 @@ def _run(
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
                                         "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
     refined = cfg.inpaint_region == "refined"
-    from coin_cl.pipeline.clg_config import CLGConfig
-
     clg_cfg = cfg.clg or CLGConfig()  # the defaults in the key too: a changed default reruns CLG
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     stages = [
