@@ -4,7 +4,7 @@ log. The loop knows no model kind: the recipes beside it (`build_model`, `defaul
 `default_terms`, `scaled_model_config`, `scaled_strategy`) do.
 
 Output folder layout:
-    ckpt.pt          last good checkpoint (written to ckpt.pt.tmp, then renamed)
+    ckpt.pt          last good checkpoint (written to a temporary file, fsynced, then renamed)
     log.json         config, per-interval losses and timings, evaluations, refinement events
     cameras.json     train/test cameras, so that `coin-cl render` needs no scene
     point_cloud.ply  final Gaussians (Scaffold-GS decoded to plain Gaussians)
@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -61,6 +60,10 @@ class TrainConfig:
     eval_every: int = 0  # steps between held-out evaluations (0: only at the end)
     eval_at_seconds: tuple[float, ...] = ()  # also evaluate when training time crosses these
     ckpt_every: int = 1000  # steps between checkpoints (0: only at the end)
+    # ... and at least every this many seconds of wall time (0: off), so that a kill loses at most
+    # about a minute of work whatever the step rate (a checkpoint resumes bit-exactly, so when it
+    # is written does not change the result).
+    ckpt_seconds: float = 60.0
     log_every: int = 50
     max_seconds: float = 0.0  # stop when training time (evaluation excluded) exceeds this
     progress: bool = True  # tqdm bar
@@ -265,6 +268,9 @@ class Trainer:
         self.log["strategy"] = {"kind": type(self.strategy).__name__, **self.strategy.config()}
         self.log["terms"] = {t.name: t.weight for t in self.terms}
         self._evals_done: set[float] = set()
+        self._acc: dict[str, float] = {}  # loss sums of the current log interval
+        self._n_acc = 0
+        self._last_ckpt = time.monotonic()
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
             cams = {"train": cameras_to_json([v.camera for v in self.train_views]),
@@ -282,9 +288,10 @@ class Trainer:
         return None if self.out is None else self.out / CKPT_NAME
 
     def save_checkpoint(self) -> None:
-        """Write the whole training state to ckpt.pt.tmp, then rename over ckpt.pt."""
+        """Write the whole training state to ckpt.pt, atomically (`coin_cl.atomic`)."""
         if self.out is None:
             return
+        self._last_ckpt = time.monotonic()
         state = {
             "model": self.model.state_dict(),
             "strategy": self.strategy.state_dict(),
@@ -295,11 +302,12 @@ class Trainer:
                 "train_seconds": self.train_seconds,
                 "log": self.log,
                 "evals_done": sorted(self._evals_done),
+                # the running means of the current log interval, so a resumed log is the same
+                "acc": dict(self._acc),
+                "n_acc": self._n_acc,
             },
         }
-        tmp = self.out / (CKPT_NAME + ".tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, self.out / CKPT_NAME)
+        atomic_write(self.out / CKPT_NAME, lambda tmp: torch.save(state, tmp))
         self.save_log()
 
     def load_checkpoint(self, path: str | Path | None = None) -> None:
@@ -332,6 +340,7 @@ class Trainer:
         self.train_seconds = float(t["train_seconds"])
         self.log = t["log"]
         self._evals_done = set(t["evals_done"])
+        self._acc, self._n_acc = dict(t.get("acc", {})), int(t.get("n_acc", 0))
 
     def save_log(self) -> None:
         if self.out is not None:
@@ -441,8 +450,7 @@ class Trainer:
 
             bar = tqdm(total=cfg.iters, initial=self.step, desc=f"train {self.model.kind}",
                        dynamic_ncols=True)  # fmt: skip
-        acc: dict[str, float] = {}
-        n_acc = 0
+        self._last_ckpt = time.monotonic()
         try:
             while self.step < cfg.iters:
                 if cfg.max_seconds and self.train_seconds >= cfg.max_seconds:
@@ -455,15 +463,15 @@ class Trainer:
                 self.train_seconds += time.perf_counter() - t
                 self.step += 1
                 for k, v in rec.items():
-                    acc[k] = acc.get(k, 0.0) + v
-                n_acc += 1
+                    self._acc[k] = self._acc.get(k, 0.0) + v
+                self._n_acc += 1
                 if self.step % cfg.log_every == 0 or self.step == cfg.iters:
-                    mean = {k: v / n_acc for k, v in acc.items()}
+                    mean = {k: v / self._n_acc for k, v in self._acc.items()}
                     self.log["train"].append({"step": self.step, "train_seconds": self.train_seconds,
                                               "n": self.model.n_primitives, **mean})  # fmt: skip
                     if bar is not None:
                         bar.set_postfix(loss=f"{mean['loss']:.4f}", n=self.model.n_primitives)
-                    acc, n_acc = {}, 0
+                    self._acc, self._n_acc = {}, 0
                 if bar is not None:
                     bar.update(1)
                 due = [s for s in cfg.eval_at_seconds
@@ -472,7 +480,9 @@ class Trainer:
                     self._evals_done.update(due)
                     if self.test_views:
                         self.evaluate()
-                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
+                if (cfg.ckpt_every and self.step % cfg.ckpt_every == 0) or (
+                    cfg.ckpt_seconds and time.monotonic() - self._last_ckpt >= cfg.ckpt_seconds
+                ):
                     self.save_checkpoint()
         finally:
             if bar is not None:

@@ -1,14 +1,13 @@
-"""Image reading and atomic file writing shared by the scene modules."""
+"""Image reading and writing shared by the scene modules (writes are atomic: `coin_cl.atomic`)."""
 
 from __future__ import annotations
 
-import os
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+
+from coin_cl.atomic import atomic_write, write_text  # noqa: F401  (re-exported: the scene modules' writers)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 
@@ -33,21 +32,6 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255.0 + 0.5).astype(np.uint8)
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
-    """Call write(tmp) on a temporary name in the same folder, then os.replace onto `path`,
-    so a crash never leaves a half-written file under the final name."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_png(path: str | Path, img: np.ndarray) -> None:
     """Write a float [0, 1] or uint8 image (H, W[, 3]) as PNG, atomically."""
     data = to_uint8(img)
@@ -62,11 +46,6 @@ def write_npy(path: str | Path, arr: np.ndarray) -> None:
             np.save(f, arr)
 
     atomic_write(path, _w)
-
-
-def write_text(path: str | Path, text: str) -> None:
-    """Write a text file atomically."""
-    atomic_write(path, lambda p: p.write_text(text))
 
 
 def list_images(folder: Path) -> list[Path]:
