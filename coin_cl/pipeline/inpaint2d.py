@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image
-from coin_cl.diffusion.scene_prior import ScenePriorConfig, train_scene_prior
+from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds, train_scene_prior
 from coin_cl.scene.io import read_image, to_uint8, write_png
 
 log = logging.getLogger(__name__)
@@ -44,14 +44,17 @@ def effective_config(
     cfg: Inpaint2DConfig, prior_seconds: float, seed: int, width: int, height: int
 ) -> Inpaint2DConfig:
     """The settings stage 1 really uses (and CLG must repeat to find its cached prior): the
-    pipeline's time budget and seed, and a working patch no larger than the images (the largest
-    multiple of 8 that fits, at least 16)."""
+    pipeline's time budget (as a step count, `steps_for_seconds`) and seed, and a working patch no
+    larger than the images (the largest multiple of 8 that fits, at least 16)."""
     patch = max(16, min(cfg.prior.patch, (min(width, height) // 8) * 8))
     if patch != cfg.prior.patch:
         log.info(
             "1_inpaint: scene prior patch %d -> %d to fit %dx%d images", cfg.prior.patch, patch, width, height
         )
-    prior = replace(cfg.prior, train_seconds=prior_seconds, seed=seed, patch=patch)
+    # A step count, not the seconds themselves: the same prior on any machine, and a killed run
+    # resumes to it (an explicit `prior.train_steps` wins).
+    steps = cfg.prior.train_steps if cfg.prior.train_steps is not None else steps_for_seconds(prior_seconds)
+    prior = replace(cfg.prior, train_seconds=prior_seconds, train_steps=steps, seed=seed, patch=patch)
     return replace(cfg, prior=prior)
 
 
