@@ -48,8 +48,9 @@ _VERSION = 1  # bump when the model or the training changes, so old caches are n
 # Optimizer steps per second of the default prior (base 32, batch 16 of 64x64 patches) on the
 # project's 2-core machine kind: 133 steps in 120 s (docs/BENCHMARKS.md, "Diffusion").
 STEPS_PER_SECOND = 133 / 120
-# Wall-clock seconds between training checkpoints, so that a kill loses at most about this much.
-CKPT_SECONDS = 60.0
+# Wall-clock seconds between training checkpoints, so that a kill loses at most about this much
+# ($COIN_CKPT_SECONDS overrides it, as for the GS trainer: benchmarks/faults.py uses 1).
+CKPT_SECONDS = float(os.environ.get("COIN_CKPT_SECONDS", 60.0))
 
 
 def steps_for_seconds(seconds: float) -> int:

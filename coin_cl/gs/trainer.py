@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -45,6 +46,12 @@ PLY_NAME = "point_cloud.ply"
 MODELS = ("scaffold", "3dgs")
 
 
+def ckpt_seconds_default() -> float:
+    """Seconds between wall-time checkpoints: 60, or $COIN_CKPT_SECONDS (benchmarks/faults.py sets
+    1 so that its kills land between checkpoints of its tiny runs)."""
+    return float(os.environ.get("COIN_CKPT_SECONDS", 60.0))
+
+
 class TrainingDivergedError(RuntimeError):
     """A loss, gradient or parameter became non-finite; training stopped without saving."""
 
@@ -63,7 +70,7 @@ class TrainConfig:
     # ... and at least every this many seconds of wall time (0: off), so that a kill loses at most
     # about a minute of work whatever the step rate (a checkpoint resumes bit-exactly, so when it
     # is written does not change the result).
-    ckpt_seconds: float = 60.0
+    ckpt_seconds: float = field(default_factory=ckpt_seconds_default)
     log_every: int = 50
     max_seconds: float = 0.0  # stop when training time (evaluation excluded) exceeds this
     progress: bool = True  # tqdm bar

@@ -205,6 +205,8 @@ def _run_stages(
                 )
         elif folder.exists():
             log.info("[%s] resuming an interrupted run in %s", st.name, folder)
+            for tmp in folder.rglob(".tmp-*"):  # what a kill left of an atomic write (coin_cl.atomic)
+                tmp.unlink()
         folder.mkdir(parents=True, exist_ok=True)
         (folder / MANIFEST).unlink(missing_ok=True)
         _write_json(folder / STARTED, {"key": key, "settings": st.settings})
