@@ -178,6 +178,7 @@ def test_checkpoint_by_wall_time_resumes_identically_with_the_same_log(scene, tm
     resumed.train()
     for k, a in ref.model.optimizer.params.items():
         assert torch.equal(a, resumed.model.optimizer.params[k]), k
+    assert resumed.model.cfg == ref.model.cfg  # the config as given (voxel size 0: automatic), not resolved
 
     def losses(tr):  # timings aside
         return [

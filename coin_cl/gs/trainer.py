@@ -159,8 +159,11 @@ def model_from_state(sd: dict[str, Any]) -> Model:
     params = sd["optimizer"]["params"]
     if sd["kind"] == "scaffold":
         cfg = scaffold_config_from_dict(sd["cfg"])
-        cfg.voxel_size = sd["voxel_size"]
-        m: Model = ScaffoldModel(params["anchors"].numpy(), None, sd["extent"], cfg)
+        # the saved anchors are voxelised at their own (resolved) size; the config stays as given
+        # (0: automatic), so that a checkpoint written after a resume is the same as without one
+        m: Model = ScaffoldModel(params["anchors"].numpy(), None, sd["extent"],
+                                 replace(cfg, voxel_size=sd["voxel_size"]))  # fmt: skip
+        m.cfg = cfg
     elif sd["kind"] == "3dgs":
         cfg3 = gaussian_config_from_dict(sd["cfg"])
         m = GaussianModel(params["means"].numpy(), None, sd["extent"], cfg3)
