@@ -475,9 +475,9 @@ def run_corpus(args, base: Path, root: Path) -> list[dict]:
                 "--api",
                 str(root / "cases.json"),
                 "--iters",
-                str(args.iters),
+                str(args.corpus_iters),
                 "--prior-steps",
-                str(args.prior_steps),
+                str(args.corpus_iters),
             ],
             capture_output=True,
             text=True,
@@ -503,11 +503,9 @@ def run_corpus(args, base: Path, root: Path) -> list[dict]:
                 "--out",
                 c["out_cli"],
                 "--iters",
-                str(args.iters),
+                str(args.corpus_iters),
                 "--prior-seconds",
                 "2",
-                "--skip-stage",
-                "clg",
             ]
             t = time.time()
             cli = subprocess.run(
@@ -548,7 +546,7 @@ def judge(c: dict) -> dict:
         "cli_ok": cli_ok,
         "tracebacks": int(api["outcome"] == "crash") + int(cli["traceback"]),
         "api": api.get("message", api["outcome"])[:300],
-        "cli": (cli["stderr_tail"] or [""])[0][:300],
+        "cli": "" if c["expect"] == "handled" and cli["rc"] == 0 else (cli["stderr_tail"] or [""])[0][:300],
         "half_written": c.get("half_written", []),
     }
 
@@ -564,6 +562,7 @@ def main() -> int:
     ap.add_argument("--iters", type=int, default=40, help="Ref-GS steps (TE-D: half each phase)")
     ap.add_argument("--prior-steps", type=int, default=30)
     ap.add_argument("--kills-per-stage", type=int, default=4)
+    ap.add_argument("--corpus-iters", type=int, default=10, help="GS and prior steps of the bad-input runs")
     ap.add_argument("--skip-corpus", action="store_true")
     ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--api", default=None, help=argparse.SUPPRESS)
@@ -580,8 +579,11 @@ def main() -> int:
         shutil.rmtree(args.out)
     args.out.mkdir(parents=True)
     scene = write_synthetic(args.out / "scene", n_views=args.views, width=64, height=48, seed=args.seed)
+    from coin_cl.engine.runtime import get_runtime
+
     print(
-        f"# faults: CPU {cpu_model()}, commit {git_commit()}, {args.views} views 64x48, Ref-GS {args.iters} "
+        f"# faults: CPU {cpu_model()}, {os.cpu_count()} cores, OpenCL {get_runtime().name}, commit "
+        f"{git_commit()}, {args.views} views 64x48, Ref-GS {args.iters} "
         f"steps, TE-D {args.iters // 2} + {args.iters // 2}, prior {args.prior_steps} steps, "
         f"checkpoints every 1 s ($COIN_CKPT_SECONDS), seed {args.seed}",
         flush=True,
@@ -647,6 +649,7 @@ def main() -> int:
         "reference_s": round(ref_s, 1),
         "total_s": round(time.time() - t_start, 1),
         "cpu": cpu_model(),
+        "device": get_runtime().name,
         "commit": git_commit(),
         "seed": args.seed,
     }

@@ -90,7 +90,8 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
         tmp = None
         _fsync_dir(path.parent)
     except OSError as exc:
-        err = disk_error(exc, path.parent)
+        # numpy reports a short write without an errno ("3072 requested and 3040 written")
+        err = disk_error(exc, path.parent) or _full_disk(path.parent)
         if err is not None:
             raise err from exc
         raise

@@ -145,3 +145,19 @@ def test_output_folder_of_another_scene_is_refused(tmp_path):
     (other / "2_refgs").mkdir(parents=True)
     with pytest.raises(OutputFolderError, match="not a coin-cl run"):
         check_output_folder(other, {"scene": "x"})
+
+
+def test_read_only_output_folder_is_one_line_naming_it(tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    from coin_cl.atomic import OutputWriteError
+
+    def mkdir(self, *a, **k):
+        raise OSError(errno.EROFS, "Read-only file system", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    with pytest.raises(
+        OutputWriteError, match=f"cannot write in {tmp_path / 'out'}: the file system is read-only"
+    ):
+        check_output_folder(tmp_path / "out", {"scene": "a"})

@@ -106,7 +106,12 @@ def _read_json(path: Path) -> dict | None:
 
 def check_output_folder(out: Path, scene_id: dict[str, Any]) -> None:
     """Claim `out` for the scene `scene_id` (JSON-able: path, content hash); refuse another's."""
-    out.mkdir(parents=True, exist_ok=True)
+    from coin_cl.atomic import disk_error
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a read-only or full disk: one line naming the folder
+        raise (disk_error(exc, out) or exc) from None
     run = out / "run.json"
     have = _read_json(run)
     if have is None:
