@@ -4,6 +4,9 @@ shared SPIn-NeRF scene at half of images_4, scored on the object-absent ground-t
 Rows (each a `coin_cl.inpaint` run folder under --out; a row starts from the `coin` row's stage
 folders, and the stage runner keeps exactly those whose settings and inputs match, so rows share
 work without any row-specific bookkeeping):
+    default      exactly what a user's first command does: `coin-cl run DATA --out DIR`, no other flag
+                 (working resolution, timing probe and plan chosen by coin-cl; issue 20)
+    default_baseline  the naive baseline at the default row's resolution and Ref-GS step count
     coin         the full pipeline, seg masks, the dataset's LaMa inpaints as initial 2D results
     baseline     naive: plain Scaffold-GS on the same initial inpaints (no Ref-GS, CLG, TE-D)
     no_refgs     w/o Ref-GS (plain Scaffold-GS in stage 2, then CLG and TE-D)
@@ -60,17 +63,19 @@ from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint, share_stages  # n
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
 
 ROWS = {
+    "default": {},  # run through the CLI, see run_default
+    "default_baseline": {},  # see run_default
     "coin": {},
-    "baseline": {"skip": ("refgs", "clg", "ted")},
+    "baseline": {"skip": ("refgs", "clg", "ted"), "inpaint_region": "input"},
     "no_refgs": {"skip": ("refgs",)},
     "no_weights": {"refgs": RefGSConfig(adaptive_weights=False)},
     "no_attn": {"refgs": RefGSConfig(feature_attention=False)},
     "no_clg": {"skip": ("clg",)},
     "no_ted": {"skip": ("ted",)},
     "seg_prior": {"inpaint2d": Inpaint2DConfig(use_dataset=False)},
-    "bbox": {"mask": "bbox"},
-    "scribble": {"mask": "scribble"},
-    "refined": {"masks": "refined"},
+    "bbox": {"mask_kind": "bbox"},
+    "scribble": {"mask_kind": "scribble"},
+    "refined": {"inpaint_region": "refined"},
 }
 KEYS = ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd")
 
@@ -95,6 +100,37 @@ def run_row(name: str, data: Path, out: Path, cfg: CoInConfig) -> dict:
         "status": {k: r["status"] for k, r in res.stages.items()},
         "sources": res.stages["1_inpaint"].get("result", {}).get("sources"),
     }
+
+
+def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
+    """The `default` row (the CLI with no flag but --budget when it is not the default 30) and the
+    `default_baseline` row: plain Scaffold-GS on the same initial inpaints, at the default row's
+    resolution and Ref-GS steps (from its plan.json), sharing its stages 0 and 1."""
+    import subprocess
+
+    row_out = out / "default"
+    cmd = ["coin-cl", "run", str(data), "--out", str(row_out)] + (
+        [] if budget == 30.0 else ["--budget", str(budget)]
+    )
+    print("$", " ".join(cmd), file=sys.stderr, flush=True)
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    wall = (time.perf_counter() - t) / 60
+    logd = json.loads((row_out / "log.json").read_text())["stages"]
+    plan = json.loads((row_out / "plan.json").read_text())
+    metrics = json.loads((row_out / "eval" / "metrics" / "metrics.json").read_text())["mean"]
+    cost = {k: (r.get("seconds") or r.get("seconds_when_run") or 0.0) / 60 for k, r in logd.items()}
+    rows = {"default": {**{k: metrics.get(k) for k in KEYS}, "wall_minutes": wall,
+                        "stage_minutes": {k: r.get("seconds", 0.0) / 60 for k, r in logd.items()},
+                        "cost_minutes": sum(cost.values()), "stage_cost_minutes": cost,
+                        "status": {k: r["status"] for k, r in logd.items()}, "plan": plan,
+                        "resolution": plan["key"]["resolution"]}}  # fmt: skip
+    cfg = CoInConfig(budget_minutes=budget, resolution=plan["key"]["resolution"],
+                     iters_refgs=plan["steps"]["refgs"], iters_ted_finetune=0, iters_ted_adversarial=0,
+                     **ROWS["baseline"])  # fmt: skip
+    share_stages(row_out, out / "default_baseline", ("0_scene", "1_inpaint"))
+    rows["default_baseline"] = run_row("default_baseline", data, out, cfg)
+    return rows
 
 
 TEXTURE_SOURCES = {  # (folder under the run, views): the images each stage hands to the next
@@ -192,6 +228,8 @@ def main() -> int:
         names.append("coin")  # the default-reference row of the robustness rows
     if "coin" in names:  # the row the others start from goes first
         names = ["coin"] + [n for n in names if n != "coin"]
+    if "default_baseline" in names and "default" not in names:
+        names.insert(0, "default")
     if args.texture_only:
         print_texture(args, [n for n in names if (args.out / n / "log.json").is_file()])
         return 0
@@ -199,6 +237,10 @@ def main() -> int:
 
     rows: dict[str, dict] = {}
     for name in names:
+        if name.startswith("default"):
+            if "default" not in rows:
+                rows.update(run_default(args.data, args.out, args.budget))
+            continue
         rows[name] = run_row(name, args.data, args.out, replace(base, **ROWS[name]))
         print(name, json.dumps(rows[name], default=str), file=sys.stderr, flush=True)
     ref_rows = reference_rows(args, base, rows) if args.refs else {}
@@ -238,6 +280,14 @@ def main() -> int:
         return rows.get(row, {}).get(key)
 
     result = {
+        "default_mpsnr": g("default", "m_psnr"),
+        "default_hf_ratio": g("default", "hf_ratio"),
+        "default_gmsd": g("default", "bbox_gmsd"),
+        "default_minutes": g("default", "wall_minutes"),
+        "default_resolution": g("default", "resolution"),
+        "default_baseline_mpsnr": g("default_baseline", "m_psnr"),
+        "default_baseline_hf_ratio": g("default_baseline", "hf_ratio"),
+        "default_baseline_gmsd": g("default_baseline", "bbox_gmsd"),
         "baseline_mpsnr": g("baseline", "m_psnr"),
         "baseline_hf_ratio": g("baseline", "hf_ratio"),
         "baseline_gmsd": g("baseline", "bbox_gmsd"),
@@ -274,6 +324,18 @@ def main() -> int:
             "mpsnr_within_0.5_of_baseline": bool(c["m_psnr"] >= b["m_psnr"] - 0.5),
             "coin_within_45_min": bool(max(c["wall_minutes"], c["cost_minutes"]) <= 45),
         }
+    if "default" in rows and "default_baseline" in rows:
+        d, b = rows["default"], rows["default_baseline"]
+        extra = d["stage_minutes"].get("3_clg", 0.0) + d["stage_minutes"].get("eval", 0.0)
+        result.setdefault("floors", {}).update({
+            "default_beats_baseline_mpsnr": bool(d["m_psnr"] > b["m_psnr"]),
+            "default_beats_baseline_hf_ratio": bool(abs(d["hf_ratio"] - 1) < abs(b["hf_ratio"] - 1)),
+            "default_beats_baseline_gmsd": bool(d["bbox_gmsd"] < b["bbox_gmsd"]),
+            "default_minutes_within_20pct": bool(
+                0.8 * args.budget + extra <= d["wall_minutes"] <= 1.2 * args.budget + extra
+            ),
+        })  # fmt: skip
+        result["default_clg_eval_minutes"] = extra
     if "seg_prior" in rows and "bbox" in rows:
         s, bb = rows["seg_prior"], rows["bbox"]
         result.setdefault("floors", {})["bbox_close_to_seg"] = bool(

@@ -9,7 +9,7 @@ stage folders with `share_stages`, and the runner keeps exactly those whose sett
     insert_naive  the naive alternative: `InsertConfig(propagate=False)`, plain Scaffold-GS on the
                   edited reference beside the unedited views, as many GS steps as insert's Ref-GS + TE-D
     input_360     removal on a 360-degree capture with the input (seg) masks
-    refined_360   the same with 3D-first refined masks (`masks="refined"`, stage 0_refine)
+    refined_360   the same with 3D-first refined masks (`inpaint_region="refined"`, stage 0_refine)
     seg           removal on the room (a 90-degree arc, forward-facing) with seg masks; also the
                   default-reference run of the reference robustness
     scribble      the same with scribble masks (seg plus seeded random strokes); bbox on request
@@ -238,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
     res_in, minutes = _run(sc_r, out / "input_360", base)
     rows["input_360"] = {**_removal(res_in), "minutes": minutes, "ran": _ran(res_in)}
     _progress("input_360", rows["input_360"])
-    res_rf, minutes = _run(sc_r, out / "refined_360", replace(base, masks="refined"), out / "input_360")
+    refined = replace(base, inpaint_region="refined")
+    res_rf, minutes = _run(sc_r, out / "refined_360", refined, out / "input_360")
     rows["refined_360"] = {**_removal(res_rf), **_refined_masks(res_rf, sc_r, syn_r), "minutes": minutes,
                            "ran": _ran(res_rf)}  # fmt: skip
     _progress("refined_360", rows["refined_360"])

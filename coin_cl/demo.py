@@ -144,7 +144,12 @@ def room(
     share_stages(out / "coin", naive)
     log.info("demo: baseline, plain Scaffold-GS on the same stage-1 inpaints")
     t = time.perf_counter()
-    res = inpaint(scene_dir, naive, config=replace(cfg, skip=("refgs", "clg", "ted")), device=device)
+    # The same stage-1 inpaints (and masks) as CoIn's, fitted for Ref-GS's step count of CoIn's plan.
+    import json
+
+    refgs_steps = json.loads((out / "coin" / "plan.json").read_text())["steps"]["refgs"]
+    naive_cfg = replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=refgs_steps)
+    res = inpaint(scene_dir, naive, config=naive_cfg, device=device)
     what = "plain Scaffold-GS on the same stage-1 inpaints (no Ref-GS, CLG, TE-D)"
     rows["inpaint_then_gs"] = _row(res.metrics, time.perf_counter() - t, what)
     rows["masked_recon"] = room_baseline(out / "masked_recon", scene_dir, steps, device)

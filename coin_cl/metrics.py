@@ -288,3 +288,18 @@ def jsonable(v):
     if isinstance(v, float) and not math.isfinite(v):
         return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")
     return v
+
+
+def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, tol: float = 0.1) -> float:
+    """The ghost figure of a removal (issue 21): the share of `mask` [H, W] bool pixels whose
+    rendered `depth` [H, W] (camera z) lies more than `tol` of the `reference` depth in front of
+    it: something still stands where the object was. Pixels without a finite positive reference are
+    left out; NaN when none is left (an empty mask)."""
+    d, r = np.asarray(depth, np.float64), np.asarray(reference, np.float64)
+    m = np.asarray(mask, bool) & np.isfinite(r) & (r > 0)
+    if d.shape != r.shape or d.shape != m.shape:
+        raise ValueError(f"depth {d.shape}, reference {r.shape} and mask {m.shape} must have one shape")
+    if not m.any():
+        return float("nan")
+    dd = np.where(np.isfinite(d), d, np.inf)  # nothing rendered: no ghost
+    return float(np.mean(dd[m] < (1.0 - tol) * r[m]))

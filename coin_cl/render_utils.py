@@ -64,10 +64,37 @@ def orbit_cameras(cams, n: int, model, step: int, backend: str):
     return result
 
 
+def _run_folder(run: Path) -> tuple[Path, dict]:
+    """(checkpoint of the final stage, {"train": [...], "test": [...]} camera JSON) of a `coin-cl run`
+    folder: the stage its eval rendered (4_ted, or 2_refgs when TE-D was skipped)."""
+    from coin_cl.gs.trainer import CKPT_NAME
+    from coin_cl.scene import load_scene
+
+    man = run / "eval" / "manifest.json"
+    final = json.loads(man.read_text())["settings"]["final"] if man.is_file() else None
+    for name in ([final] if final else []) + ["4_ted", "2_refgs"]:
+        cands = (
+            sorted((run / name).rglob(CKPT_NAME), key=lambda p: p.stat().st_mtime)
+            if (run / name).is_dir()
+            else []
+        )
+        if cands:
+            break
+    else:
+        raise FileNotFoundError(
+            f"{run} is a coin-cl run folder without a trained stage yet (4_ted or 2_refgs)"
+        )
+    scene = load_scene(run / "0_scene" / "scene")
+    cams = {k: [scene.cameras[i].to_json() for i in idx] for k, idx in (("train", scene.train_idx),
+                                                                      ("test", scene.test_idx))}  # fmt: skip
+    return cands[-1], cams
+
+
 def render_checkpoint(
     out_dir: Path, views: str = "test", frames: int = 48, backend: str = "opencl", device=None
 ) -> tuple[int, Path]:
-    """Render the model trained into `out_dir` (its checkpoint and cameras.json): `views` is "test",
+    """Render the model trained into `out_dir` (its checkpoint and cameras.json, or a `coin-cl run`
+    folder: its final stage's model and its scene's cameras): `views` is "test",
     "train" or "orbit" (`frames` cameras from `orbit_cameras`). Writes an image and a depth map per
     view under `out_dir/renders/<views>/` (and `renders/orbit.gif` for the orbit); returns the
     number of views and the path written (the folder, or the GIF)."""
@@ -78,13 +105,18 @@ def render_checkpoint(
 
     out_dir = Path(out_dir)
     ckpt = out_dir / CKPT_NAME
-    if not ckpt.is_file():
-        raise FileNotFoundError(f"{ckpt} not found: train into {out_dir} first")
+    if (out_dir / "run.json").is_file() and not ckpt.is_file():
+        ckpt, cams = _run_folder(out_dir)
+    elif not ckpt.is_file():
+        raise FileNotFoundError(
+            f"{ckpt} not found: train into {out_dir} first (or give a coin-cl run folder)"
+        )
+    else:
+        cams = json.loads((out_dir / CAMERAS_NAME).read_text())
     state = torch.load(ckpt, weights_only=False)
     model = model_from_state(state["model"])
     model.device = device
     step = int(state["trainer"]["step"])
-    cams = json.loads((out_dir / CAMERAS_NAME).read_text())
     if views == "orbit":
         cameras = orbit_cameras(cameras_from_json(cams["train"]), frames, model, step, backend)
     else:

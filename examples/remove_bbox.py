@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None):
     if args.iters is not None:
         cfg.iters_refgs = cfg.iters_ted_finetune = cfg.iters_ted_adversarial = args.iters
     ref = int(args.ref) if args.ref is not None and args.ref.isdigit() else args.ref
-    result = coin_cl.inpaint(scene, args.out, masks="bbox", reference=ref, budget=args.budget, config=cfg)
+    result = coin_cl.inpaint(scene, args.out, mask_kind="bbox", reference=ref, budget=args.budget, config=cfg)
     print(f"final Gaussians: {result.ply}")
     return result
 

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None):
 
     scene = coin_cl.load_scene(args.data)
     cfg = CoInConfig(resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path)
-    result = coin_cl.inpaint(scene, args.out, masks="seg", budget=args.budget, config=cfg)
+    result = coin_cl.inpaint(scene, args.out, mask_kind="seg", budget=args.budget, config=cfg)
     if result.metrics:
         m = result.metrics
         print(f"PSNR {m['psnr']:.2f}  m-PSNR {m['m_psnr']:.2f}  HF ratio {m['hf_ratio']:.2f}  "

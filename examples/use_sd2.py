@@ -24,14 +24,14 @@ def main(argv: list[str] | None = None):
     ap.add_argument("--sd-path", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--prompt", default="")
-    ap.add_argument("--mask", choices=("seg", "bbox", "scribble"), default="seg")
+    ap.add_argument("--mask-kind", choices=("seg", "bbox", "scribble"), default="seg")
     ap.add_argument("--budget", type=float, default=30.0)
     args = ap.parse_args(argv)
 
     check_sd2_folder(args.sd_path)  # names the missing file before any work starts
     cfg = CoInConfig(sd_path=str(args.sd_path))
-    result = coin_cl.inpaint(coin_cl.load_scene(args.scene), args.out, masks=args.mask, prompt=args.prompt,
-                             budget=args.budget, config=cfg)  # fmt: skip
+    result = coin_cl.inpaint(coin_cl.load_scene(args.scene), args.out, mask_kind=args.mask_kind,
+                             prompt=args.prompt, budget=args.budget, config=cfg)  # fmt: skip
     print(f"final Gaussians: {result.ply}")
     return result
 

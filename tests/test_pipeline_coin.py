@@ -102,11 +102,65 @@ def test_refgs_trains_around_the_pipeline_reference(room, first_run, tmp_path):
 
 def test_cli_run(room, tmp_path, capsys):
     # seconds of scene-prior training and 3 steps of every training stage: a smoke run
-    rc = main(["run", str(room), "--out", str(tmp_path / "cli"), "--mask", "bbox", "--iters", "3",
+    rc = main(["run", str(room), "--out", str(tmp_path / "cli"), "--mask-kind", "bbox", "--iters", "3",
                "--prior-seconds", "2", "--skip-stage", "clg", "--skip-stage", "ted"])  # fmt: skip
     assert rc == 0
     out = capsys.readouterr().out
-    assert "2_refgs: ran" in out and "3_clg: skipped" in out
+    rows = {ln.split()[0]: ln for ln in out.splitlines() if ln.startswith("  ") and ln.split()}
+    assert rows["2_refgs"].split()[-1] == "ran" and "skipped: asked" in rows["3_clg"]
+    assert "m-PSNR" in out and "bbox GMSD" in out  # the metrics as a table (the room has ground truth)
+    for what in ("metrics.md", "grids", "orbit.gif", "point_cloud.ply", "plan (explicit)"):
+        assert what in out, what
+
+
+def test_seed_and_clg_settings_reach_their_stages(room, first_run, tmp_path):
+    import shutil
+
+    out = tmp_path / "clg"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=replace(TINY, clg=CLGConfig(steps=2)))
+    status = {k: r["status"] for k, r in res.stages.items()}
+    assert status["2_refgs"] == "skipped: up to date" and status["3_clg"] == "ran"
+    out = tmp_path / "seed"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=replace(TINY, seed=1, skip=("clg", "ted")))
+    assert res.stages["1_inpaint"]["status"] == "ran" and res.stages["2_refgs"]["status"] == "ran"
+
+
+def test_force_takes_short_names_and_refuses_typos(room, first_run, tmp_path):
+    import shutil
+
+    out = tmp_path / "force"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=TINY, force=("clg",))
+    assert res.stages["3_clg"]["status"] == "ran" and res.stages["2_refgs"]["status"] == "skipped: up to date"
+    with pytest.raises(ValueError, match="cannot force 'clgg'.*3_clg"):
+        inpaint(room, out, config=TINY, force=("clgg",))
+
+
+def test_same_scene_under_another_spelling_or_resolution_is_accepted(room, first_run, tmp_path):
+    import os
+
+    link = tmp_path / "room_link"
+    os.symlink(room, link)
+    res = inpaint(link, first_run[0], config=TINY)  # a symlink: the same scene, everything up to date
+    assert all(r["status"] == "skipped: up to date" for r in res.stages.values())
+    half = replace(TINY, resolution=0.5, skip=("clg", "ted"))
+    res = inpaint(str(room) + "/", tmp_path / "half", config=half)
+    assert res.stages["0_scene"]["status"] == "ran"
+    # the half-resolution run may share the folder of the full one: another resolution is not another scene
+    import shutil
+
+    out = tmp_path / "both"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=replace(TINY, resolution=0.5, skip=("clg", "ted")))
+    assert res.stages["0_scene"]["status"] == "ran"
+
+
+def test_default_resolution_is_picked_from_the_image_size(room, tmp_path, caplog):
+    with caplog.at_level("INFO", logger="coin_cl.pipeline.coin"):
+        inpaint(room, tmp_path / "auto", config=replace(TINY, skip=("clg", "ted")))
+    assert "working resolution 1 (64x48 -> 64x48)" in caplog.text
 
 
 def test_bad_input_is_a_clear_error(room, tmp_path):
@@ -126,3 +180,10 @@ def test_bad_input_is_a_clear_error(room, tmp_path):
     with pytest.raises(OutputFolderError, match="another scene"):
         inpaint(other, tmp_path / "e", config=TINY)
     assert not any((tmp_path / p).exists() for p in ("a/0_scene", "b/0_scene", "d/0_scene"))
+
+
+def test_render_takes_a_run_folder(first_run, capsys):
+    out, res = first_run
+    assert main(["render", str(out), "--views", "test"]) == 0
+    written = sorted((out / "renders" / "test").glob("*.png"))
+    assert len(written) == 2 * len(load_scene(out / "0_scene" / "scene").test_idx)  # image + depth each

@@ -74,7 +74,7 @@ def test_base_images_use_the_render_outside_the_refined_mask(capture, refined):
 def test_pipeline_with_refined_masks(capture, tmp_path):
     syn, scene = capture
     cfg = CoInConfig(
-        masks="refined", refine=RefineConfig(iters=100), iters_refgs=20, iters_ted_finetune=3,
+        inpaint_region="refined", refine=RefineConfig(iters=100), iters_refgs=20, iters_ted_finetune=3,
         iters_ted_adversarial=3, prior_seconds=3,
         inpaint2d=Inpaint2DConfig(prior=ScenePriorConfig(patch=32, base=8, max_steps=4)),
         clg=CLGConfig(steps=2), ted=TEDConfig(n_patches=2), refgs=RefGSConfig(depth_prior_iters=10),

@@ -90,14 +90,54 @@ def test_broken_build_is_skipped_with_the_compiler_message(monkeypatch, caplog):
 
 
 def test_default_skips_a_failing_device_for_the_next_one(monkeypatch):
+    """Two implementations that really work: make the first fail its probe, the second is chosen.
+
+    Listed is not working (PoCL 3.0 is listed on Zen 5 but compiles nothing), so the pair is taken
+    from `working_devices()`, which probes each one.
+    """
     from coin_cl.engine import runtime
 
-    devices = sorted(_device_list(), key=lambda d: runtime.default_rank(d)[0])
-    if len(devices) < 2:
-        pytest.skip("needs two OpenCL implementations")
-    bad = devices[0]
+    working = runtime.working_devices()
+    if len(working) < 2:
+        listed = [runtime.device_label(d) for d in _device_list()]
+        pytest.skip(f"needs two working OpenCL implementations; working: {len(working)} of listed {listed}")
+    bad = working[0]
     monkeypatch.setattr(runtime, "_PROBES", {runtime._probe_key(bad): runtime.Probe(False, "simulated", 0.0)})
-    assert runtime.device_label(runtime._choose_device(None)) == runtime.device_label(devices[1])
+    assert runtime.device_label(runtime._choose_device(None)) == runtime.device_label(working[1])
+
+
+class _ListedButBroken:
+    """A device that ranks first (a GPU) and that the driver lists but cannot compile for."""
+
+    def __init__(self, real):
+        import pyopencl as cl
+
+        self.name = "Simulated GPU"
+        self.type = cl.device_type.GPU
+        self.platform = real.platform
+        self.vendor = "simulated"
+        self.version = "OpenCL 1.2 simulated"
+        self.driver_version = "0"
+        self.extensions = ""
+
+
+def test_a_listed_device_that_cannot_compile_is_passed_over(monkeypatch, caplog):
+    """The Zen 5 case with one implementation that works: whatever ranks above it and fails its
+    probe is skipped with a warning, and the working one is chosen; requested by name, the broken
+    one is a clear error."""
+    from coin_cl.engine import runtime
+
+    real = runtime.working_devices()[0]
+    fake = _ListedButBroken(real)
+    monkeypatch.setattr(runtime, "all_devices", lambda: [(fake.platform, fake), (real.platform, real)])
+    broken = runtime.Probe(False, "unknown target CPU 'generic'", 0.0)
+    monkeypatch.setattr(runtime, "_PROBES", {runtime._probe_key(fake): broken})
+    with caplog.at_level("WARNING", logger="coin_cl.engine.runtime"):
+        chosen = runtime._choose_device(None)
+    assert runtime.device_label(chosen) == runtime.device_label(real)
+    assert "Simulated GPU" in caplog.text and "unknown target CPU" in caplog.text
+    with pytest.raises(NoDeviceError, match="Simulated GPU.*cannot build or run kernels"):
+        runtime._choose_device("Simulated GPU")
 
 
 def test_float_atomics_variant_is_used_where_the_device_has_them():

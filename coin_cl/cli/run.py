@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 
@@ -11,56 +10,58 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="CoIn on a scene: 2D inpainting, Ref-GS, CLG, TE-D, evaluation")
     p.add_argument("scene", type=Path, help="a folder load_scene reads (SPIn-NeRF, COLMAP, coin-cl)")
     p.add_argument("--out", type=Path, required=True, help="run folder (a rerun resumes)")
-    p.add_argument("--mask", choices=("seg", "bbox", "scribble"), default="seg")
-    p.add_argument("--masks", choices=("input", "refined"), default="input",
-                   help="refined: 3D-first (wide/360 captures, removal): inpaint only the mask pixels no "
-                        "other view sees (stage 0_refine)")  # fmt: skip
-    p.add_argument("--ref", default=None, help="reference view, name or index (default: chosen by rule)")
+    p.add_argument("--mask-kind", choices=("seg", "bbox", "scribble"), default="seg",
+                   help="the shape of the object's masks: the scene's segmentation, or its bounding box / "
+                        "scribbles derived from it (default seg)")  # fmt: skip
+    p.add_argument("--inpaint-region", choices=("auto", "input", "refined"), default="auto",
+                   help="input: inpaint the whole masks; refined: 3D-first (wide/360 captures, "
+                        "removal): inpaint only the mask pixels no other view sees (stage 0_refine); "
+                        "auto (default): refined when other views see at least 30%% of the masks "
+                        "(estimated, logged)")  # fmt: skip
+    p.add_argument("--ref", default=None,
+                   help="reference view: a view name (with or without extension) or an index; a name that "
+                        "exists wins (default: chosen by rule)")  # fmt: skip
     p.add_argument("--prompt", default="", help="text for insertion (needs --sd-path or COIN_SD2_PATH)")
     p.add_argument("--edited-ref", type=Path, default=None,
                    help="insertion without weights: the reference view edited in a 2D tool (the object "
                         "painted in; the masks cover where it goes in every view); its view is --ref or "
                         "the one it matches")  # fmt: skip
-    p.add_argument("--budget", type=float, default=30.0, help="training minutes to aim at")
-    p.add_argument("--resolution", type=float, default=1.0, help="image scale (0.5 = half)")
+    p.add_argument("--budget", type=float, default=30.0,
+                   help="training minutes (scene prior, Ref-GS, TE-D; CLG and eval come on top); a timing "
+                        "probe turns them into steps, recorded in OUT/plan.json (default 30)")  # fmt: skip
+    p.add_argument("--resolution", type=float, default=None,
+                   help="image scale (0.5 = half); default: picked from the image size (at most "
+                        "160k pixels a view, logged)")  # fmt: skip
     p.add_argument("--skip-stage", action="append", default=[], choices=("refgs", "clg", "ted"),
-                   help="leave a stage out (the paper's ablations); repeatable")  # fmt: skip
-    p.add_argument(
-        "--iters", type=int, default=None, help="iterations of each training stage (overrides --budget)"
-    )
-    p.add_argument(
-        "--prior-seconds",
-        type=float,
-        default=None,
-        help="training seconds of the embedded scene prior (overrides --budget; >= 120 to be useful)",
-    )
+                   help="the paper's ablations, repeatable: clg / ted leave that stage out; refgs trains the "
+                        "coarse GS (stage 2_refgs, which CLG and TE-D stand on) as plain Scaffold-GS, "
+                        "without Ref-GS's four pieces")  # fmt: skip
+    p.add_argument("--iters", type=int, default=None,
+                   help="steps of each GS training stage (replaces the budget's plan)")  # fmt: skip
+    p.add_argument("--prior-seconds", type=float, default=None,
+                   help="training seconds of the embedded scene prior (replaces the budget's share; >= 120 "
+                        "to be useful)")  # fmt: skip
     p.add_argument("--sd-path", default=None, help="Stable Diffusion 2 inpainting folder (diffusers format)")
     p.add_argument("--dino-path", default=None, help="DINO ViT-S/16 checkpoint")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--force", action="append", default=[], help="rerun this stage folder (e.g. 3_clg)")
+    p.add_argument("--force", action="append", default=[],
+                   help="rerun this stage even if up to date: a folder name (3_clg) or its short name "
+                        "(clg)")  # fmt: skip
     p.set_defaults(func=cmd_run)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.pipeline.coin import CoInConfig, inpaint
+    from coin_cl.pipeline.report import run_report
 
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
-        masks=args.masks,
+        inpaint_region=args.inpaint_region,
     ).with_iters(args.iters)  # fmt: skip
-    ref = int(args.ref) if args.ref is not None and args.ref.isdigit() else args.ref
-    res = inpaint(args.scene, args.out, masks=args.mask, reference=ref, prompt=args.prompt or None,
-                  budget=args.budget, config=cfg, force=tuple(args.force),
+    res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
+                  prompt=args.prompt or None, budget=args.budget, config=cfg, force=tuple(args.force),
                   edited_ref=args.edited_ref)  # fmt: skip
-    for name, rec in res.stages.items():
-        print(f"  {name}: {rec['status']}" + (f" ({rec['seconds']:.0f} s)" if "seconds" in rec else ""))
-    if res.metrics:
-        print(
-            json.dumps(
-                {k: res.metrics.get(k) for k in ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd")}
-            )
-        )
-    print(f"wrote {args.out}/ (final Gaussians {res.ply}, renders {res.renders}, log.json)")
+    print(run_report(res))
     return 0

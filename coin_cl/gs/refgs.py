@@ -813,6 +813,13 @@ def resolve_reference(ref: str | int, names: Sequence[str], candidates: Sequence
         hits = [i for i, n in enumerate(names) if n == s] or [i for i, st in enumerate(stems) if st == key]
         if hits:
             idx = hits[0]
+            # "12" naming view "12.png" while index 12 is another training view: say both readings.
+            if s.isdigit() and s == str(int(s)) and int(s) in cands and int(s) != idx:
+                raise ValueError(
+                    f"--ref {ref!r} is ambiguous: the view named {names[idx]!r} (index {idx}) or the view at "
+                    f"index {int(s)} ({names[int(s)]!r}); give the name with its extension, or the index "
+                    "as an int from Python"
+                )
         elif s.lstrip("-").isdigit():
             idx = int(s)
     shown = ", ".join(f"{i} ({names[i]})" for i in cands[:12]) + (" ..." if len(cands) > 12 else "")

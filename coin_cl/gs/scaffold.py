@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from coin_cl.engine import constants as cst
 from coin_cl.engine.rendering import decode_neural_gaussians
 from coin_cl.gs.base import Model, RenderOutput, splat
+from coin_cl.gs.carve import CarveVolume
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
@@ -124,6 +125,15 @@ class ScaffoldModel(Model):
                 params[f"{mname}.{pname}"] = prm
                 lrs[f"{mname}.{pname}"] = getattr(c, f"lr_{mname}")
         self.optimizer = ParamOptimizer(params, lrs)
+        # The removed object's volume (`coin_cl.gs.carve`): neural Gaussians inside it get zero
+        # opacity at every render and are left out of exports, whatever densification grows there.
+        self.carve: CarveVolume | None = None
+
+    def _carved(self, g: dict[str, Tensor]) -> dict[str, Tensor]:
+        if self.carve is None or g["means"].shape[0] == 0:
+            return g
+        keep = ~self.carve.contains(g["means"])
+        return {**g, "opacities": g["opacities"] * keep.to(g["opacities"].dtype), "kept": keep}
 
     @property
     def p(self) -> dict[str, nn.Parameter]:
@@ -257,7 +267,7 @@ class ScaffoldModel(Model):
         """Render `cam`; `features` [A, feat_dim] optionally overrides the anchor features
         (see `decode`)."""
         vis = self.visible_anchors(cam)
-        g = self.decode(cam.center_t, vis, features, backend=backend)
+        g = self._carved(self.decode(cam.center_t, vis, features, backend=backend))
         image, alpha, depth, meta = splat(
             cam, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             backend=backend, background=background, return_depth=return_depth, training=training,
@@ -281,6 +291,9 @@ class ScaffoldModel(Model):
         `cam_center`, default the origin) in the 3DGS parameterisation (log scales, logits)."""
         center = torch.zeros(3) if cam_center is None else cam_center
         g = self.decode(center, torch.ones(self.n_anchors, dtype=torch.bool))
+        if self.carve is not None:  # carved Gaussians are not part of the model
+            keep = ~self.carve.contains(g["means"])
+            g = {k: g[k][keep] for k in ("means", "quats", "scales", "opacities", "colors")}
         op = g["opacities"].clamp(1e-6, 1 - 1e-6)
         return {
             "means": g["means"],
@@ -298,9 +311,11 @@ class ScaffoldModel(Model):
             "voxel_size": self.voxel_size,
             "cfg": asdict(self.cfg),
             "optimizer": self.optimizer.state_dict(),
+            **({} if self.carve is None else {"carve": self.carve.state_dict()}),
         }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.extent = sd["extent"]
         self.voxel_size = sd["voxel_size"]
         self.optimizer.load_state_dict(sd["optimizer"])
+        self.carve = CarveVolume.from_state(sd["carve"]) if "carve" in sd else None

@@ -16,9 +16,9 @@ leave those stages out (the next stage then reads the one before), and `RefGSCon
 adaptive weights, attention and the depth loss one by one.
 
 Budget: the paper's iteration counts (10k Ref-GS, 200 CLG steps, 10k + 10k TE-D) are far beyond
-2 CPU cores; `budget_minutes` scales them by a throughput estimate in one place
-(`STEPS_PER_MINUTE` at a reference pixel count), so runs are deterministic in their iteration
-counts (a time cap would make resumed runs differ) and the log records the time really spent.
+2 CPU cores; `coin_cl.pipeline.budget` picks the working resolution from the image size and turns
+`budget_minutes` into step counts with a timing probe on the machine at hand, recorded in
+`out/plan.json` so that a rerun (or a resumed run) uses the same counts.
 """
 
 from __future__ import annotations
@@ -32,6 +32,15 @@ from typing import Any
 
 import numpy as np
 
+from coin_cl.gs.carve import CarveConfig
+from coin_cl.pipeline.budget import (
+    MAX_WORK_PIXELS,
+    PRIOR_MIN_SECONDS,
+    Plan,
+    plan_run,
+    probe_seconds_per_step,
+    working_resolution,
+)
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.insert import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig
@@ -40,46 +49,42 @@ from coin_cl.pipeline.ted import TEDConfig
 
 log = logging.getLogger(__name__)
 
-# Steps per minute of the GS stages (Ref-GS, TE-D) on the project's 2-core machine kind, measured
-# in full CoIn runs (docs/RESULTS.md): 69 Ref-GS / 84 TE-D fine-tune / 68 TE-D adversarial steps per
-# minute on SPIn-NeRF at 504x284 (about 950k Scaffold primitives), 226 Ref-GS steps per minute on
-# the demo room at 192x144 (5.2x fewer pixels). The rate scales with the pixel ratio to the power
-# RATE_EXPONENT, fitted to those two points.
-STEPS_PER_MINUTE = 70.0
-REF_PIXELS = 504 * 284
-RATE_EXPONENT = 0.7
-# Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
-# (CLG is counted in sampling steps, not minutes).
-BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
-# The scene prior's training time never drops below this under the budget rule: measured on 2
-# cores (docs/BENCHMARKS.md, "Diffusion"), 1 minute (27 steps) leaves it untrained (its fills are
-# noise) and 2 minutes (133 steps) gives textured fills. An explicit `prior_seconds` is obeyed
-# (with a warning below the floor), for smoke tests.
-PRIOR_MIN_SECONDS = 120.0
+# Share of the masks that other views must see (estimated) for "auto" to choose refined masks:
+# measured 0.16 on the forward-facing SPIn-NeRF scene, 0.65 / 0.78 / 0.82 on the synthetic room's 90 /
+# 180 / 360-degree arcs (exact: 0.78 / 0.83 / 0.83; tests/test_carve.py).
+AUTO_REFINE_SHARE = 0.3
 STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 
 
 @dataclass
 class CoInConfig:
-    """mask: "seg" | "bbox" | "scribble" (derived from the scene's segmentation masks).
+    """mask_kind: the shape of mask given for the object, "seg" | "bbox" | "scribble" (the latter two
+    derived from the scene's segmentation masks).
     ref: reference view (index or name); None chooses by `coin_cl.gs.refgs.choose_reference`.
     prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
-    resolution: image scale (0.5 = half). sd_path / dino_path: local weights (else the embedded
-    defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
-    iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (override
-    the budget rule; see PRIOR_MIN_SECONDS). seed, device: as everywhere.
+    resolution: image scale (0.5 = half); None picks it from the image size
+    (`coin_cl.pipeline.budget.working_resolution`, logged). sd_path / dino_path: local weights (else
+    the embedded defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
+    iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (each
+    replaces the budget plan's figure; see `coin_cl.pipeline.budget`). seed, device: as everywhere.
     edited_ref: path of the reference view edited by the user (insertion without weights,
     `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
-    masks: "input" (inpaint the whole masks) or "refined" (3D-first, supplement C.2: stage 0_refine
-    narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for removal
-    on wide captures). refine: its settings."""
+    inpaint_region: "input" (inpaint the whole masks), "refined" (3D-first, supplement C.2: stage
+    0_refine narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for
+    removal on wide captures) or "auto" (removal: "refined" when the cheap estimate
+    `coin_cl.gs.carve.observed_share` finds at least AUTO_REFINE_SHARE of the masks seen by other
+    views, else "input"; logged with its figure). refine: its settings.
+    carve: removal carves the object's volume out of the GS for good (`coin_cl.gs.carve`: what the
+    masks cut out of space in front of the background surface gets no Gaussian, in Ref-GS, TE-D
+    and the exported model) and seeds anchors on the background behind it; not with insertion or
+    the naive / w/o Ref-GS rows. carve_cfg: its settings."""
 
-    mask: str = "seg"
+    mask_kind: str = "seg"
     mask_dilate: int = 0
     ref: int | str | None = None
     prompt: str = ""
     budget_minutes: float = 30.0
-    resolution: float = 1.0
+    resolution: float | None = None
     sd_path: str | None = None
     dino_path: str | None = None
     skip: tuple[str, ...] = ()
@@ -95,31 +100,16 @@ class CoInConfig:
     clg: Any = None  # coin_cl.pipeline.clg.CLGConfig (default built on use)
     edited_ref: str | None = None
     insert: InsertConfig = field(default_factory=InsertConfig)
-    masks: str = "input"
+    inpaint_region: str = "auto"
     refine: RefineConfig = field(default_factory=RefineConfig)
+    carve: bool = True
+    carve_cfg: CarveConfig = field(default_factory=CarveConfig)
 
     def with_iters(self, n: int | None) -> CoInConfig:
         """This config with every GS training stage set to `n` steps (None: unchanged)."""
         if n is None:
             return self
         return replace(self, iters_refgs=n, iters_ted_finetune=n, iters_ted_adversarial=n)
-
-    def iterations(self, width: int, height: int) -> dict[str, int | float]:
-        """Iteration counts (and the prior's seconds) from the budget rule, explicit values winning."""
-        rate = STEPS_PER_MINUTE * (REF_PIXELS / max(1, width * height)) ** RATE_EXPONENT
-        b = {k: v * self.budget_minutes for k, v in BUDGET_SHARES.items()}
-        return {
-            "prior_seconds": self.prior_seconds
-            if self.prior_seconds is not None
-            else max(PRIOR_MIN_SECONDS, 60.0 * b["prior"]),
-            "refgs": self.iters_refgs if self.iters_refgs is not None else max(1, round(rate * b["refgs"])),
-            "ted_finetune": self.iters_ted_finetune
-            if self.iters_ted_finetune is not None
-            else round(rate * b["ted_finetune"]),
-            "ted_adversarial": self.iters_ted_adversarial
-            if self.iters_ted_adversarial is not None
-            else round(rate * b["ted_adversarial"]),
-        }
 
 
 @dataclass
@@ -147,13 +137,16 @@ def _jsonable(obj: Any) -> Any:
 
 
 def scene_id(scene) -> dict[str, Any]:
-    """What names a scene for the output folder check: its path and a hash of its pixels."""
+    """What names a scene for the output folder check: its view count, names and a hash of its
+    pixels as captured (before any resizing). Not its path: the same folder under another spelling
+    (a symlink, `./`) is the same scene, and another resolution of it is the same scene too (its
+    stages rerun, since the resolution is in their settings)."""
     h = hashlib.sha256()
     for img in scene.images:
         h.update(np.ascontiguousarray(img[::7, ::7]).tobytes())
     return {
-        "path": str(scene.path) if scene.path else None,
         "n_views": len(scene),
+        "names": hashlib.sha256("/".join(c.name for c in scene.cameras).encode()).hexdigest()[:16],
         "pixels": h.hexdigest()[:16],
     }
 
@@ -164,17 +157,32 @@ def _train_masks(scene, cfg: CoInConfig) -> list[np.ndarray]:
     out = []
     for i, m in enumerate(scene.masks):
         if i in scene.train_idx and m.any():
-            out.append(derive_mask(m, cfg.mask, seed=cfg.seed + i, dilate=cfg.mask_dilate))
+            out.append(derive_mask(m, cfg.mask_kind, seed=cfg.seed + i, dilate=cfg.mask_dilate))
         else:
             out.append(np.asarray(m, bool))
     return out
+
+
+def _stage_names(force: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """Stage folder names from `force` entries: a folder name ("3_clg") or its short name ("clg");
+    anything else is an error listing the names (a typo must not be ignored silently)."""
+    short = {s.split("_", 1)[1]: s for s in STAGES if "_" in s} | {"eval": "eval"}
+    out = []
+    for f in force:
+        name = f if f in STAGES else short.get(f)
+        if name is None:
+            names = f"{', '.join(STAGES)} (or {', '.join(short)})"
+            raise ValueError(f"cannot force {f!r}: the stages are {names}")
+        out.append(name)
+    return tuple(out)
 
 
 def inpaint(
     scene,
     out: str | Path,
     *,
-    masks: str | list[np.ndarray] | None = None,
+    mask_kind: str | None = None,
+    masks: list[np.ndarray] | None = None,
     reference: int | str | None = None,
     prompt: str | None = None,
     budget: float | None = None,
@@ -189,8 +197,10 @@ def inpaint(
     Args:
         scene: a `coin_cl.scene.Scene` or a folder `load_scene` reads.
         out: the run folder (created; a rerun resumes and skips what is up to date).
-        masks: "seg" | "bbox" | "scribble", or per-view (H, W) bool arrays replacing the scene's.
-        reference: the reference view (index or name; default: chosen by rule).
+        mask_kind: "seg" | "bbox" | "scribble" (default `config.mask_kind`).
+        masks: per-view (H, W) bool arrays replacing the scene's masks.
+        reference: the reference view: an index, or a view name (with or without extension); a
+            name that exists wins over an index; default: chosen by rule.
         prompt: text for insertion (needs Stable Diffusion 2 weights: `config.sd_path`).
         budget: minutes of training to aim at (default `config.budget_minutes`).
         config: everything else (`CoInConfig`). device: the OpenCL device (Runtime or name).
@@ -205,7 +215,9 @@ def inpaint(
 
     cfg = config or CoInConfig()
     if isinstance(masks, str):
-        cfg = replace(cfg, mask=masks)
+        raise TypeError(f"masks= takes per-view arrays; for the mask kind use mask_kind={masks!r}")
+    if mask_kind is not None:
+        cfg = replace(cfg, mask_kind=mask_kind)
     if reference is not None:
         cfg = replace(cfg, ref=reference)
     if prompt is not None:
@@ -230,9 +242,13 @@ def inpaint(
 
         env = resolve_sd2_path(None)  # COIN_SD2_PATH
         cfg = replace(cfg, sd_path=None if env is None else str(env))
-    if cfg.masks not in ("input", "refined"):
-        raise ValueError(f"masks must be 'input' or 'refined', got {cfg.masks!r}")
-    if cfg.masks == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+    if cfg.inpaint_region not in ("input", "refined", "auto"):
+        raise ValueError(f"inpaint_region must be 'auto', 'input' or 'refined', got {cfg.inpaint_region!r}")
+    if cfg.inpaint_region == "auto" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+        cfg = replace(cfg, inpaint_region="input")  # insertion: nothing to recover from other views
+    if cfg.mask_kind not in ("seg", "bbox", "scribble"):
+        raise ValueError(f"mask_kind must be 'seg', 'bbox' or 'scribble', got {cfg.mask_kind!r}")
+    if cfg.inpaint_region == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
         raise ValueError(
             "refined masks are for removal: they cannot be combined with a prompt or --edited-ref"
         )
@@ -243,6 +259,15 @@ def inpaint(
             "a text prompt needs Stable Diffusion 2 inpainting weights: pass sd_path / --sd-path or set "
             "COIN_SD2_PATH to a diffusers-format folder (the embedded scene prior has no text input)"
         )
+    captured = scene_id(scene)
+    if cfg.resolution is None:
+        cam0 = scene.cameras[scene.train_idx[0] if scene.train_idx else 0]
+        cfg = replace(cfg, resolution=working_resolution(cam0.width, cam0.height))
+        log.info(
+            "working resolution %.4g (%dx%d -> %dx%d): the largest 1/n scale with at most %d pixels a view "
+            "(coin_cl.pipeline.budget; --resolution overrides)", cfg.resolution, cam0.width, cam0.height,
+            round(cam0.width * cfg.resolution), round(cam0.height * cfg.resolution), MAX_WORK_PIXELS,
+        )  # fmt: skip
     if cfg.resolution != 1.0:
         scene = scene.resized(cfg.resolution)
     if not any(scene.masks[i].any() for i in scene.train_idx):
@@ -262,8 +287,44 @@ def inpaint(
         full = (round(cam.width / cfg.resolution), round(cam.height / cfg.resolution))
         edited = load_edited(src, (cam.width, cam.height), full if cfg.resolution != 1.0 else None)
     out = Path(out)
-    check_output_folder(out, scene_id(scene))
+    check_output_folder(out, captured)
+    force = _stage_names(force)
     return _run(scene, out, cfg, force, edited)
+
+
+def _plan(scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan:
+    """The run's step counts (`coin_cl.pipeline.budget.plan_run`): reused from out/plan.json when
+    made for the same settings, else from a timing probe on this machine (or the explicit counts)."""
+    cam = scene.cameras[train[0]]
+    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
+           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
+           "explicit": [cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial,
+                        cfg.prior_seconds]}  # fmt: skip
+    explicit = {"refgs": cfg.iters_refgs, "ted_finetune": cfg.iters_ted_finetune,
+                "ted_adversarial": cfg.iters_ted_adversarial}  # fmt: skip
+    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
+                    lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
+
+
+def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
+    """'refined' when other views see at least AUTO_REFINE_SHARE of the masks (a cheap estimate from
+    the cameras and the sparse points, seconds; `coin_cl.gs.carve.observed_share`), else 'input'."""
+    from coin_cl.gs.carve import build_carve, observed_share
+
+    train = list(scene.train_idx)
+    try:
+        vol = build_carve([scene.cameras[i] for i in train], [masks[i] for i in train],
+                          np.asarray(scene.points), cfg.carve_cfg)  # fmt: skip
+    except ValueError as exc:
+        log.info("inpaint region: input (no visibility estimate: %s)", exc)
+        return "input"
+    share = observed_share(vol)[0] if vol is not None else 0.0
+    region = "refined" if share >= AUTO_REFINE_SHARE else "input"
+    log.info(
+        "inpaint region: %s (other views see an estimated %.0f%% of the masks; refined from %.0f%%; "
+        "--inpaint-region overrides)", region, 100 * share, 100 * AUTO_REFINE_SHARE,
+    )  # fmt: skip
+    return region
 
 
 def _run(
@@ -272,6 +333,8 @@ def _run(
     from coin_cl.gs.refgs import RefGSConfig, choose_reference
 
     masks = _train_masks(scene, cfg)
+    if cfg.inpaint_region == "auto":
+        cfg = replace(cfg, inpaint_region=_choose_region(scene, masks, cfg))
     train = list(scene.train_idx)
     if edited is not None:
         from coin_cl.pipeline.insert import check_edit, find_reference
@@ -283,7 +346,8 @@ def _run(
     else:
         ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
-    iters = cfg.iterations(cam.width, cam.height)
+    plan = _plan(scene, out, cfg, train)
+    iters = {"prior_seconds": plan.prior_seconds, **plan.steps}
     if iters["prior_seconds"] < PRIOR_MIN_SECONDS and not cfg.sd_path:
         log.warning(
             "the scene prior gets %.0f s of training (prior_seconds); below %.0f s it is measured to be "
@@ -295,33 +359,40 @@ def _run(
     # --ref, and P_k would then come from another view than CLG's camera k.
     refgs_cfg = replace(cfg.refgs or RefGSConfig(), ref=ref)
     shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg,
-              "edited": edited}  # fmt: skip
+              "edited": edited, "plan": plan}  # fmt: skip
     log.info(
-        "CoIn: %d training views (%d with a mask), reference view %d (%s), %s masks, iterations %s",
-        len(train), sum(masks[i].any() for i in train), ref, scene.cameras[ref].name, cfg.mask, iters,
+        "CoIn: %d training views at %dx%d (%d with a mask), reference view %d (%s), %s masks; %s",
+        len(train), cam.width, cam.height, sum(masks[i].any() for i in train), ref, scene.cameras[ref].name,
+        cfg.mask_kind, plan.describe(),
     )  # fmt: skip
-    base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask, "dilate": cfg.mask_dilate}
+    base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask_kind, "dilate": cfg.mask_dilate}
     # The edited image's content (not its path) decides whether stage 1 and what follows rerun.
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
                                         "ref": ref, "cfg": _jsonable(cfg.insert)}  # fmt: skip
-    refined = cfg.masks == "refined"
+    refined = cfg.inpaint_region == "refined"
+    from coin_cl.pipeline.clg import CLGConfig
+
+    clg_cfg = cfg.clg or CLGConfig()  # the defaults in the key too: a changed default reruns CLG
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     stages = [
         Stage("0_scene", _stage_scene, settings=base),
         *([Stage("0_refine", _stage_refine, ["0_scene"],
                  {"cfg": _jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
         Stage("1_inpaint", _stage_inpaint, ["0_scene", *r],
-              {"cfg": _jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"],
+              {"cfg": _jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
         Stage("2_refgs", _stage_refgs, ["0_scene", *r, "1_inpaint"],
-              {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"],
+              {"cfg": _jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,
+               "carve": _jsonable(cfg.carve_cfg) if _carves(cfg, edited) else None,
                "plain": "refgs" in cfg.skip}),
         Stage("3_clg", _stage_clg, ["0_scene", *r, "1_inpaint", "2_refgs"],
-              {"cfg": _jsonable(cfg.clg), "ref": ref, "dino": cfg.dino_path},
+              {"cfg": _jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
+               "sd": cfg.sd_path, "prompt": cfg.prompt},
               skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
         Stage("4_ted", _stage_ted,
               ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
-              {"cfg": _jsonable(cfg.ted), "iters": [iters["ted_finetune"], iters["ted_adversarial"]]},
+              {"cfg": _jsonable(cfg.ted), "iters": [iters["ted_finetune"], iters["ted_adversarial"]],
+               "seed": cfg.seed},
               skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
     final = "2_refgs" if "ted" in cfg.skip else "4_ted"
@@ -368,7 +439,7 @@ def _stage_scene(ctx: StageContext) -> dict:
         ctx.note(f"{len(empty)} training views have no mask and are kept as captured: {empty[:5]}...")
     area = [float(masks[i].mean()) for i in scene.train_idx]
     return {"views": len(scene), "train": len(scene.train_idx), "test": len(scene.test_idx),
-            "mask": ctx.shared["cfg"].mask, "mean_mask_area": float(np.mean(area))}  # fmt: skip
+            "mask": ctx.shared["cfg"].mask_kind, "mean_mask_area": float(np.mean(area))}  # fmt: skip
 
 
 def _scene_views(ctx: StageContext):
@@ -427,7 +498,7 @@ def _stage_inpaint(ctx: StageContext) -> dict:
     icfg = effective_config(
         cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
     )
-    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask, sd2=_sd2(cfg), prompt=cfg.prompt)
+    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=_sd2(cfg), prompt=cfg.prompt)
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
     return res
@@ -464,15 +535,62 @@ def _stage_refgs(ctx: StageContext) -> dict:
     full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
     from coin_cl.pipeline.insert import read_lift
 
+    plan: Plan = ctx.shared["plan"]
+    m = plan.minutes.get("refgs")
+    ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
+             f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
+    # The carve is the object's volume: the input masks, also when refined masks narrow what is inpainted.
+    attach, bg = _carve_hook(ctx, ctx.shared["scene"], ctx.shared["masks"], train)
+    seed_points = None if lift is None else (lift.points, lift.colors)
+    if bg is not None and len(bg):
+        k = ctx.shared["ref"]
+        uv, _ = scene.cameras[k].project(bg)
+        iu = np.clip(uv[:, 0].astype(int), 0, scene.cameras[k].width - 1)
+        iv = np.clip(uv[:, 1].astype(int), 0, scene.cameras[k].height - 1)
+        seed_points = (bg, np.asarray(full[k], np.float32)[iv, iu, :3])  # the reference's inpaint colours
     if lift is not None:
         ctx.note(
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
-                     device=cfg.device, seed=cfg.seed,
-                     seed_points=None if lift is None else (lift.points, lift.colors),
+                     max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
+                     seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth)  # fmt: skip
+
+
+def _carves(cfg: CoInConfig, edited: Any) -> bool:
+    """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
+    return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
+
+
+def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
+    """(trainer callback that gives the model the carve volume, seed points on the background
+    behind the object in the reference view), or (None, None) when this run does not carve."""
+    cfg: CoInConfig = ctx.shared["cfg"]
+    if not _carves(cfg, ctx.shared.get("edited")):
+        return None, None
+    from coin_cl.gs.carve import background_points, build_carve
+
+    cams = [scene.cameras[i] for i in train]
+    vol = build_carve(cams, [masks[i] for i in train], np.asarray(scene.points), cfg.carve_cfg)
+    if vol is None:
+        return None, None
+    ref = ctx.shared["ref"]
+    with_mask = [i for i in train if np.asarray(masks[i]).any()]
+    pts = background_points(vol, with_mask.index(ref)) if ref in with_mask else np.zeros((0, 3), np.float32)
+    import torch
+
+    inside = vol.contains(torch.as_tensor(pts)).numpy() if len(pts) else np.zeros(0, bool)
+    pts = pts[~inside]  # on the background surface, not in front of it
+    ctx.note(f"carving the object's volume: D_bg from {len(scene.points)} sparse points in {len(vol)} views; "
+             f"{len(pts)} background points behind the object seed anchors")  # fmt: skip
+
+    def attach(trainer, step):
+        if getattr(trainer.model, "carve", "n/a") is None:
+            trainer.model.carve = vol
+
+    return attach, pts
 
 
 def _stage_clg(ctx: StageContext) -> dict:
@@ -507,11 +625,22 @@ def _stage_ted(ctx: StageContext) -> dict:
     model = _load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
     model.device = cfg.device
     it = ctx.shared["iters"]
+    plan: Plan = ctx.shared["plan"]
+    ctx.note("TE-D: " + ", ".join(
+        f"{k} {it[k]} steps" + ("" if plan.minutes.get(k) is None else f" (~{plan.minutes[k]:.1f} min)")
+        for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
     tcfg = replace(
         cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
     )
+    caps = {"finetune": plan.cap_seconds("ted_finetune"), "adversarial": plan.cap_seconds("ted_adversarial")}
     res, _ = run_ted(
-        model, views, [], ctx.out, tcfg, TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True)
+        model,
+        views,
+        [],
+        ctx.out,
+        tcfg,
+        TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
+        max_seconds=caps,
     )
     if not any(ctx.out.rglob(CKPT_NAME)):
         # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the
@@ -539,7 +668,10 @@ def _stage_eval(ctx: StageContext) -> dict:
     rdir = ctx.out / "renders"
     rdir.mkdir(parents=True, exist_ok=True)
 
-    for i in list(scene.test_idx) + list(scene.train_idx):
+    from tqdm import tqdm
+
+    views = list(scene.test_idx) + list(scene.train_idx)
+    for i in tqdm(views, desc="eval renders", unit="view"):
         with torch.no_grad():
             r = model.render(scene.cameras[i], 10**9)
         write_png(rdir / (Path(scene.cameras[i].name).stem + ".png"), to_uint8(r.image.clamp(0, 1).numpy()))
@@ -562,7 +694,7 @@ def _stage_eval(ctx: StageContext) -> dict:
 
 
 def share_stages(
-    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "1_inpaint")
+    src: str | Path, dst: str | Path, stages: tuple[str, ...] = ("0_scene", "0_refine", "1_inpaint")
 ) -> None:
     """Start run folder `dst` from the `stages` folders of run `src` (and its scene record), so a
     comparison row (a baseline, an ablation) reuses them instead of redoing them. Safe by
@@ -590,8 +722,10 @@ def orbit_gif(model, cameras: list, path: Path, frames: int = 36) -> None:
 
     if not cameras:
         return
+    from tqdm import tqdm
+
     images = []
-    for j in range(frames):
+    for j in tqdm(range(frames), desc="orbit", unit="frame"):
         u = j * max(1, len(cameras) - 1) / frames
         a, b = cameras[min(int(u), len(cameras) - 1)], cameras[min(int(u) + 1, len(cameras) - 1)]
         vm = interpolate_pose(a.viewmat, b.viewmat, u - int(u))

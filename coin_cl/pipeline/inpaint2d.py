@@ -31,7 +31,8 @@ class Inpaint2DConfig:
     """use_dataset: take the dataset's per-view inpaints when they exist (seg masks only).
     use_prior: train and use the scene prior (else OpenCV when there is no SD2 and no dataset
     inpaint). prior: the scene prior's settings (its time budget is scaled by the pipeline).
-    inpaint: crop/paste/sampler settings. seed: sampling seed (view n uses seed + n)."""
+    inpaint: crop/paste/sampler settings. seed: an offset to the run's seed for sampling (view n
+    uses run seed + seed + n)."""
 
     use_dataset: bool = True
     use_prior: bool = True
@@ -55,7 +56,8 @@ def effective_config(
     # resumes to it (an explicit `prior.train_steps` wins).
     steps = cfg.prior.train_steps if cfg.prior.train_steps is not None else steps_for_seconds(prior_seconds)
     prior = replace(cfg.prior, train_seconds=prior_seconds, train_steps=steps, seed=seed, patch=patch)
-    return replace(cfg, prior=prior)
+    # The run's seed reaches stage 1's sampling too: `cfg.seed` is an offset to it.
+    return replace(cfg, prior=prior, seed=seed + cfg.seed)
 
 
 def stage_prior(scene, masks: list[np.ndarray], views: list[int], cfg: Inpaint2DConfig, folder: Path):

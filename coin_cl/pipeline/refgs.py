@@ -108,7 +108,7 @@ def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, se
     model = build_model(kind, pts, cols, scene_extent([v.camera for v in views]), seed,
                         scaled_model_config(kind, iters))  # fmt: skip
     model.device = device
-    cfg = TrainConfig(model=kind, iters=iters, backend=backend, seed=seed, progress=False, ckpt_every=0,
+    cfg = TrainConfig(model=kind, iters=iters, backend=backend, seed=seed, progress=True, ckpt_every=0,
                       export_ply=False)  # fmt: skip
     tr = Trainer(model, views, [], cfg, out, strategy=scaled_strategy(kind, iters))
     if tr.ckpt_path is not None and tr.ckpt_path.is_file():
@@ -186,6 +186,7 @@ def run_refgs(
     *,
     budget_minutes: float | None,
     iters: int | None,
+    max_seconds: float = 0.0,
     device: Any = None,
     seed: int = 0,
     backend: str = "opencl",
@@ -202,7 +203,8 @@ def run_refgs(
         targets: the initial inpaints I^_n [H, W, 3] float in [0, 1], one per scene view (as
             `coin_cl.scene.splits.inpainted_targets`) or one per training view.
         cfg: Ref-GS switches; `seed` overrides `cfg.seed`.
-        budget_minutes / iters: schedule length (module doc).
+        budget_minutes / iters: schedule length (module doc). max_seconds: with `iters`, a safety
+            cap on training seconds (0: none; the pipeline's budget plan sets it, logged when hit).
         device: OpenCL device for the renders; backend: 'opencl' or 'torch'.
         gs_depth: [H, W] depth of a GS trained on the unmasked scene for the reference view (used
             when the scene ships no depth prior; otherwise a short one is trained here).
@@ -282,8 +284,8 @@ def run_refgs(
                         depth_prior=None if prior is None else prior.prior,
                         depth_is_disparity=bool(prior is not None and prior.is_disparity))  # fmt: skip
     tcfg = TrainConfig(model="scaffold", iters=n_iters, backend=backend, seed=seed, ckpt_every=ckpt_every,
-                       max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else 0.0,
-                       progress=False, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
+                       max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else max_seconds,
+                       progress=True, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
     tr = Trainer(model, views, [], tcfg, out / "gs", callback, strategy=scaled_strategy("scaffold", n_iters),
                  terms=terms)  # fmt: skip
     resumed = tr.ckpt_path is not None and tr.ckpt_path.is_file()

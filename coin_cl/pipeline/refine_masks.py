@@ -1,5 +1,6 @@
 """3D-first refined masks (paper supplement C.2) for 360-degree and other wide captures: stage
-`0_refine`, run before stage 1 when `CoInConfig.masks == "refined"` (`coin-cl run --masks refined`).
+`0_refine`, run before stage 1 when `CoInConfig.inpaint_region == "refined"`
+(`coin-cl run --inpaint-region refined`).
 
 A 2D-first pipeline inpaints the whole object mask in every view, although a wide capture sees most
 of what the object hides from some other view. Here:

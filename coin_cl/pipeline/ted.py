@@ -156,6 +156,7 @@ def run_ted(
     cfg: TEDConfig,
     train_cfg: TrainConfig | None = None,
     extra_terms: list[LossTerm] = (),
+    max_seconds: dict[str, float] | None = None,
 ) -> tuple[dict, Any]:
     """Run both TE-D phases from `model` (the Ref-GS scene).
 
@@ -166,6 +167,8 @@ def run_ted(
         test_views: held-out views for the trainers' evaluation (may be empty).
         out_dir: the stage folder; phases write `finetune/` and `adversarial/` (checkpoints, logs).
         extra_terms: more loss terms for both phases (e.g. the reference depth term).
+        max_seconds: {"finetune" | "adversarial": a cap on that phase's training seconds} (the
+            pipeline's budget plan; 0 or absent: `train_cfg.max_seconds`).
     Returns:
         (a JSON-able record: the config and both phases' results, the final model).
     """
@@ -180,6 +183,7 @@ def run_ted(
             res[phase] = {"skipped": "0 iterations"}
             log.info("TE-D: %s phase skipped (0 iterations)", phase)
             continue
-        pcfg = replace(base, iters=iters, export_ply=phase == "adversarial")
+        cap = (max_seconds or {}).get(phase, base.max_seconds)
+        pcfg = replace(base, iters=iters, export_ply=phase == "adversarial", max_seconds=cap)
         res[phase], model = _train_phase(model, views, test_views, pcfg, out_dir / phase, terms)
     return res, model

@@ -1,0 +1,202 @@
+"""The run's plan: working resolution and step counts from the minute budget (issue 20).
+
+CoIn's published schedule (10k Ref-GS steps, 10k + 10k TE-D, paper supp. A) is far beyond 2 CPU
+cores, so a run is planned from `--budget` minutes on the machine at hand:
+
+1. Working resolution (`working_resolution`): the image scale 1/n (n an integer) that brings a
+   view to at most `MAX_WORK_PIXELS` pixels. Measured on the shared SPIn-NeRF scene at budget 30
+   (issue 20, docs/RESULTS.md): at 1008x567 the budget buys ~280 Ref-GS steps and the result loses
+   to the naive baseline; at 504x284 (143k px) it buys ~700 and wins. `--resolution` overrides.
+2. Step counts (`plan_steps`): a timing probe trains a plain Scaffold-GS on the scene's captured
+   views at the working resolution for `PROBE_STEPS` steps (~10-30 s), which turns the budget's
+   shares (`BUDGET_SHARES`) into steps with the measured cost of each GS stage relative to the
+   probe's step (`STEP_COST`). The plan is written to `OUT/plan.json` and reused by every rerun of
+   the same settings (so a rerun is the same run, and a killed run resumes to the same schedule);
+   `--iters` / `CoInConfig.iters_*` replace the probe with fixed counts.
+3. A safety cap: each GS stage also stops at `CAP_FACTOR` x its planned minutes (logged), so a
+   machine much slower than its probe (another job starting) cannot run far over the budget.
+
+The scene prior (CLG's denoiser) takes its share as seconds of training, never below
+`PRIOR_MIN_SECONDS` (measured: below it, its fills are noise).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+# A view is brought to at most this many pixels by default (504x284 = 143k is the measured winner;
+# see the module docstring). The scale is 1/n so that pixel grids stay aligned with the capture's.
+MAX_WORK_PIXELS = 160_000
+# Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
+# (CLG is counted in sampling steps, not minutes, and eval is extra).
+BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
+# Mean seconds per step of each GS stage over a whole run, relative to the probe's plain Scaffold-GS
+# step at the start of training (Ref-GS adds its terms and the model grows by densification; TE-D's
+# adversarial phase renders patches for the discriminator). Measured in the default run of
+# docs/RESULTS.md ("The default command").
+STEP_COST = {"refgs": 1.6, "ted_finetune": 1.3, "ted_adversarial": 1.6}
+PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
+PROBE_WARMUP = 3
+CAP_FACTOR = 1.25
+PRIOR_MIN_SECONDS = 120.0
+PLAN_FILE = "plan.json"
+
+
+def working_resolution(width: int, height: int, max_pixels: int = MAX_WORK_PIXELS) -> float:
+    """The default image scale 1/n for a (width, height) capture: the largest with at most
+    `max_pixels` pixels (1.0 when the capture is already that small).
+
+    >>> working_resolution(1008, 567), working_resolution(192, 144), working_resolution(4032, 3024)
+    (0.5, 1.0, 0.1111111111111111)
+    """
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    n = math.ceil(math.sqrt(width * height / max_pixels))
+    return 1.0 / max(1, n)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What each stage is given. steps: {"refgs", "ted_finetune", "ted_adversarial"} -> steps;
+    minutes: the planned minutes of each (None where counts were given explicitly); prior_seconds:
+    the scene prior's training; probe_seconds_per_step: the probe's figure (None: no probe);
+    source: "probe" or "explicit"; key: the settings the plan was made for (a rerun with the same
+    key reuses it)."""
+
+    steps: dict[str, int]
+    minutes: dict[str, float | None]
+    prior_seconds: float
+    probe_seconds_per_step: float | None
+    source: str
+    key: dict[str, Any]
+
+    def cap_seconds(self, stage: str) -> float:
+        """The safety cap of a GS stage (0: none, for explicit step counts)."""
+        m = self.minutes.get(stage)
+        return 0.0 if m is None else CAP_FACTOR * 60.0 * m
+
+    def describe(self) -> str:
+        parts = []
+        for k, n in self.steps.items():
+            m = self.minutes.get(k)
+            parts.append(f"{k} {n} steps" + ("" if m is None else f" (~{m:.1f} min)"))
+        return ", ".join(parts) + f", scene prior {self.prior_seconds:.0f} s"
+
+
+def steps_from_rate(
+    budget_minutes: float, seconds_per_step: float
+) -> tuple[dict[str, int], dict[str, float]]:
+    """({stage: steps}, {stage: minutes}) for a budget at a probe rate: each GS stage gets its share
+    of the budget divided by its cost. Monotone: more budget or a faster machine never gives fewer
+    steps. At least 1 Ref-GS step; TE-D may get 0 (then it passes Ref-GS through, logged)."""
+    if not math.isfinite(seconds_per_step) or seconds_per_step <= 0:
+        raise ValueError(f"probe seconds per step must be a positive number, got {seconds_per_step}")
+    if not math.isfinite(budget_minutes) or budget_minutes <= 0:
+        raise ValueError(f"budget must be a positive number of minutes, got {budget_minutes}")
+    steps, minutes = {}, {}
+    for k in ("refgs", "ted_finetune", "ted_adversarial"):
+        minutes[k] = BUDGET_SHARES[k] * budget_minutes
+        steps[k] = int(minutes[k] * 60.0 / (seconds_per_step * STEP_COST[k]))
+    steps["refgs"] = max(1, steps["refgs"])
+    return steps, minutes
+
+
+def prior_seconds(budget_minutes: float) -> float:
+    """The scene prior's training seconds under the budget (never below PRIOR_MIN_SECONDS)."""
+    return max(PRIOR_MIN_SECONDS, 60.0 * BUDGET_SHARES["prior"] * budget_minutes)
+
+
+def probe_seconds_per_step(scene: Any, train_idx: list[int], device: Any = None, seed: int = 0) -> float:
+    """Seconds per step of a plain Scaffold-GS trained on `scene`'s captured training views (the
+    model every GS stage of CoIn trains), measured over PROBE_STEPS steps after PROBE_WARMUP.
+    The model is thrown away."""
+    from coin_cl.gs.data import scene_extent, views_from_scene
+    from coin_cl.gs.trainer import (
+        TrainConfig,
+        Trainer,
+        build_model,
+        init_points,
+        scaled_model_config,
+        scaled_strategy,
+    )
+
+    n = PROBE_WARMUP + PROBE_STEPS
+    views = views_from_scene(scene, train_idx)
+    pts, cols = init_points(scene, views)
+    # The probe trains on a schedule as long as a real run's, so no densification event falls in it.
+    long = 1000
+    model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed,
+                        scaled_model_config("scaffold", long))  # fmt: skip
+    model.device = device
+    cfg = TrainConfig(model="scaffold", iters=n, seed=seed, progress=False, ckpt_every=0, export_ply=False)
+    with tempfile.TemporaryDirectory(prefix="coin-cl-probe-") as tmp:
+        tr = Trainer(model, views, [], cfg, Path(tmp), strategy=scaled_strategy("scaffold", long))
+        times = []
+        for _ in range(n):
+            t = time.perf_counter()
+            tr.train_step()
+            tr.step += 1
+            times.append(time.perf_counter() - t)
+    return float(sum(times[PROBE_WARMUP:]) / PROBE_STEPS)
+
+
+def plan_run(
+    out: Path,
+    key: dict[str, Any],
+    budget_minutes: float,
+    explicit: dict[str, int | None],
+    explicit_prior_seconds: float | None,
+    probe: Any,
+) -> Plan:
+    """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
+    calling `probe()` -> seconds per step unless every count is explicit) and written there.
+
+    explicit: {stage: steps or None}; a number replaces the probe's figure for that stage."""
+    path = Path(out) / PLAN_FILE
+    try:
+        have = json.loads(path.read_text())
+    except (OSError, ValueError):
+        have = None
+    if have is not None and have.get("key") == json.loads(json.dumps(key, default=str)):
+        plan = Plan(**have)
+        log.info("plan reused from %s: %s", path, plan.describe())
+        return plan
+    spp = None
+    if all(explicit.get(k) is not None for k in ("refgs", "ted_finetune", "ted_adversarial")):
+        steps = {k: int(explicit[k]) for k in ("refgs", "ted_finetune", "ted_adversarial")}
+        minutes: dict[str, float | None] = dict.fromkeys(steps)
+        source = "explicit"
+    else:
+        log.info("timing probe: %d Scaffold-GS steps on this machine to turn %.0f minutes into steps",
+                 PROBE_STEPS + PROBE_WARMUP, budget_minutes)  # fmt: skip
+        spp = probe()
+        auto, auto_min = steps_from_rate(budget_minutes, spp)
+        steps = {k: int(explicit[k]) if explicit.get(k) is not None else auto[k] for k in auto}
+        minutes = {k: None if explicit.get(k) is not None else auto_min[k] for k in auto}
+        source = "probe"
+    plan = Plan(
+        steps=steps,
+        minutes=minutes,
+        prior_seconds=explicit_prior_seconds
+        if explicit_prior_seconds is not None
+        else prior_seconds(budget_minutes),
+        probe_seconds_per_step=spp,
+        source=source,
+        key=json.loads(json.dumps(key, default=str)),
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp-{path.name}")
+    tmp.write_text(json.dumps(asdict(plan), indent=2, sort_keys=True))
+    tmp.replace(path)
+    log.info("plan (%s%s): %s; written to %s", source,
+             "" if spp is None else f", probe {spp:.3f} s/step", plan.describe(), path)  # fmt: skip
+    return plan

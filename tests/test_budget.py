@@ -1,0 +1,98 @@
+"""The run's plan (coin_cl.pipeline.budget): working resolution, steps from the probe's rate, the plan
+recorded in OUT/plan.json and reused."""
+
+import json
+import math
+
+import pytest
+
+from coin_cl.pipeline import budget as B
+
+
+def test_working_resolution_brings_views_under_the_pixel_cap():
+    assert B.working_resolution(1008, 567) == 0.5  # the shared scene: 504x284, the measured winner
+    assert B.working_resolution(504, 284) == 1.0
+    assert B.working_resolution(192, 144) == 1.0  # the demo room is left as it is
+    for w, h in ((4032, 3024), (1920, 1080), (640, 480), (3000, 200), (100, 100000)):
+        s = B.working_resolution(w, h)
+        assert round(w * s) * round(h * s) <= B.MAX_WORK_PIXELS * 1.02, (w, h, s)
+        n = round(1 / s)
+        assert math.isclose(s, 1 / n)  # 1/n: pixel grids stay aligned with the capture's
+        if n > 1:  # and the next larger scale would not fit
+            assert w * h / (n - 1) ** 2 > B.MAX_WORK_PIXELS
+    with pytest.raises(ValueError, match="0x10"):
+        B.working_resolution(0, 10)
+
+
+def test_working_resolution_is_monotone_in_pixels():
+    sizes = [(w, round(w * 0.5625)) for w in range(200, 6000, 97)]
+    work = [round(w * B.working_resolution(w, h)) for w, h in sizes]
+    scales = [B.working_resolution(w, h) for w, h in sizes]
+    assert all(a >= b for a, b in zip(scales, scales[1:]))  # larger captures are never scaled up
+    assert max(work) <= 600
+
+
+def test_steps_grow_with_budget_and_machine_speed():
+    prev = None
+    for minutes in (1, 4, 10, 30, 60, 240):
+        steps, planned = B.steps_from_rate(minutes, 0.2)
+        assert steps["refgs"] >= 1
+        assert sum(planned.values()) == pytest.approx(minutes * (1 - B.BUDGET_SHARES["prior"]))
+        if prev is not None:
+            assert all(steps[k] >= prev[k] for k in steps)
+        prev = steps
+    slow, _ = B.steps_from_rate(30, 0.4)
+    fast, _ = B.steps_from_rate(30, 0.1)
+    assert all(fast[k] >= slow[k] for k in fast) and fast["refgs"] > slow["refgs"]
+    # the plan spends each share: steps x cost x seconds per step = the share's minutes
+    s, m = B.steps_from_rate(30, 0.25)
+    for k in s:
+        assert s[k] * B.STEP_COST[k] * 0.25 == pytest.approx(60 * m[k], abs=B.STEP_COST[k] * 0.25)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+def test_bad_rates_and_budgets_are_clear_errors(bad):
+    with pytest.raises(ValueError, match="seconds per step"):
+        B.steps_from_rate(30, bad)
+    with pytest.raises(ValueError, match="budget"):
+        B.steps_from_rate(bad, 0.2)
+
+
+def test_plan_is_written_and_reused_for_the_same_key(tmp_path):
+    calls = []
+
+    def probe():
+        calls.append(1)
+        return 0.3
+
+    key = {"budget_minutes": 10, "size": [64, 48]}
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    p1 = B.plan_run(tmp_path, key, 10, none, None, probe)
+    assert calls == [1] and p1.source == "probe" and p1.probe_seconds_per_step == 0.3
+    assert json.loads((tmp_path / B.PLAN_FILE).read_text())["steps"] == p1.steps
+    p2 = B.plan_run(tmp_path, key, 10, none, None, probe)
+    assert calls == [1] and p2 == p1  # reused: a rerun is the same run
+    p3 = B.plan_run(tmp_path, {**key, "budget_minutes": 20}, 20, none, None, probe)
+    assert calls == [1, 1] and p3.steps["refgs"] > p1.steps["refgs"]
+    assert p3.cap_seconds("refgs") == pytest.approx(B.CAP_FACTOR * 60 * p3.minutes["refgs"])
+
+
+def test_explicit_counts_need_no_probe_and_have_no_cap(tmp_path):
+    def probe():
+        raise AssertionError("no probe for explicit counts")
+
+    p = B.plan_run(tmp_path, {"k": 1}, 30, {"refgs": 7, "ted_finetune": 2, "ted_adversarial": 0}, 5.0, probe)
+    assert p.steps == {"refgs": 7, "ted_finetune": 2, "ted_adversarial": 0}
+    assert p.source == "explicit" and p.prior_seconds == 5.0 and p.cap_seconds("refgs") == 0.0
+    # one explicit count: the probe plans the others, the given one is kept
+    q = B.plan_run(tmp_path / "b", {"k": 2}, 30, {"refgs": 7, "ted_finetune": None, "ted_adversarial": None},
+                   None, lambda: 0.5)  # fmt: skip
+    assert q.steps["refgs"] == 7 and q.minutes["refgs"] is None and q.steps["ted_finetune"] > 0
+
+
+def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
+    from coin_cl.scene import load_scene, write_synthetic
+
+    scene = load_scene(write_synthetic(tmp_path / "room", n_views=4, width=48, height=32, seed=0))
+    spp = B.probe_seconds_per_step(scene, list(scene.train_idx))
+    assert math.isfinite(spp) and 0 < spp < 10
