@@ -1,6 +1,6 @@
 """Rasterizer benchmark: run time next to error against the float64 torch twin.
 
-    python benchmarks/raster.py [--quick] [--runs 5] [--device NAME|all]
+    python benchmarks/raster.py [--quick] [--runs 5] [--device NAME|all] [--discrete] [--scenes 10k,100k]
 
 `--device all` runs the table on every OpenCL device that builds kernels (simulators excluded) and
 ends with a side-by-side table, so implementations are compared in one run on one machine.
@@ -11,6 +11,12 @@ camera of view 0 (focal scaled to the image width). Times are medians of --runs 
 measured in one run. Errors are max |x - x_ref| / max |x_ref| per quantity, stage by stage (each
 stage gets the same float32 inputs as its twin, so the figure is the kernels' arithmetic error, not
 the discontinuity of the integer radius/tile rule).
+
+Copies: "copy MB/step" and "copy ms/step" are what crossed between torch and the device per
+forward+backward on the path benchmarked (the copies' device time from OpenCL event profiling;
+0 on a host-unified-memory device, which aliases the tensors). `--discrete` forces the
+discrete-memory path (device-only buffers, explicit copies: COIN_CL_DISCRETE=1) on any device, as a
+discrete GPU runs it; "bytes copied (discrete path)" is measured on that path in every run.
 
 The last line printed is one JSON object (fwd_s_500k, fwd_bwd_s_500k, fwd_bwd_s_100k_512,
 max_rel_err_fwd, max_rel_err_grad, ...).
@@ -169,7 +175,11 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="10k and 100k scenes only, no knob table")
     ap.add_argument("--twin-max-n", type=int, default=100_000, help="largest N checked against the twin")
     ap.add_argument("--device", default=None, help="device name substring, or 'all' (default: the default)")
+    ap.add_argument("--discrete", action="store_true", help="device-only buffers and counted copies")
+    ap.add_argument("--scenes", default=None, help="comma-separated scene names (default: all, or --quick's)")
     args = ap.parse_args()
+    if args.discrete:  # before the first runtime is made
+        os.environ["COIN_CL_DISCRETE"] = "1"
     pts, _ = read_points_ply(data_dir() / "sparse" / "0" / "points3D.ply")
     points = torch.from_numpy(pts)
     print(
@@ -196,28 +206,36 @@ def main() -> None:
 def run_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) -> dict:
     """The scene table (and knob tables unless --quick) on one device; returns its summary."""
     print()
-    print(f"## {rt.name} ({rt.device.version})")
+    print(f"## {rt.name} ({rt.device.version}; {'discrete' if rt.discrete else 'unified'} memory path)")
     print()
     print(f"# medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (float64 twin)")
     print()
     cols = [
         "scene", "size", "pairs", "visible", "fwd s", "fwd+bwd s", "pairs/s (fwd)", "err img", "err grad",
-        "err proj", "err proj grad", "bytes copied (non-unified path)",
+        "err proj", "err proj grad", "copy MB/step", "copy ms/step", "bytes copied (discrete path)",
     ]  # fmt: skip
     print("| " + " | ".join(cols) + " |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    summary: dict = {"device": rt.name, "cpu": cpu_model(), "commit": git_commit()}
+    print("|" + "---|" * len(cols))
+    summary: dict = {"device": rt.name, "cpu": cpu_model(), "commit": git_commit(), "discrete": rt.discrete}
     err_f, err_g = [], []
     cases = {}
-    for name, n, W, H in SCENES if not args.quick else SCENES[:2]:
+    scenes = SCENES if not args.quick else SCENES[:2]
+    if args.scenes:
+        scenes = [s for s in SCENES if s[0] in args.scenes.split(",")]
+    for name, n, W, H in scenes:
         case = cases[name] = Case(n, W, H, points, rt)
         t_f = median_time(case.forward, args.runs)
+        before = rt.transfers.snapshot()
         t_fb = median_time(case.fwd_bwd, args.runs)
+        crossed = rt.transfers.delta(rt.transfers.snapshot(), before)  # the warm-up and the runs
+        steps = args.runs + 1
+        copy_mb, copy_ms = crossed["bytes"] / 1e6 / steps, crossed["seconds"] * 1e3 / steps
         _, _, stats = case.forward()
-        # What a discrete GPU would move per forward+backward: measured on the copying path.
-        rt_copy = Runtime(rt.device)
-        rt_copy.unified = False
+        # What a discrete GPU moves per forward+backward: measured on the discrete path.
+        rt_copy = rt if rt.discrete else Runtime(rt.device, discrete=True)
+        copy_before = rt_copy.transfers.snapshot()
         case.fwd_bwd(rt=rt_copy)
+        copy_bytes = rt_copy.transfers.bytes - copy_before["bytes"]
         e_img = e_grad = e_p = e_pg = float("nan")
         if n <= args.twin_max_n:
             (ri, ra), rg = case.reference_stage()
@@ -231,16 +249,18 @@ def run_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) -> d
         print(
             f"| {name} | {W}x{H} | {stats['n_pairs']} | {stats['n_visible']} | {t_f:.3f} | {t_fb:.3f} | "
             f"{stats['n_pairs'] / t_f:.3g} | {e_img:.2e} | {e_grad:.2e} | {e_p:.2e} | {e_pg:.2e} | "
-            f"{rt_copy.bytes_transferred / 1e6:.1f} MB |"
+            f"{copy_mb:.2f} | {copy_ms:.2f} | {copy_bytes / 1e6:.1f} MB |"
         )
+        summary[f"copy_mb_per_step_{name}"] = copy_mb
+        summary[f"copy_ms_per_step_{name}"] = copy_ms
         summary[f"fwd_s_{name}"] = t_f
         summary[f"fwd_bwd_s_{name}"] = t_fb
         summary[f"pairs_{name}"] = stats["n_pairs"]
     summary["fwd_bwd_s_100k_512"] = summary.get("fwd_bwd_s_100k")
-    summary["max_rel_err_fwd"] = max(err_f)
-    summary["max_rel_err_grad"] = max(err_g)
+    summary["max_rel_err_fwd"] = max(err_f, default=float("nan"))
+    summary["max_rel_err_grad"] = max(err_g, default=float("nan"))
 
-    if not args.quick:
+    if not args.quick and "100k" in cases:
         # Two scenes: the sparse garden-like one above, and a dense one (splats 50x larger, so
         # they overlap and pixels saturate) where the transmittance and alpha knobs matter.
         dense = Case(100_000, 512, 512, points, rt, scale_mult=50.0)

@@ -16,7 +16,9 @@ initialisation on the same view sequence, `--steps` steps each; prints the media
 every part (anchor decode, project, bin, rasterize, loss, backward, optimiser, densification,
 the rest), steps/s and the held-out PSNR after those steps, and ends with one JSON line
 (scaffold_steps_s_old/new, gs3d_steps_s_old/new, psnr_old/new, ...):
-    python benchmarks/train.py --throughput [--steps 200] [--models scaffold,3dgs]
+    python benchmarks/train.py --throughput [--steps 200] [--models scaffold,3dgs] [--discrete]
+The run table's "copy MB/step" and "copy ms/step" are the host <-> device copies per step (0 on a
+host-unified-memory device; `--discrete` forces the discrete-GPU path, COIN_CL_DISCRETE=1).
 """
 
 import os
@@ -199,7 +201,7 @@ def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: s
             tr.step += 1
         pt.steps.clear()
         pt.now = {}
-        n_programs, n_bytes = len(rt.programs), rt.bytes_transferred
+        n_programs, copies0 = len(rt.programs), rt.transfers.snapshot()
         t0 = time.perf_counter()
         for _ in tqdm(range(steps), desc=f"{kind} {'fused' if fused else 'unfused'}", leave=False,
                       disable=not sys.stderr.isatty()):  # fmt: skip
@@ -223,7 +225,9 @@ def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: s
         "ms_per_step": 1000 * wall / steps, "median_ms": {k: 1000 * v for k, v in med.items()},
         "psnr": res["psnr"], "ssim": res["ssim"], "n_primitives": m.n_primitives,
         "n_drawn_median": pt.median("n_drawn"), "programs_built": len(rt.programs) - n_programs,
-        "bytes_host_device": rt.bytes_transferred - n_bytes,
+        "bytes_host_device": rt.bytes_transferred - copies0["bytes"],
+        "copy_ms_per_step": 1000 * (rt.transfers.seconds - copies0["seconds"]) / steps,
+        "copy_mb_per_step": (rt.bytes_transferred - copies0["bytes"]) / 1e6 / steps,
     }  # fmt: skip
 
 
@@ -239,8 +243,8 @@ def speed(args, scene) -> int:
             runs[key] = speed_run(scene, kind, fused, args.steps, args.warmup, args.backend)
             print(f"{key}: {runs[key]['steps_s']:.2f} steps/s, PSNR {runs[key]['psnr']:.2f}", file=sys.stderr)
     print(f"\n# training throughput, SPIn-NeRF scene 1 at {w}x{h}: {cpu_model()}, {os.cpu_count()} "
-          f"cores; {rt.name}; commit {git_commit()}; {args.steps} timed steps after {args.warmup} "
-          "warm-up")  # fmt: skip
+          f"cores; {rt.name} ({'discrete' if rt.discrete else 'unified'} memory path); commit "
+          f"{git_commit()}; {args.steps} timed steps after {args.warmup} warm-up")  # fmt: skip
     keys = list(runs)
     print("\n| part (median ms per step) | " + " | ".join(keys) + " |")
     print("|---|" + "---|" * len(keys))
@@ -252,14 +256,17 @@ def speed(args, scene) -> int:
             cells.append(f"{ms:.1f} ({share:.0f}%)")
         print(f"| {part} | " + " | ".join(cells) + " |")
     print("\n| run | steps/s | ms/step | held-out PSNR | SSIM | primitives | drawn (median) | kernel builds "
-          "| host<->device bytes |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| host<->device bytes | copy MB/step | copy ms/step |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for k, r in runs.items():
         print(f"| {k} | {r['steps_s']:.2f} | {r['ms_per_step']:.0f} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
               f"{r['n_primitives']} | {r['n_drawn_median']:.0f} | {r['programs_built']} | "
-              f"{r['bytes_host_device']} |")  # fmt: skip
+              f"{r['bytes_host_device']} | {r['copy_mb_per_step']:.2f} | "
+              f"{r['copy_ms_per_step']:.2f} |")  # fmt: skip
     result: dict = {"cpu": cpu_model(), "device": rt.name, "commit": git_commit(), "resolution": [w, h],
-                    "steps": args.steps}  # fmt: skip
+                    "steps": args.steps, "discrete": rt.discrete}  # fmt: skip
+    for k, r in runs.items():
+        result[f"{k}_copy_ms_per_step"] = round(r["copy_ms_per_step"], 3)
     for kind, tag in (("scaffold", "scaffold"), ("3dgs", "gs3d")):
         for path in ("old", "new"):
             r = runs.get(f"{kind}_{path}")
@@ -294,7 +301,14 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=200, help="timed steps per run (--throughput)")
     ap.add_argument("--warmup", type=int, default=5, help="untimed steps first (--throughput)")
     ap.add_argument("--paths", default="old,new", help="which training paths (--throughput)")
+    ap.add_argument(
+        "--discrete",
+        action="store_true",
+        help="device-only buffers and counted copies, as on a discrete GPU (COIN_CL_DISCRETE=1)",
+    )
     args = ap.parse_args()
+    if args.discrete:  # before the first runtime is made
+        os.environ["COIN_CL_DISCRETE"] = "1"
 
     scene = load_scene(args.data, resolution=args.resolution)
     if args.throughput or args.profile:

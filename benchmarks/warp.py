@@ -11,8 +11,9 @@ depth map as `src_depth`. Times are medians of --runs after a warm-up. "err" is 
 max |x_ref| against the twin: features where the weight is >= 1/4, weighted sums everywhere, the
 gradient to the source features for a random cotangent. The knob table's error is against the
 analytic answer (the plane's homography, OpenCV warpPerspective), mean absolute over covered
-pixels. "bytes copied" is what a non-unified device (a discrete GPU) moves per forward+backward,
-measured on the copying code path; on PoCL buffers alias the tensors and nothing is copied.
+pixels. "bytes copied" is what a discrete device moves per forward+backward and the copies' device
+time, measured on the discrete-memory path (Runtime(discrete=True): device-only buffers, counted
+copies); on a unified-memory CPU device buffers alias the tensors and nothing is copied.
 
 CLG part (`--clg`, or `--clg-only` to skip the op rows): the CLG stage per view on the shared
 SPIn-NeRF scene (images_4 at --clg-scale, default 0.5 = 504x283). I^_n: the dataset's LaMa
@@ -271,7 +272,8 @@ def main() -> None:
           f"commit {git_commit()}; {time.strftime('%Y-%m-%d %H:%M')}")  # fmt: skip
     print(f"# {W}x{H}, medians of {args.runs} runs after a warm-up; err = max|x - ref| / max|ref| (twin)")
     print()
-    print("| points | C | valid | fwd s | fwd+bwd s | err feat | err weighted | err grad | bytes copied |")
+    print("| points | C | valid | fwd s | fwd+bwd s | err feat | err weighted | err grad "
+          "| bytes copied, copy time |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
     res: dict[str, float] = {}
     errs = []
@@ -289,10 +291,9 @@ def main() -> None:
             t_f = median_time(fwd, args.runs)
             t_fb = median_time(lambda a=(pts, k, phi, img, depth, v): run_op(warp, *a), args.runs)
             out, wt, _, _ = run_op(warp, pts, k, phi, img, depth, v)
-            copying = Runtime(rt.device)
-            copying.unified = False
+            copying = Runtime(rt.device, discrete=True)
             run_op(warp, pts, k, phi, img, depth, v, rt=copying)
-            nbytes = copying.bytes_transferred
+            nbytes, copy_ms = copying.bytes_transferred, 1000 * copying.transfers.seconds
             e = [math.nan] * 3
             if not (n == 500_000 and C == 64):  # the twin would need several GiB there
                 dbl = (pts.double(), k, phi, img.double(), depth.double())
@@ -307,7 +308,7 @@ def main() -> None:
                 e = [rel(out, rout, full), rel(out * wt[..., None], rout * rwt[..., None]), rel(g, rg)]
                 errs += e
             print(f"| {n // 1000}k | {C} | {st['n_ok']} | {t_f:.3f} | {t_fb:.3f} | {e[0]:.2e} | {e[1]:.2e} | "
-                  f"{e[2]:.2e} | {nbytes / 1e6:.1f} MB |", flush=True)  # fmt: skip
+                  f"{e[2]:.2e} | {nbytes / 1e6:.1f} MB, {copy_ms:.1f} ms |", flush=True)  # fmt: skip
             res[f"warp_fwd_s_{n // 1000}k_c{C}"] = round(t_f, 4)
             res[f"warp_fwd_bwd_s_{n // 1000}k_c{C}"] = round(t_fb, 4)
             res[f"warp_bytes_{n // 1000}k_c{C}"] = nbytes

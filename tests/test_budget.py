@@ -96,3 +96,24 @@ def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
     scene = load_scene(write_synthetic(tmp_path / "room", n_views=4, width=48, height=32, seed=0))
     spp = B.probe_seconds_per_step(scene, list(scene.train_idx))
     assert math.isfinite(spp) and 0 < spp < 10
+
+
+def test_ted_is_planned_again_from_refgs_measured_rate():
+    steps, minutes = B.steps_from_rate(30, 0.25)
+    plan = B.Plan(steps, minutes, 270.0, 0.25, "probe", {})
+    planned_refgs = 60 * minutes["refgs"]
+    on_plan = B.replan_ted(plan, steps["refgs"], planned_refgs, 30)
+    slow = B.replan_ted(plan, steps["refgs"], 1.2 * planned_refgs, 30)  # Ref-GS overran: TE-D gets less
+    fast = B.replan_ted(plan, steps["refgs"], 0.6 * planned_refgs, 30)  # ran early: TE-D gets the rest
+    for k in on_plan:
+        assert fast[k] > on_plan[k] > slow[k] > 0
+    # the seconds TE-D is given add up to its share plus what Ref-GS left
+    spp = 0.6 * planned_refgs / steps["refgs"]
+    given = sum(fast[k] * spp * B.TED_PER_REFGS_STEP[k] for k in fast)
+    want = 60 * (minutes["ted_finetune"] + minutes["ted_adversarial"]) + 0.4 * planned_refgs
+    assert given == pytest.approx(want, rel=0.01)
+    explicit = B.Plan(
+        {**steps, "ted_finetune": 5}, {**minutes, "ted_finetune": None}, 270.0, 0.25, "probe", {}
+    )
+    assert B.replan_ted(explicit, steps["refgs"], planned_refgs, 30)["ted_finetune"] == 5
+    assert B.replan_ted(plan, 0, 0.0, 30) == {k: steps[k] for k in on_plan}  # nothing measured: as planned

@@ -21,6 +21,7 @@ TINY = CoInConfig(
     iters_refgs=12, iters_ted_finetune=3, iters_ted_adversarial=3, prior_seconds=30,
     inpaint2d=Inpaint2DConfig(prior=ScenePriorConfig(patch=32, base=8, max_steps=6)),
     clg=CLGConfig(steps=3), ted=TEDConfig(n_patches=2), refgs=RefGSConfig(depth_prior_iters=10),
+    inpaint_region="input",
 )  # fmt: skip
 
 
@@ -187,3 +188,21 @@ def test_render_takes_a_run_folder(first_run, capsys):
     assert main(["render", str(out), "--views", "test"]) == 0
     written = sorted((out / "renders" / "test").glob("*.png"))
     assert len(written) == 2 * len(load_scene(out / "0_scene" / "scene").test_idx)  # image + depth each
+
+
+def test_auto_region_follows_the_visibility_estimate(room, tmp_path, caplog):
+    """ "auto" asks the cheap estimate and says what it found; a wide arc takes refined masks."""
+    from coin_cl.gs.carve import build_carve, observed_share
+    from coin_cl.pipeline.coin import AUTO_REFINE_SHARE
+
+    scene = load_scene(room)
+    train = list(scene.train_idx)
+    share, _ = observed_share(build_carve([scene.cameras[i] for i in train], [scene.masks[i] for i in train],
+                                          scene.points))  # fmt: skip
+    with caplog.at_level("INFO", logger="coin_cl.pipeline.coin"):
+        res = inpaint(
+            room, tmp_path / "auto", config=replace(TINY, inpaint_region="auto", skip=("clg", "ted"))
+        )
+    want = "refined" if share >= AUTO_REFINE_SHARE else "input"
+    assert f"inpaint region: {want} (other views see an estimated {100 * share:.0f}%" in caplog.text
+    assert ("0_refine" in res.stages) == (want == "refined")

@@ -179,6 +179,7 @@ def test_cli_edited_ref(edit, room, tmp_path, capsys):
     rc = main(["run", str(room), "--out", str(tmp_path / "cli"), "--edited-ref", str(tmp_path / "edited.png"),
                "--iters", "3", "--skip-stage", "clg", "--skip-stage", "ted"])  # fmt: skip
     assert rc == 0
-    assert "1_inpaint: ran" in capsys.readouterr().out
+    rows = {ln.split()[0]: ln.split() for ln in capsys.readouterr().out.splitlines() if ln.startswith("  1_")}
+    assert rows["1_inpaint"][-1] == "ran"
     rc = main(["run", str(room), "--out", str(tmp_path / "cli2"), "--edited-ref", str(tmp_path / "none.png")])
     assert rc == 2 and "none.png" in capsys.readouterr().err

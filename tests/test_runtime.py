@@ -156,3 +156,65 @@ def test_float_atomics_variant_is_used_where_the_device_has_them():
     }
     assert used == {False, True} if rt.float_atomics else used == {False}
     assert torch.isfinite(means.grad).all()
+
+
+# -- a GPU ranks first only with working float atomics and the local memory the kernels need ------
+
+
+class _FakeGPU:
+    """Device properties of a GPU (only what the ranking reads); no kernel runs on it."""
+
+    def __init__(self, local_mem_size: int, name: str = "Fake GPU"):
+        import types
+
+        import pyopencl as cl
+
+        self.name, self.version, self.extensions = name, "OpenCL 3.0 fake", ""
+        self.type = cl.device_type.GPU
+        self.local_mem_size = local_mem_size
+        self.platform = types.SimpleNamespace(name="Fake platform")
+
+
+def _rank_setup(monkeypatch, gpu, atomics_work: bool):
+    from coin_cl.engine import runtime
+
+    monkeypatch.setattr(runtime, "_GPU_CHECKS", {})
+    monkeypatch.setattr(runtime, "_PROBES", {runtime._probe_key(gpu): runtime.Probe(True, "ok", 0.0)})
+    monkeypatch.setattr(runtime, "probe_float_atomics", lambda d: False)
+    monkeypatch.setattr(runtime, "probe_cas_atomics", lambda d: atomics_work)
+    # A CPU implementation that builds kernels (not the default under Oclgrind, a simulator).
+    cpus = [d for _, d in runtime.all_devices() if 1 <= runtime.default_rank(d)[0] <= 3]
+    cpu = next((d for d in cpus if runtime.probe_device(d).ok), None)
+    if cpu is None:
+        pytest.skip("needs a CPU implementation that builds kernels")
+    monkeypatch.setattr(runtime, "all_devices", lambda: [(gpu.platform, gpu), (cpu.platform, cpu)])
+    return runtime, cpu
+
+
+def test_the_compare_and_swap_fallback_adds_exactly_on_this_device():
+    from coin_cl.engine import runtime
+
+    assert runtime.probe_cas_atomics(get_runtime().device)
+
+
+def test_a_capable_gpu_ranks_first(monkeypatch):
+    gpu = _FakeGPU(local_mem_size=48 * 1024)
+    runtime, _ = _rank_setup(monkeypatch, gpu, atomics_work=True)
+    assert runtime.default_rank(gpu) == (0, "a GPU")
+    assert runtime._choose_device(None) is gpu
+
+
+@pytest.mark.parametrize(
+    "local_mem, atomics, reason",
+    [(512, True, "local memory 512 B is below the 1100 B"), (48 * 1024, False, "neither a float atomic add")],
+)
+def test_a_gpu_without_what_the_kernels_need_ranks_behind_the_cpu(
+    monkeypatch, caplog, local_mem, atomics, reason
+):
+    gpu = _FakeGPU(local_mem_size=local_mem)
+    runtime, cpu = _rank_setup(monkeypatch, gpu, atomics_work=atomics)
+    with caplog.at_level("WARNING", logger="coin_cl.engine.runtime"):
+        rank, why = runtime.default_rank(gpu)
+        assert rank > runtime.default_rank(cpu)[0] and reason in why
+        assert runtime._choose_device(None) is cpu
+    assert f"Fake platform / Fake GPU ranks behind the CPU: {reason}" in caplog.text

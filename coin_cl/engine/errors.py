@@ -16,3 +16,8 @@ class PairOverflowError(RuntimeError):
             "cover the screen many times over; shrink huge scales, cull them, or raise max_pairs"
         )
         self.n_pairs, self.max_pairs = n_pairs, max_pairs
+
+
+class DeviceLimitError(RuntimeError):
+    """A device limit (work-group size, local memory, allocation size) is below what a kernel
+    needs, and no smaller variant fits: the message names the device, the limit and what to do."""

@@ -7,10 +7,15 @@ CPU runtime, then PoCL), each probed by building and running a tiny kernel; one 
 skipped with a log line carrying the compiler's message. Platforms installed by pip are made
 visible first by `coin_cl.icd.register_platforms`.
 
-Buffers: on a host-unified-memory device (PoCL on the CPU) a `cl.Buffer` is created over the
-torch tensor's own memory (USE_HOST_PTR), so nothing is copied and `queue.finish()` is the
-hand-over point. Elsewhere inputs are copied in and outputs copied back, and every byte that
-crosses is counted in `Runtime.bytes_transferred`.
+Buffers: on a host-unified-memory device (the CPU implementations) a `cl.Buffer` is created over
+the torch tensor's own memory (USE_HOST_PTR), so nothing is copied and `queue.finish()` is the
+hand-over point. Elsewhere (a discrete GPU; forced on any device by COIN_CL_DISCRETE=1, so CI runs
+this path) inputs are copied into device-only buffers and outputs copied back, and every copy's
+bytes and device time are counted in `Runtime.transfers` (`coin_cl.engine.transfers`).
+
+Limits: every launch is checked against the device's and the kernel's work-group size, every
+buffer against the device's largest allocation (`coin_cl.engine.limits`); a GPU that cannot run
+the kernels (no working float atomic add, too little local memory) ranks behind the CPU.
 """
 
 from __future__ import annotations
@@ -25,8 +30,10 @@ from pathlib import Path
 
 import torch
 
-from coin_cl.engine.errors import NoDeviceError
+from coin_cl.engine.errors import DeviceLimitError, NoDeviceError
 from coin_cl.engine.icd import register_platforms
+from coin_cl.engine.limits import DeviceLimits, describe, min_raster_gpu_local_bytes, query_limits
+from coin_cl.engine.transfers import TransferStats
 
 log = logging.getLogger(__name__)
 
@@ -153,19 +160,18 @@ def probe_device(device) -> Probe:
     return result
 
 
-def probe_float_atomics(device) -> bool:
-    """Whether `device` builds and runs a float atomic add (cl_ext_float_atomics, OpenCL C 3.0)."""
+def _adds_exactly(device, source: str, options: list[str], what: str) -> bool:
+    """Whether `device` builds `source` (a kernel `probe` adding 0.5 to one float from each of its
+    256 work-items, all at once) and the float ends at exactly 128; never raises."""
     import numpy as np
     import pyopencl as cl
 
-    if "cl_ext_float_atomics" not in device.extensions:
-        return False
     try:
         ctx = cl.Context([device])
         queue = cl.CommandQueue(ctx)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", cl.CompilerWarning)
-            prg = cl.Program(ctx, _PROBE_ATOMICS).build(options=list(FLOAT_ATOMICS_OPTIONS))
+            prg = cl.Program(ctx, source).build(options=options)
         out = np.zeros(1, np.float32)
         buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=out)
         prg.probe(queue, (256,), None, buf)
@@ -173,16 +179,60 @@ def probe_float_atomics(device) -> bool:
         queue.finish()
         return bool(out[0] == 128.0)
     except Exception as exc:
-        log.info("float atomics unusable on %s: %s", device_label(device), " ".join(str(exc).split())[:200])
+        log.info("%s unusable on %s: %s", what, device_label(device), " ".join(str(exc).split())[:200])
         return False
+
+
+def probe_float_atomics(device) -> bool:
+    """Whether `device` builds and runs a float atomic add (cl_ext_float_atomics, OpenCL C 3.0)."""
+    if "cl_ext_float_atomics" not in device.extensions:
+        return False
+    return _adds_exactly(device, _PROBE_ATOMICS, list(FLOAT_ATOMICS_OPTIONS), "float atomics")
+
+
+# The compare-and-swap float add every backward falls back to (kernels/common.h), run under
+# contention: 256 work-items add 0.5 to one float, which must give exactly 128.
+_PROBE_CAS = """
+#include "common.h"
+__kernel void probe(__global float *x) { atomic_add_float(x, 0.5f); }
+"""
+
+
+def probe_cas_atomics(device) -> bool:
+    """Whether `device` builds and runs the compare-and-swap float add of kernels/common.h exactly."""
+    return _adds_exactly(device, _PROBE_CAS, [f"-I{kernel_dir()}"], "CAS float add")
+
+
+_GPU_CHECKS: dict[tuple[str, str, str], str] = {}
+
+
+def gpu_shortfall(device) -> str:
+    """Why a GPU cannot run the kernels as well as the CPU ("" when it can): a float atomic add
+    that works (cl_ext_float_atomics, else the compare-and-swap loop) and the local memory the
+    narrowest GPU rasterizer needs. Checked once per process and device."""
+    key = _probe_key(device)
+    if key not in _GPU_CHECKS:
+        need = min_raster_gpu_local_bytes()
+        have = int(device.local_mem_size)
+        if have < need:
+            reason = f"local memory {have} B is below the {need} B the GPU rasterizer needs"
+        elif not (probe_float_atomics(device) or probe_cas_atomics(device)):
+            reason = "neither a float atomic add nor the compare-and-swap fallback builds and adds exactly"
+        else:
+            reason = ""
+        if reason:
+            log.warning("OpenCL GPU %s ranks behind the CPU: %s", device_label(device), reason)
+        _GPU_CHECKS[key] = reason
+    return _GPU_CHECKS[key]
 
 
 def default_rank(device) -> tuple[int, str]:
     """Order in which devices are tried when none is requested (lower first), and why.
 
-    A GPU first; then CPU implementations, Intel's runtime ahead of PoCL because it measured
-    faster on the same CPU (docs/BENCHMARKS.md, "CPU implementations side by side"); Oclgrind is a
-    simulator and is never a default.
+    A GPU first, if it has what the kernels need (`gpu_shortfall`; otherwise behind every CPU);
+    then CPU implementations, Intel's runtime ahead of PoCL because it measured faster on the same
+    CPU (docs/BENCHMARKS.md, "CPU implementations side by side"); Oclgrind is a simulator and is
+    never a default.
     """
     import pyopencl as cl
 
@@ -190,6 +240,10 @@ def default_rank(device) -> tuple[int, str]:
     if "oclgrind" in pname:
         return (9, "a simulator (use COIN_CL_DEVICE=oclgrind)")
     if device.type & cl.device_type.GPU:
+        if probe_device(device).ok:  # a GPU that cannot build at all is skipped by the probe
+            short = gpu_shortfall(device)
+            if short:
+                return (5, f"a GPU ranked behind the CPU: {short}")
         return (0, "a GPU")
     if device.type & cl.device_type.CPU:
         if "intel" in pname:
@@ -244,6 +298,12 @@ def _choose_device(request: str | None):
     )
 
 
+def host_unified(device) -> bool:
+    """Whether the device shares host memory (CL_DEVICE_HOST_UNIFIED_MEMORY): the CPU
+    implementations and integrated GPUs do, discrete GPUs do not."""
+    return bool(device.host_unified_memory)
+
+
 @dataclass
 class DeviceArray:
     """A torch tensor and the OpenCL buffer that holds (or aliases) its data."""
@@ -259,9 +319,13 @@ class Runtime:
     context: object = None
     queue: object = None
     unified: bool = False
-    bytes_transferred: int = 0
+    # Device-only buffers and counted copies even where memory is host-unified (None: from
+    # COIN_CL_DISCRETE / COIN_CL_NO_ZERO_COPY, else from the device's host_unified_memory).
+    discrete: bool | None = None
+    transfers: TransferStats = field(default_factory=TransferStats)
     programs: dict = field(default_factory=dict)
     kernels: dict = field(default_factory=dict)
+    variant_fits: dict = field(default_factory=dict)  # (file, kernel, defines) -> (width, defines)
     raster: str | None = None  # force the "cpu" or "gpu" rasterizer variant (see ops.raster_variant)
     # Bit-reproducible backward (fixed-order gradient sums) instead of atomics;
     # COIN_CL_DETERMINISTIC=0 switches it off.
@@ -274,20 +338,84 @@ class Runtime:
 
         self.context = cl.Context([self.device])
         self.profile = _env_flag("COIN_CL_PROFILE")
-        props = cl.command_queue_properties.PROFILING_ENABLE if self.profile else 0
+        if self.discrete is None:
+            forced = _env_flag("COIN_CL_DISCRETE") or _env_flag("COIN_CL_NO_ZERO_COPY")
+            self.discrete = forced or not host_unified(self.device)
+        elif not self.discrete and not host_unified(self.device):
+            # Aliasing host memory is coherent only where the device shares it; elsewhere
+            # USE_HOST_PTR needs map/unmap around every host access, which this runtime never does.
+            raise ValueError(f"{self.name} has no host-unified memory: it runs the discrete path only")
+        self.unified = not self.discrete
+        # Profiling times the copies of the discrete path (and the kernels with COIN_CL_PROFILE).
+        props = cl.command_queue_properties.PROFILING_ENABLE if self.profile or self.discrete else 0
         self.queue = cl.CommandQueue(self.context, properties=props)
+        self.limits: DeviceLimits = query_limits(self.device)
         self.kernel_times: dict[str, list[float]] = {}
-        self.unified = bool(self.device.host_unified_memory) and not _env_flag("COIN_CL_NO_ZERO_COPY")
         self.extensions = frozenset(self.device.extensions.split())
         self._lock = threading.Lock()
         self._float_atomics: bool | None = None
         self.n_finish = 0  # host waits, counted (the benchmark reports them per frame)
         self._in_flight: list = []  # arguments of launches not yet waited for
+        self._kernel_info: dict = {}
         log.debug("OpenCL device: %s (unified memory: %s)", self.name, self.unified)
 
     @property
     def name(self) -> str:
         return device_label(self.device)
+
+    @property
+    def bytes_transferred(self) -> int:
+        """Bytes copied between host and device so far (0 on the unified path)."""
+        return self.transfers.bytes
+
+    def kernel_limits(
+        self, filename: str, name: str, defines: dict[str, object] | None = None
+    ) -> tuple[int, int]:
+        """(CL_KERNEL_WORK_GROUP_SIZE, CL_KERNEL_LOCAL_MEM_SIZE) of a kernel variant on this device:
+        the widest work-group it can be launched with and the local memory it uses (bytes)."""
+        import pyopencl as cl
+
+        k = self.kernel(filename, name, defines)
+        info = cl.kernel_work_group_info
+        return (int(k.get_work_group_info(info.WORK_GROUP_SIZE, self.device)),
+                int(k.get_work_group_info(info.LOCAL_MEM_SIZE, self.device)))  # fmt: skip
+
+    def _fit_local(self, filename: str, name: str, defines, local_size):
+        """The work-group size to launch with: `local_size` where it fits the device and the
+        kernel; narrower (halved) for kernels that use no local memory and fix no work-group size
+        (their global sizes are multiples of 64, so every halving still divides them);
+        `DeviceLimitError` where a kernel needs exactly `local_size` and it does not fit."""
+        import pyopencl as cl
+
+        if local_size is None:
+            return None
+        key = (filename, name, tuple(sorted((defines or {}).items())), tuple(local_size))
+        fit = self._kernel_info.get(key)
+        if fit is None:
+            want = 1
+            for s in local_size:
+                want *= int(s)
+            wg, local_bytes = self.kernel_limits(filename, name, defines)
+            limit = min(wg, self.limits.max_work_group_size)
+            k = self.kernel(filename, name, defines)
+            fixed = tuple(
+                k.get_work_group_info(cl.kernel_work_group_info.COMPILE_WORK_GROUP_SIZE, self.device)
+            )
+            if want <= limit:
+                fit = tuple(local_size)
+            elif any(fixed) or local_bytes or len(local_size) != 1:
+                raise DeviceLimitError(
+                    describe(self.name, f"the work-group size {name} ({filename}) can be launched with",
+                             limit, want, "this kernel has no narrower variant; choose another device with "
+                             "COIN_CL_DEVICE (`coin-cl doctor` lists them)")
+                )  # fmt: skip
+            else:
+                fit = (1 << (limit.bit_length() - 1),)  # the largest power of two that fits
+                log.info(
+                    "%s on %s: work-group %d narrowed to %d (device limit)", name, self.name, want, fit[0]
+                )
+            self._kernel_info[key] = fit
+        return fit
 
     @property
     def float_atomics(self) -> bool:
@@ -348,6 +476,7 @@ class Runtime:
         With COIN_CL_PROFILE=1 each launch waits for its event and records its device time in
         `kernel_times[name]` (seconds), which is how the benchmark splits a frame by kernel.
         """
+        local_size = self._fit_local(filename, name, defines, local_size)
         ev = self.kernel(filename, name, defines)(self.queue, global_size, local_size, *args)
         if self.profile:
             ev.wait()
@@ -366,7 +495,7 @@ class Runtime:
         """Launch kernel `name` with a declarative argument list, then wait for its outputs.
 
         Each entry of `args` is a numpy scalar (passed by value), a tensor (read by the kernel:
-        mode "in"), a (tensor, mode) pair with mode "out", "inout" or "scratch" (see `array`), or
+        mode "in"), a (tensor, mode) pair with mode "out", "inout", "acc" or "scratch" (see `array`), or
         a `DeviceArray` from `array` when one buffer must outlive a launch (a scratch buffer one
         kernel writes and the next reads).
         With `wait` (the default) the queue is finished and outputs copied back when the host is
@@ -385,7 +514,7 @@ class Runtime:
             if isinstance(a, tuple):
                 arr = self.array(a[0], mode=a[1])
                 bufs.append(arr.buf)
-                if a[1] in ("out", "inout"):
+                if arr.copy_back:
                     outs.append(arr)
             else:
                 bufs.append(a)
@@ -402,13 +531,18 @@ class Runtime:
         """Wrap a contiguous CPU tensor as a device buffer (aliased when memory is unified).
 
         mode says what crosses when memory is not unified: "in" (the kernel reads it), "out" (the
-        kernel writes every element; copied back by `finish`), "inout" (read-modify-write, e.g.
-        accumulators; both ways) or "scratch" (device-only working memory; neither way).
+        kernel writes every element; copied back by `finish`), "inout" (read-modify-write; both
+        ways), "acc" (an accumulator the kernel adds into: the tensor holds zeros, the device
+        buffer is zero-filled there rather than copied in; copied back) or "scratch" (device-only
+        working memory; neither way).
         """
+        import numpy as np
         import pyopencl as cl
 
-        if mode not in ("in", "out", "inout", "scratch"):
+        if mode not in ("in", "out", "inout", "acc", "scratch"):
             raise ValueError(f"unknown buffer mode {mode!r}")
+        if mode == "acc" and self.poison and bool(tensor.any()):  # tests check the promise
+            raise ValueError("runtime.array(mode='acc') needs a tensor of zeros")
         if not tensor.is_contiguous() or tensor.device.type != "cpu":
             raise ValueError("runtime.array needs a contiguous CPU tensor")
         mf = cl.mem_flags
@@ -416,14 +550,30 @@ class Runtime:
         if nbytes == 0:
             # OpenCL has no zero-sized buffers; a kernel never reads this one.
             return DeviceArray(tensor, cl.Buffer(self.context, mf.READ_WRITE, 16))
+        if nbytes > self.limits.max_mem_alloc_size:
+            raise DeviceLimitError(
+                describe(self.name, "CL_DEVICE_MAX_MEM_ALLOC_SIZE (bytes)", self.limits.max_mem_alloc_size,
+                         nbytes, f"a buffer of shape {tuple(tensor.shape)} does not fit: render fewer "
+                         "splats or smaller images, or choose another device with COIN_CL_DEVICE")
+            )  # fmt: skip
         host = tensor.detach().numpy()
         if self.unified:
             return DeviceArray(tensor, cl.Buffer(self.context, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=host))
         buf = cl.Buffer(self.context, mf.READ_WRITE, nbytes)
-        if mode in ("in", "inout"):
-            cl.enqueue_copy(self.queue, buf, host)
-            self.bytes_transferred += nbytes
-        return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout"))
+        # Poisoned outputs cross too, so an element a kernel leaves unwritten shows on this path.
+        if mode in ("in", "inout") or (mode == "out" and self.poison):
+            ev = cl.enqueue_copy(self.queue, buf, host, is_blocking=False)
+            self.transfers.add(nbytes, ev, inbound=True)
+            self._in_flight.append(host)  # the copy reads it until the next finish
+        elif mode == "acc":
+            cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint8), 0, nbytes)
+        return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout", "acc"))
+
+    def reuse(self, tensor: torch.Tensor, buf) -> DeviceArray:
+        """The buffer an earlier launch filled for `tensor`, read again by a later one (the
+        backward reading what its forward uploaded or computed): nothing crosses. Only for a
+        tensor nobody has written since that launch."""
+        return DeviceArray(tensor, buf)
 
     def empty(self, *shape: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """An output tensor; filled with NaN (floats) or INT32_MIN (ints) when poisoning."""
@@ -440,9 +590,12 @@ class Runtime:
         in_flight, self._in_flight = self._in_flight, []
         for a in arrays:
             if a.copy_back and a.tensor.numel():
-                cl.enqueue_copy(self.queue, a.tensor.detach().numpy(), a.buf)
-                self.bytes_transferred += a.tensor.numel() * a.tensor.element_size()
+                host = a.tensor.detach().numpy()
+                ev = cl.enqueue_copy(self.queue, host, a.buf, is_blocking=False)
+                self.transfers.add(host.nbytes, ev, inbound=False)
+                in_flight.append(host)
         self.queue.finish()
+        self.transfers.settle()
         del in_flight  # released only once the queue has drained
 
 

@@ -44,6 +44,10 @@ BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversa
 # adversarial phase renders patches for the discriminator). Measured in the default run of
 # docs/RESULTS.md ("The default command").
 STEP_COST = {"refgs": 1.6, "ted_finetune": 1.3, "ted_adversarial": 1.6}
+# A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
+# Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md, issue 12). TE-D's
+# counts are planned again from Ref-GS's measured rate once it has run (`replan_ted`).
+TED_PER_REFGS_STEP = {"ted_finetune": 69 / 84, "ted_adversarial": 69 / 68}
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
 PROBE_WARMUP = 3
 CAP_FACTOR = 1.25
@@ -200,3 +204,28 @@ def plan_run(
     log.info("plan (%s%s): %s; written to %s", source,
              "" if spp is None else f", probe {spp:.3f} s/step", plan.describe(), path)  # fmt: skip
     return plan
+
+
+def replan_ted(
+    plan: Plan, refgs_steps: int, refgs_train_seconds: float, budget_minutes: float
+) -> dict[str, int]:
+    """TE-D's step counts once Ref-GS has run, from its measured seconds per step: TE-D gets its
+    share of the budget plus what Ref-GS left unspent of its own (minus its overrun), split by the
+    shares, each phase at its measured cost relative to a Ref-GS step (`TED_PER_REFGS_STEP`).
+    Explicit counts in `plan` are kept. Deterministic in its inputs, so the pipeline records the
+    result in plan.json and a rerun reads it back."""
+    out = {k: plan.steps[k] for k in ("ted_finetune", "ted_adversarial")}
+    free = [k for k in out if plan.minutes.get(k) is not None]
+    if not free or refgs_steps < 1 or not (refgs_train_seconds > 0):
+        return out
+    spp = refgs_train_seconds / refgs_steps
+    planned_refgs = (
+        60.0 * BUDGET_SHARES["refgs"] * budget_minutes if plan.minutes.get("refgs") is not None else 0.0
+    )
+    spare = planned_refgs - refgs_train_seconds if planned_refgs else 0.0
+    pool = sum(60.0 * BUDGET_SHARES[k] * budget_minutes for k in free) + spare
+    total_share = sum(BUDGET_SHARES[k] for k in free)
+    for k in free:
+        seconds = max(0.0, pool * BUDGET_SHARES[k] / total_share)
+        out[k] = int(seconds / (spp * TED_PER_REFGS_STEP[k]))
+    return out

@@ -34,6 +34,7 @@ import numpy as np
 
 from coin_cl.gs.carve import CarveConfig
 from coin_cl.pipeline.budget import (
+    CAP_FACTOR,
     MAX_WORK_PIXELS,
     PRIOR_MIN_SECONDS,
     Plan,
@@ -327,6 +328,31 @@ def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
     return region
 
 
+def _ted_iters(out: Path, shared: dict) -> list[int]:
+    """TE-D's [fine-tune, adversarial] steps, planned again from Ref-GS's measured rate
+    (`budget.replan_ted`; the measurement is in 2_refgs's manifest, so a rerun gets the same counts);
+    also sets the phases' time caps. Explicit counts are kept."""
+    from coin_cl.pipeline.budget import TED_PER_REFGS_STEP, replan_ted
+
+    plan: Plan = shared["plan"]
+    cfg: CoInConfig = shared["cfg"]
+    man = json.loads((out / "2_refgs" / "manifest.json").read_text())
+    res = man.get("result", {})
+    steps = replan_ted(plan, int(res.get("steps", 0)), 60.0 * float(res.get("train_minutes", 0.0)),
+                       cfg.budget_minutes)  # fmt: skip
+    caps = {}
+    if res.get("steps"):
+        spp = 60.0 * float(res["train_minutes"]) / int(res["steps"])
+        for k in steps:
+            if plan.minutes.get(k) is not None:
+                caps[k] = CAP_FACTOR * steps[k] * spp * TED_PER_REFGS_STEP[k]
+                log.info("TE-D %s: %d steps (planned from Ref-GS's %.3f s/step; was %d from the probe)",
+                         k, steps[k], spp, plan.steps[k])  # fmt: skip
+    shared["iters"].update(steps)
+    shared["ted_caps"] = caps
+    return [steps["ted_finetune"], steps["ted_adversarial"]]
+
+
 def _run(
     scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
 ) -> CoInResult:
@@ -391,8 +417,7 @@ def _run(
               skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
         Stage("4_ted", _stage_ted,
               ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
-              {"cfg": _jsonable(cfg.ted), "iters": [iters["ted_finetune"], iters["ted_adversarial"]],
-               "seed": cfg.seed},
+              lambda: {"cfg": _jsonable(cfg.ted), "iters": _ted_iters(out, shared), "seed": cfg.seed},
               skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
     final = "2_refgs" if "ted" in cfg.skip else "4_ted"
@@ -625,14 +650,15 @@ def _stage_ted(ctx: StageContext) -> dict:
     model = _load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
     model.device = cfg.device
     it = ctx.shared["iters"]
-    plan: Plan = ctx.shared["plan"]
     ctx.note("TE-D: " + ", ".join(
-        f"{k} {it[k]} steps" + ("" if plan.minutes.get(k) is None else f" (~{plan.minutes[k]:.1f} min)")
+        f"{k} {it[k]} steps" + ("" if k not in ctx.shared.get("ted_caps", {})
+                                else f" (~{ctx.shared['ted_caps'][k] / 60 / CAP_FACTOR:.1f} min)")
         for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
     tcfg = replace(
         cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
     )
-    caps = {"finetune": plan.cap_seconds("ted_finetune"), "adversarial": plan.cap_seconds("ted_adversarial")}
+    tc = ctx.shared.get("ted_caps", {})
+    caps = {"finetune": tc.get("ted_finetune", 0.0), "adversarial": tc.get("ted_adversarial", 0.0)}
     res, _ = run_ted(
         model,
         views,

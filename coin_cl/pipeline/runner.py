@@ -64,13 +64,15 @@ class StageContext:
 @dataclass
 class Stage:
     """name: folder name (e.g. "2_refgs"); fn(ctx) -> dict does the work; reads: names of the
-    stages whose folders it reads; settings: JSON-able values its output depends on; skip: a
-    reason to leave it out (logged), or None."""
+    stages whose folders it reads; settings: JSON-able values its output depends on, or a function
+    returning them, called when the stage is reached (for values that depend on what the stages
+    before it measured, such as TE-D's step count after Ref-GS's timing); skip: a reason to leave
+    it out (logged), or None."""
 
     name: str
     fn: Callable[[StageContext], dict]
     reads: Sequence[str] = ()
-    settings: dict[str, Any] = field(default_factory=dict)
+    settings: dict[str, Any] | Callable[[], dict[str, Any]] = field(default_factory=dict)
     skip: str | None = None
 
 
@@ -175,6 +177,8 @@ def _run_stages(
         missing = [r for r in st.reads if r not in manifests]
         if missing:
             raise RuntimeError(f"stage {st.name} reads {missing}, which did not run before it")
+        if callable(st.settings):
+            st = Stage(st.name, st.fn, st.reads, st.settings(), st.skip)
         key = hashlib.sha256(
             _json(
                 {"settings": st.settings, "inputs": {r: manifests[r]["outputs"] for r in st.reads}}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -12,7 +12,7 @@ from torch import Tensor
 from coin_cl.engine import constants as cst
 from coin_cl.engine.errors import PairOverflowError
 from coin_cl.engine.ops._util import groups, i32
-from coin_cl.engine.runtime import Runtime, as_f32, resolve_device
+from coin_cl.engine.runtime import DeviceArray, Runtime, as_f32, resolve_device
 
 
 @dataclass
@@ -35,10 +35,27 @@ class TileBins:
     extents: Tensor  # [N, 2] float32
     n_pairs: int = 0
     n_visible: int = 0
+    # Device buffers of the fields above, by runtime: every pass over the view reads them without
+    # another copy on the discrete-memory path. The fields are never written after `bin_tiles`.
+    buffers: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_tiles(self) -> int:
         return self.tiles_x * self.tiles_y
+
+    def arrays(self, rt: Runtime, *names: str) -> list[DeviceArray]:
+        """Device arrays of the named fields on `rt`, uploaded at the first use only."""
+        out = []
+        for name in names:
+            hit = self.buffers.get((id(rt), name))
+            if hit is None or hit[0] is not rt:  # (an id may be reused once a runtime is gone)
+                hit = self.buffers[(id(rt), name)] = (rt, rt.array(getattr(self, name)).buf)
+            out.append(rt.reuse(getattr(self, name), hit[1]))
+        return out
+
+    def keep(self, rt: Runtime, name: str, arr: DeviceArray) -> None:
+        """Remember the buffer a kernel wrote field `name` into (after its launch finished)."""
+        self.buffers[(id(rt), name)] = (rt, arr.buf)
 
     def tile(self, t: int) -> Tensor:
         """[k] int64: the ids of tile t, front to back."""
@@ -107,11 +124,12 @@ def bin_tiles(
         return bins
     n_tiles = bins.n_tiles
     rects = rt.empty(n, 4, dtype=torch.int32)
+    a_ext = rt.array(bins.extents, "out")
     rt.run(
         "bin.cl", "bin_rects", (groups(n),), (64,),
-        [i32(n), m2, con, op, radii, i32(bins.tiles_x), i32(bins.tiles_y),
-         (rects, "out"), (bins.extents, "out")],
+        [i32(n), m2, con, op, radii, i32(bins.tiles_x), i32(bins.tiles_y), (rects, "out"), a_ext],
     )  # fmt: skip
+    bins.keep(rt, "extents", a_ext)
     area = (rects[:, 2] - rects[:, 0]).to(torch.int64) * (rects[:, 3] - rects[:, 1])
     n_pairs = int(area.sum())
     if n_pairs > max_pairs:
@@ -131,9 +149,10 @@ def bin_tiles(
     chunk = (n_vis + n_chunks - 1) // n_chunks
     n_chunks = (n_vis + chunk - 1) // chunk
     hist = torch.zeros(n_chunks, n_tiles, dtype=torch.int32)
+    a_rects = rt.array(rects)  # read by both passes below: crosses once
     rt.run(
         "bin.cl", "bin_count", (n_chunks,), None,
-        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), rects, (hist, "inout")],
+        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), a_rects, (hist, "acc")],
     )  # fmt: skip
     counts = hist.t().reshape(-1)  # tile-major
     offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).contiguous()
@@ -144,9 +163,12 @@ def bin_tiles(
     bins.pair_slot = rt.empty(n_pairs, dtype=torch.int32)
     # `offsets` goes in as the scan and is advanced in place as the kernel's write cursor; nobody
     # reads it afterwards, so it is not copied back.
+    a_ids, a_slot = rt.array(bins.ids, "out"), rt.array(bins.pair_slot, "out")
     rt.run(
         "bin.cl", "bin_scatter", (n_chunks,), None,
-        [i32(n_vis), i32(chunk), i32(n_chunks), i32(bins.tiles_x), rects, order, offsets,
-         bins.pair_start, (bins.ids, "out"), (bins.pair_slot, "out")],
+        [i32(n_vis), i32(chunk), i32(n_chunks), i32(bins.tiles_x), a_rects, order, offsets,
+         *bins.arrays(rt, "pair_start"), a_ids, a_slot],
     )  # fmt: skip
+    bins.keep(rt, "ids", a_ids)
+    bins.keep(rt, "pair_slot", a_slot)
     return bins

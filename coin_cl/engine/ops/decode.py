@@ -44,7 +44,7 @@ class _Decode(torch.autograd.Function):
             rt.run(
                 "decode.cl", "decode_bwd", (groups(n_vis),), (64,),
                 [i32(n_vis), i32(k), vi, midx, offsets, scaling, cov, *grads,
-                 *[(t, "out") for t in outs], (v_offsets, "inout"), (v_scaling, "inout")],
+                 *[(t, "out") for t in outs], (v_offsets, "acc"), (v_scaling, "acc")],
             )  # fmt: skip
         v_o, v_c, v_col_in = (o.to(dtype) for o in outs)
         return None, v_offsets.to(dtype), v_scaling.to(dtype), v_o, v_c, v_col_in, None, None, None

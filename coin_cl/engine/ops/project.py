@@ -25,13 +25,16 @@ class _Project(torch.autograd.Function):
         ins = [as_f32(means), as_f32(quats), as_f32(scales), cam]
         means2d, conics, depths = rt.empty(n, 2), rt.empty(n, 3), rt.empty(n)
         radii = rt.empty(n, dtype=torch.int32)
+        # Kept for the backward, which reads them again without another copy (discrete memory).
+        kept = [rt.array(t) for t in ins] + [rt.array(t, "out") for t in (radii, conics)]
         if n:
             rt.run(
                 "project.cl", "project_fwd", (groups(n),), (64,),
-                [i32(n), *ins, i32(width), i32(height), f32(near), f32(far),
-                 *[(t, "out") for t in (means2d, conics, depths, radii)]],
+                [i32(n), *kept[:4], i32(width), i32(height), f32(near), f32(far),
+                 (means2d, "out"), kept[5], (depths, "out"), kept[4]],
             )  # fmt: skip
         ctx.save_for_backward(*ins, radii, conics)
+        ctx.bufs = [a.buf for a in kept]  # buffers only: a tensor here could make a reference cycle
         ctx.meta = (width, height, near, far, rt, means.dtype)
         ctx.mark_non_differentiable(radii)
         return means2d.to(means.dtype), conics.to(means.dtype), depths.to(means.dtype), radii
@@ -47,10 +50,11 @@ class _Project(torch.autograd.Function):
                 as_f32(torch.zeros(shape) if g is None else g)
                 for g, shape in ((v_means2d, (n, 2)), (v_conics, (n, 3)), (v_depths, (n,)))
             ]
+            a = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
             rt.run(
                 "project.cl", "project_bwd", (groups(n),), (64,),
-                [i32(n), means, quats, scales, cam, i32(width), i32(height), f32(near), f32(far),
-                 radii, conics, *grads, *[(t, "out") for t in outs]],
+                [i32(n), *a[:4], i32(width), i32(height), f32(near), f32(far),
+                 *a[4:], *grads, *[(t, "out") for t in outs]],
             )  # fmt: skip
         v_means, v_quats, v_scales = (o.to(dtype) for o in outs)
         return v_means, v_quats, v_scales, None, None, None, None, None, None, None

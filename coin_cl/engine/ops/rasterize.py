@@ -10,6 +10,8 @@ import torch
 from torch import Tensor
 
 from coin_cl.engine import constants as cst
+from coin_cl.engine.errors import DeviceLimitError
+from coin_cl.engine.limits import RASTER_GPU_GROUPS, TILE_PIXELS, describe, raster_gpu_local_bytes
 from coin_cl.engine.ops._util import i32
 from coin_cl.engine.ops.bin import TileBins, bin_tiles
 from coin_cl.engine.ops.reduce import reduce_pair_grads
@@ -41,6 +43,39 @@ def raster_variant(rt: Runtime) -> tuple[str, int]:
     return (f"rasterize_{choice}.cl", 1 if choice == "cpu" else cst.TILE_SIZE * cst.TILE_SIZE)
 
 
+def fit_variant(rt: Runtime, src: str, kernel: str, variant: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+    """(work-group width, build defines) of `kernel` in `src` that this device can run.
+
+    The CPU rasterizer runs one work-item per tile. The GPU rasterizer is 256 wide unless the
+    device's work-group limit, the built kernel's own limit (CL_KERNEL_WORK_GROUP_SIZE) or the
+    local memory its arrays need at that width is below it; then the widest of RASTER_GPU_GROUPS
+    that fits is built with -DGROUP (the tile is walked in bands; same results within float32
+    rounding). None fitting is a `DeviceLimitError` naming the device and the limit.
+    """
+    if src != "rasterize_gpu.cl":
+        return 1, variant
+    key = (src, kernel, tuple(sorted(variant.items())))
+    hit = rt.variant_fits.get(key)
+    if hit is not None:
+        return hit
+    lim = rt.limits
+    for g in RASTER_GPU_GROUPS:
+        if g > lim.max_work_group_size or raster_gpu_local_bytes(kernel, g) > lim.local_mem_size:
+            continue
+        d = variant if g == TILE_PIXELS else {**variant, "GROUP": g}
+        wg, local_bytes = rt.kernel_limits(src, kernel, d)
+        if g <= wg and local_bytes <= lim.local_mem_size:
+            rt.variant_fits[key] = (g, d)
+            return g, d
+    need = raster_gpu_local_bytes(kernel, RASTER_GPU_GROUPS[-1])
+    raise DeviceLimitError(
+        describe(rt.name, f"the work-group size / local memory (B) for {kernel}",
+                 f"{lim.max_work_group_size} / {lim.local_mem_size}", f"{RASTER_GPU_GROUPS[-1]} / {need}",
+                 "use the CPU rasterizer on this device (COIN_CL_RASTER=cpu) or another device "
+                 "(COIN_CL_DEVICE)")
+    )  # fmt: skip
+
+
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(
@@ -54,12 +89,17 @@ class _Rasterize(torch.autograd.Function):
         plane = stride * rows
         img, t_final = rt.empty(C, rows, stride), rt.empty(rows, stride)
         last = rt.empty(rows, stride, dtype=torch.int32)
-        src, local = raster_variant(rt)
+        src, _ = raster_variant(rt)
+        local, variant = fit_variant(rt, src, "rasterize_fwd", kernel_variant(C, defines))
+        # Kept for the backward, which reads them again without another copy (discrete memory).
+        kept = [rt.array(t, mode) for t, mode in ((m2, "in"), (con, "in"), (op, "in"), (ft, "in"),
+                                                  (bg, "in"), (t_final, "out"), (last, "out"))]  # fmt: skip
+        a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
         rt.run(
             src, "rasterize_fwd", (bins.n_tiles * local,), (local,),
-            [i32(bins.tiles_x), i32(stride), i32(plane), bins.tile_start, bins.tile_end, bins.ids,
-             m2, con, op, bins.extents, ft, bg, (img, "out"), (t_final, "out"), (last, "out")],
-            defines=kernel_variant(C, defines),
+            [i32(bins.tiles_x), i32(stride), i32(plane), *bins.arrays(rt, "tile_start", "tile_end", "ids"),
+             a_m2, a_con, a_op, *bins.arrays(rt, "extents"), a_ft, a_bg, (img, "out"), a_t, a_last],
+            defines=variant,
         )  # fmt: skip
         if stats is not None:
             # last: per pixel, how many splats of its tile list were composited (1-based index
@@ -67,6 +107,7 @@ class _Rasterize(torch.autograd.Function):
             stats.update(n_pairs=bins.n_pairs, n_visible=bins.n_visible, last=last[:height, :width])
         ctx.save_for_backward(m2, con, op, ft, bg, t_final, last)
         ctx.meta = (width, height, rt, defines, bins, features.dtype, background is not None)
+        ctx.bufs = [a.buf for a in kept]  # buffers only: a tensor here could make a reference cycle
         out_img = img[:, :height, :width].permute(1, 2, 0).to(features.dtype)
         out_alpha = (1.0 - t_final[:height, :width]).to(features.dtype)
         return out_img, out_alpha
@@ -91,24 +132,29 @@ class _Rasterize(torch.autograd.Function):
             variant["DETERMINISTIC"] = 1
         elif rt.float_atomics:  # cl_ext_float_atomics instead of the compare-and-swap loop
             variant["USE_FLOAT_ATOMICS"] = 1
-        src, local = raster_variant(rt)
+        src, _ = raster_variant(rt)
+        local, variant = fit_variant(rt, src, "rasterize_bwd", variant)
         # Deterministic: each tile writes its share of each splat's gradient to the splat's pair
         # slot, then reduce.cl sums the slots in a fixed order. Otherwise atomics add into zeros.
         outs = [rt.empty(n, 2), rt.empty(n, 3), rt.empty(n), rt.empty(n, C)] if det else [
             torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]  # fmt: skip
         contrib = rt.array(rt.empty(bins.ids.numel() if det else 1, 6 + C), mode="scratch")
         if bins.ids.numel():
+            kept = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
+            a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
+            a_bins = bins.arrays(rt, "tile_start", "tile_end", "ids")
             rt.run(
                 src, "rasterize_bwd", (bins.n_tiles * local,), (local,),
-                [i32(bins.tiles_x), i32(stride), i32(plane), bins.tile_start, bins.tile_end, bins.ids,
-                 m2, con, op, bins.extents, ft, bg, t_final, last, g_img, g_alpha,
+                [i32(bins.tiles_x), i32(stride), i32(plane), *a_bins,
+                 a_m2, a_con, a_op, *bins.arrays(rt, "extents"), a_ft, a_bg, a_t, a_last, g_img, g_alpha,
                  (torch.empty(C, rows, stride), "scratch"), contrib,
-                 *[(t, "out" if det else "inout") for t in outs]],
+                 # deterministic: the kernel writes `contrib`, not these (reduce.cl does)
+                 *[(t, "scratch" if det else "acc") for t in outs]],
                 defines=variant,
                 wait=not det,  # the reduction reads `contrib` next on the same in-order queue
             )  # fmt: skip
         if det:
-            reduce_pair_grads(rt, bins.pair_start, bins.pair_slot, contrib, outs, C)
+            reduce_pair_grads(rt, bins, contrib, outs, C)
         v_bg = None
         if has_bg:
             v_bg = (g_img * t_final).sum(dim=(1, 2)).to(dtype)

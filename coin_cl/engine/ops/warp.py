@@ -63,7 +63,7 @@ class _Bins:
         chunk = (m + n_chunks - 1) // n_chunks
         n_chunks = (m + chunk - 1) // chunk
         hist = torch.zeros(n_chunks, n_tiles, dtype=torch.int32)
-        a_hist = rt.array(hist, mode="inout")
+        a_hist = rt.array(hist, mode="acc")
         rt.launch("warp.cl", "warp_bin_count", (n_chunks,), None, i32(m), i32(chunk), i32(n_tiles),
                   i32(tiles_x), a_rects.buf, a_hist.buf, defines=_BIN_DEFINES)  # fmt: skip
         rt.finish(a_hist)

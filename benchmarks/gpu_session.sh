@@ -1,0 +1,134 @@
+#!/usr/bin/env bash
+# The GPU part of issue 24 in steps (docs/GPU.md says when to run each):
+#   bash benchmarks/gpu_session.sh prepare   # HERE, on the development machine: wheels and data
+#   bash benchmarks/gpu_session.sh check     # on the GPU machine: driver, ICD, OpenCL devices, limits
+#   bash benchmarks/gpu_session.sh suite     # ... the kernel test suite through NVIDIA's OpenCL
+#   bash benchmarks/gpu_session.sh raster    # ... benchmarks/raster.py (10k, 100k, 500k + knob tables)
+#   bash benchmarks/gpu_session.sh gsplat    # ... gsplat (CUDA) on the same scenes (JIT build first)
+#   bash benchmarks/gpu_session.sh warp      # ... benchmarks/warp.py --quick
+#   bash benchmarks/gpu_session.sh train     # ... training throughput, SPIn-NeRF at 504x284
+# Several steps may follow each other in one call: `... check suite`. Every step's log goes to
+# $OUT/<step>.log (the device tool brings $OUT back). The GPU machine has no network: everything it
+# lacks (pyopencl and its needs, plyfile, gsplat) travels as wheels in .whl/, the data in .gpudata/.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-/tmp/coin-cl-gpu-out}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+
+# The wheels the GPU machine lacks (its package list: /work/.library/device/KINDS.md), pinned to the
+# versions this project's CPU environment runs (pyopencl's needs included).
+WHEELS="pyopencl==2026.1.4 pytools==2026.1.1 platformdirs==4.14.7 siphash24==1.9 plyfile==1.1.5 gsplat==1.5.3"
+PLATFORMS="--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64
+  --platform manylinux2014_x86_64 --platform manylinux1_x86_64"
+
+# NVIDIA's OpenCL library wherever the driver mount put it (the usual library folders only: fast).
+nvidia_ocl_libs() {
+  find -H /usr/lib /usr/lib64 /lib /lib64 /usr/local /opt -name 'libnvidia-opencl.so*' 2>/dev/null | sort -u
+}
+
+prepare() {
+  local data=${COIN_DATA:-../shared/data}/spinnerf_scene1
+  [ -d "$data" ] || { echo "prepare: $data not found; set COIN_DATA"; return 1; }
+  local exclude
+  exclude="$(git rev-parse --git-common-dir)/info/exclude"
+  mkdir -p "$(dirname "$exclude")"
+  for d in /.whl/ /.gpudata/; do grep -qx "$d" "$exclude" 2>/dev/null || echo "$d" >>"$exclude"; done
+  # shellcheck disable=SC2086
+  python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    $PLATFORMS -d .whl $WHEELS || return 1
+  # raster.py and warp.py read the SfM cloud and the poses; train.py a half-size scene without the
+  # inpainting priors (14 MB instead of 105: the device tool carries 64 MiB at most).
+  mkdir -p .gpudata/spinnerf_scene1/sparse
+  cp -r "$data/sparse/0" .gpudata/spinnerf_scene1/sparse/
+  cp "$data/poses_bounds.npy" .gpudata/spinnerf_scene1/
+  rm -rf .gpudata/scene_half
+  python3 -c "
+from coin_cl.scene import save_scene
+from coin_cl.scene.loader import load_scene
+save_scene(load_scene('$data', resolution=0.5, priors=False), '.gpudata/scene_half')" || return 1
+  du -sh .whl .gpudata
+  echo "prepared: name .whl and .gpudata in the device tool's carry"
+}
+
+setup() {
+  [ -n "${COIN_GPU_SETUP:-}" ] && return 0
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+    .whl/*.whl || { echo "setup: wheel install failed (was .whl carried?)"; return 1; }
+  export PYTHONPATH=/tmp/site:$PWD COIN_DATA=$PWD/.gpudata COIN_GPU_SETUP=1
+  # NVIDIA's OpenCL library must be named by an .icd file the loader reads; the driver mount may
+  # hold the library without the file, so one is written in a folder of ours when none names it.
+  if ! grep -qs nvidia /etc/OpenCL/vendors/*.icd; then
+    local lib
+    lib=$(nvidia_ocl_libs | head -n 1)
+    if [ -z "$lib" ]; then
+      echo "setup: NO NVIDIA OpenCL library (libnvidia-opencl.so*) on this machine;" \
+        "/etc/OpenCL/vendors holds: $(ls /etc/OpenCL/vendors 2>&1)"
+      return 3
+    fi
+    mkdir -p /tmp/coin-cl-icd
+    echo "$lib" >/tmp/coin-cl-icd/nvidia.icd
+    export OCL_ICD_VENDORS=/tmp/coin-cl-icd
+    echo "setup: no system ICD file names NVIDIA's library; using $lib via OCL_ICD_VENDORS"
+  fi
+  export COIN_CL_DEVICE=${COIN_CL_DEVICE:-nvidia}
+}
+
+check() {
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
+  echo "== /etc/OpenCL/vendors"; ls -l /etc/OpenCL/vendors 2>&1; cat /etc/OpenCL/vendors/*.icd 2>&1
+  echo "== NVIDIA OpenCL libraries"
+  nvidia_ocl_libs
+  echo "== OpenCL devices (rank: the default order; limits the kernels depend on)"
+  python3 - <<'EOF'
+from coin_cl.engine import runtime
+from coin_cl.engine.limits import query_limits
+
+for p, d in runtime.all_devices():
+    pr = runtime.probe_device(d)
+    print(f"{runtime.device_label(d)} | {d.version} | driver {d.driver_version} | rank {runtime.default_rank(d)}"
+          f" | probe {'ok' if pr.ok else 'FAILS: ' + pr.message} | host-unified {runtime.host_unified(d)}"
+          f" | {query_limits(d)} | float atomics {runtime.probe_float_atomics(d)}"
+          f" | CAS add {runtime.probe_cas_atomics(d)}")
+rt = runtime.get_runtime()
+print(f"chosen: {rt.name}; discrete memory path: {rt.discrete}")
+EOF
+}
+
+suite() {
+  python3 -m pytest -q -p no:cacheprovider -m kernel tests/test_ops.py tests/test_rendering.py \
+    tests/test_warp.py tests/test_decode.py tests/test_ssim.py tests/test_runtime.py tests/test_limits.py \
+    tests/test_transfers.py
+}
+
+# shellcheck disable=SC2086
+raster() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" ${RASTER_ARGS:-}); }
+
+gsplat() {
+  # gsplat's wheel compiles its CUDA code at its first call, the benchmark's first warm-up (minutes on
+  # 16 cores; built for Hopper only, the card here).
+  export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
+  (cd benchmarks && python3 raster_gsplat.py)
+}
+
+warp() { (cd benchmarks && python3 warp.py --quick); }
+
+train() {
+  (cd benchmarks && python3 train.py --throughput --data "$COIN_DATA/scene_half" --resolution 1.0 \
+    --steps "${STEPS:-50}" --warmup 5 --models scaffold,3dgs --paths new --out "$OUT/train")
+}
+
+[ $# -ge 1 ] || { sed -n 2,12p "$0"; exit 2; }
+status=0
+for step in "$@"; do
+  case "$step" in
+  prepare) prepare 2>&1 | tee "$OUT/prepare.log" || status=1 ;;
+  check | suite | raster | gsplat | warp | train)
+    setup || exit $?
+    echo "== $step ($(date -u +%H:%M:%S))"
+    "$step" 2>&1 | tee "$OUT/$step.log" || status=1
+    ;;
+  *) echo "unknown step $step"; exit 2 ;;
+  esac
+done
+exit $status
