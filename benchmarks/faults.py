@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_model, git_commit  # noqa: E402
 
-STAGES = ("0_scene", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
+STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 CHILD_ENV = {"COIN_CKPT_SECONDS": "1", "OMP_WAIT_POLICY": "PASSIVE", "PYTHONUNBUFFERED": "1"}
 
 
@@ -226,7 +226,7 @@ def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
     import torch
 
     n, diff = 0, []
-    for st in STAGES:
+    for st in [s for s in STAGES if (ref / s).is_dir() or (run / s).is_dir()]:
         a_files = {p.relative_to(ref / st) for p in (ref / st).rglob("*") if p.is_file()}
         b_files = {p.relative_to(run / st) for p in (run / st).rglob("*") if p.is_file()}
         skip = {"started.json", "manifest.json"}
@@ -261,7 +261,7 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
     log_path = out.parent / "kill_chain.log"
     kills, per_stage, half, conflicts, conflict_tries = 0, {}, [], 0, 0
     proc, t_spawn = None, 0.0
-    for st in [s for s in STAGES for _ in range(args.kills_per_stage)]:
+    for st in [s for s in STAGES if (ref / s).is_dir() for _ in range(args.kills_per_stage)]:
         if stage_done(out, st):
             continue  # finished before its kill moment came: the next stage's turn
         if proc is None or proc.poll() is not None:
@@ -290,7 +290,9 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
             print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
             if stage_done(out, st) or proc.poll() is not None:
                 continue
-        delay = rng.uniform(0.0, 0.9 * max(0.2, ref_seconds.get(st, 1.0)))
+        # a resumed stage has less left to do: its kill moments are drawn from less of its length
+        share = 0.9 if st not in per_stage else 0.9 / (1 + per_stage[st])
+        delay = rng.uniform(0.0, share * max(0.2, ref_seconds.get(st, 1.0)))
         t_end = time.time() + delay
         while proc.poll() is None and time.time() < t_end and not stage_done(out, st):
             time.sleep(0.01)

@@ -35,6 +35,9 @@ class OutputWriteError(OSError):
     """An output could not be written (full or read-only disk, no permission); nothing was left
     half written."""
 
+    def __str__(self) -> str:  # the message alone, without OSError's "[Errno N]" prefix
+        return str(self.strerror)
+
 
 def disk_error(exc: OSError, folder: Path) -> OutputWriteError | None:
     """The one-line `OutputWriteError` for a full / read-only / forbidden `folder`, or None when
@@ -42,8 +45,9 @@ def disk_error(exc: OSError, folder: Path) -> OutputWriteError | None:
     why = _DISK_ERRORS.get(exc.errno or -1)
     if why is None:
         return None
+    todo = "free some space" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "make it writable"
     return OutputWriteError(
-        exc.errno, f"cannot write in {folder}: {why}; free some space or choose another output folder"
+        exc.errno, f"cannot write in {folder}: {why}; {todo} or choose another output folder"
     )
 
 
