@@ -11,7 +11,7 @@ fixed so that runs are deterministic):
    under the folder must read back whole (a PNG decodes, a .pt loads, a JSON parses); at the end
    every output (images, PLY, GIF, arrays, model and prior tensors, JSON without timings) is
    compared with the reference;
-3. while one of those runs is alive, a second `coin-cl run` on the same folder: it must be refused
+3. while a run works in a folder, a second `coin-cl run` on the same folder: it must be refused
    with one line naming the holder (`lock_conflicts_caught`);
 4. the bad-input corpus, built from the synthetic scene, each case through `coin-cl run` and
    through `coin_cl.inpaint`: an error case passes when it gives one line naming the culprit
@@ -254,12 +254,36 @@ def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
 # ------------------------------------------------------------------------------------------ kills
 
 
+def lock_conflict(args, scene: Path, out: Path) -> tuple[int, int]:
+    """One run at a time: while a run works in `out`, `coin-cl run` on the same folder must be
+    refused with one line naming it. Returns (caught, tried)."""
+    t0 = time.time()
+    proc = spawn(args, scene, out, out.parent / "conflict.log")
+    try:
+        while proc.poll() is None and not stage_started_after(out, "0_scene", t0):
+            time.sleep(0.02)
+        if proc.poll() is not None:
+            return 0, 0
+        cli = subprocess.run(
+            [sys.executable, "-m", "coin_cl.cli", "run", str(scene), "--out", str(out), "--iters", "3"],
+            capture_output=True, text=True, env={**os.environ, **CHILD_ENV}, timeout=300,
+        )  # fmt: skip
+        last = (cli.stderr.strip().splitlines() or [""])[-1]
+        ok = cli.returncode == 2 and "in use by another coin-cl run" in last and f"process {proc.pid}" in last
+        ok = ok and "Traceback" not in cli.stderr and proc.poll() is None  # and the first run goes on
+        print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
+        return int(ok), 1
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, float]) -> dict:
     """Kill the run in `out` `kills_per_stage` times in every stage (seeded moments), resuming after
     each; then run it to the end. Also the lock conflict: a second run while one is alive."""
     rng = random.Random(args.seed)
     log_path = out.parent / "kill_chain.log"
-    kills, per_stage, half, conflicts, conflict_tries = 0, {}, [], 0, 0
+    kills, per_stage, half = 0, {}, []
     proc, t_spawn = None, 0.0
     for st in [s for s in STAGES if (ref / s).is_dir() for _ in range(args.kills_per_stage)]:
         if stage_done(out, st):
@@ -270,28 +294,9 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
             time.sleep(0.02)
         if proc.poll() is not None:
             continue
-        if conflict_tries == 0 and st == "2_refgs":  # one run at a time: a second is refused
-            conflict_tries += 1
-            cli = subprocess.run(
-                [sys.executable, "-m", "coin_cl.cli", "run", str(scene), "--out", str(out), "--iters", "3"],
-                capture_output=True,
-                text=True,
-                env={**os.environ, **CHILD_ENV},
-                timeout=300,
-            )
-            err = cli.stderr.strip().splitlines()
-            last = err[-1] if err else ""
-            ok = (
-                cli.returncode == 2
-                and "in use by another coin-cl run" in last
-                and f"process {proc.pid}" in last
-            )
-            conflicts += bool(ok and "Traceback" not in cli.stderr)
-            print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
-            if stage_done(out, st) or proc.poll() is not None:
-                continue
         # a resumed stage has less left to do: its kill moments are drawn from less of its length
-        share = 0.9 if st not in per_stage else 0.9 / (1 + per_stage[st])
+        # (short stages finish before a late moment comes: the first kill aims at its first half)
+        share = 0.5 / (1 + per_stage.get(st, 0))
         delay = rng.uniform(0.0, share * max(0.2, ref_seconds.get(st, 1.0)))
         t_end = time.time() + delay
         while proc.poll() is None and time.time() < t_end and not stage_done(out, st):
@@ -308,6 +313,7 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
         print(f"  kill {kills}: {st} after {delay:.2f} s; unreadable files: {len(bad)}", flush=True)
     if proc is not None:
         proc.wait()
+    conflicts, conflict_tries = lock_conflict(args, scene, out.parent / "conflict")
     t0 = time.time()
     rc = spawn(args, scene, out, log_path).wait()  # resumes what is left (skips what is done)
     n_cmp, diff = compare_outputs(ref, out)
