@@ -17,7 +17,7 @@ fixed so that runs are deterministic):
    through `coin_cl.inpaint`: an error case passes when it gives one line naming the culprit
    (CLI: exit code 2, no traceback), a handled case when the run completes.
 
-The step counts, the checkpoint interval ($COIN_CKPT_SECONDS = 1, so kills land between
+The step counts, the checkpoint interval ($COIN_CKPT_SECONDS = 0.25, so kills land between
 checkpoints) and the kill moments come from the command line and --seed. The last line is JSON:
 kills, resumed_identical, bad_inputs, clear_errors, tracebacks, half_written_files,
 lock_conflicts_caught and more.
@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_model, git_commit  # noqa: E402
 
 STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
-CHILD_ENV = {"COIN_CKPT_SECONDS": "1", "OMP_WAIT_POLICY": "PASSIVE", "PYTHONUNBUFFERED": "1"}
+CHILD_ENV = {"COIN_CKPT_SECONDS": "0.25", "OMP_WAIT_POLICY": "PASSIVE", "PYTHONUNBUFFERED": "1"}
 
 
 # ------------------------------------------------------------------------------------------ the run
@@ -254,6 +254,22 @@ def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
 # ------------------------------------------------------------------------------------------ kills
 
 
+def progress_kept(folder: Path) -> int:
+    """Work a killed stage keeps for its resumption: training steps in its checkpoints (GS trainer,
+    scene prior) plus per-view images already written."""
+    import torch
+
+    n = 0
+    for p in folder.rglob("*.pt"):
+        if p.name == "ckpt.pt" or p.name.endswith(".ckpt.pt"):
+            try:
+                st = torch.load(p, map_location="cpu", weights_only=False)
+            except Exception:  # noqa: BLE001 - counted as unreadable elsewhere
+                continue
+            n += int(st["trainer"]["step"]) if "trainer" in st else int(st.get("steps", 0))
+    return n + sum(1 for _ in folder.glob("images/*.png"))
+
+
 def lock_conflict(args, scene: Path, out: Path) -> tuple[int, int]:
     """One run at a time: while a run works in `out`, `coin-cl run` on the same folder must be
     refused with one line naming it. Returns (caught, tried)."""
@@ -283,7 +299,7 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
     each; then run it to the end. Also the lock conflict: a second run while one is alive."""
     rng = random.Random(args.seed)
     log_path = out.parent / "kill_chain.log"
-    kills, per_stage, half = 0, {}, []
+    kills, per_stage, half, mid = 0, {}, [], 0
     proc, t_spawn = None, 0.0
     for st in [s for s in STAGES if (ref / s).is_dir() for _ in range(args.kills_per_stage)]:
         if stage_done(out, st):
@@ -310,7 +326,13 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
         per_stage[st] = per_stage.get(st, 0) + 1
         bad = unreadable_files(out)
         half += bad
-        print(f"  kill {kills}: {st} after {delay:.2f} s; unreadable files: {len(bad)}", flush=True)
+        kept = progress_kept(out / st)
+        mid += kept > 0
+        print(
+            f"  kill {kills}: {st} after {delay:.2f} s; kept for resumption: {kept} steps + views; "
+            f"unreadable files: {len(bad)}",
+            flush=True,
+        )
     if proc is not None:
         proc.wait()
     conflicts, conflict_tries = lock_conflict(args, scene, out.parent / "conflict")
@@ -327,6 +349,7 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
         "half_written": half,
         "lock_conflicts_caught": conflicts,
         "lock_conflict_tries": conflict_tries,
+        "kills_resumed_mid_stage": mid,
     }
 
 
@@ -593,7 +616,7 @@ def main() -> int:
         f"# faults: CPU {cpu_model()}, {os.cpu_count()} cores, OpenCL {get_runtime().name}, commit "
         f"{git_commit()}, {args.views} views 64x48, Ref-GS {args.iters} "
         f"steps, TE-D {args.iters // 2} + {args.iters // 2}, prior {args.prior_steps} steps, "
-        f"checkpoints every 1 s ($COIN_CKPT_SECONDS), seed {args.seed}",
+        f"checkpoints every 0.25 s ($COIN_CKPT_SECONDS), seed {args.seed}",
         flush=True,
     )
     ref = args.out / "ref"
@@ -645,6 +668,7 @@ def main() -> int:
     result = {
         "kills": chain["kills"],
         "kills_per_stage": chain["kills_per_stage"],
+        "kills_resumed_mid_stage": chain["kills_resumed_mid_stage"],
         "resumed_identical": identical,
         "compared_files": chain["compared_files"],
         "differing_files": len(chain["differing"]),
