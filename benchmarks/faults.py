@@ -310,10 +310,10 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
             time.sleep(0.02)
         if proc.poll() is not None:
             continue
-        # a resumed stage has less left to do: its kill moments are drawn from less of its length
-        # (short stages finish before a late moment comes: the first kill aims at its first half)
-        share = 0.5 / (1 + per_stage.get(st, 0))
-        delay = rng.uniform(0.0, share * max(0.2, ref_seconds.get(st, 1.0)))
+        # late enough in the stage that its checkpoints hold work (each resumption repeats the
+        # stage's setup), early enough that a resumed stage is usually still running; a stage that
+        # finishes first just gets fewer kills
+        delay = rng.uniform(0.4, 0.95) * max(0.2, ref_seconds.get(st, 1.0))
         t_end = time.time() + delay
         while proc.poll() is None and time.time() < t_end and not stage_done(out, st):
             time.sleep(0.01)
@@ -592,7 +592,7 @@ def main() -> int:
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--iters", type=int, default=40, help="Ref-GS steps (TE-D: half each phase)")
     ap.add_argument("--prior-steps", type=int, default=30)
-    ap.add_argument("--kills-per-stage", type=int, default=4)
+    ap.add_argument("--kills-per-stage", type=int, default=5)
     ap.add_argument("--corpus-iters", type=int, default=10, help="GS and prior steps of the bad-input runs")
     ap.add_argument("--skip-corpus", action="store_true")
     ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
