@@ -40,11 +40,12 @@ import numpy as np
 from common import cpu_model, git_commit, mean_std, other_references, write_result
 
 from coin_cl.gs.refgs import RefGSConfig
-from coin_cl.pipeline.clg import CLGConfig
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, CoInResult, inpaint, share_stages
 from coin_cl.pipeline.insert import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.scene import load_scene
+from coin_cl.scene.io import view_stem
 from coin_cl.scene.synthetic import (
     SyntheticScene,
     make_synthetic,
@@ -78,10 +79,6 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--mask-kinds", default="seg,scribble", help="mask rows on the room: seg,scribble[,bbox]")
     g.add_argument("--seed", type=int, default=0)
-
-
-def _stem(name: str) -> str:
-    return Path(name).stem
 
 
 def _scene(root: Path, **kw) -> tuple[SyntheticScene, object]:
@@ -214,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
 
     # -- insertion from an edited reference ------------------------------------------------------
     syn_i, sc_i = _scene(out / "scenes" / "insertion", task="insertion", coverage=180, **gen)
-    from coin_cl.gs.refgs import choose_reference
+    from coin_cl.pipeline.reference import choose_reference
 
     train = list(sc_i.train_idx)
     k = choose_reference(sc_i.masks, sc_i.cameras, train_idx=train)  # the view a user would edit
@@ -258,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
     others = other_references(sc_f, seg_ref, args.refs, args.seed)
     ref_rows = {"seg": rows["seg"]}
     for i in others:
-        name = f"ref_{_stem(sc_f.cameras[i].name)}"
+        name = f"ref_{view_stem(sc_f.cameras[i].name, i)}"
         # stages 0 and 1 do not depend on the reference: they come from the seg row
         r, minutes = _run(sc_f, out / name, replace(base, ref=i), out / "seg", ("0_scene", "1_inpaint"))
         rows[name] = ref_rows[name] = {**_removal(r), "ref": sc_f.cameras[i].name, "minutes": minutes,
@@ -374,7 +371,7 @@ def _refined_masks(res: CoInResult, scene, syn: SyntheticScene) -> dict:
     ratio, recall, precision = [], [], []
     for i, j in zip(train, js, strict=True):
         m = scene.masks[i]
-        r = read_mask(folder / f"{_stem(scene.cameras[i].name)}.png", m.shape)
+        r = read_mask(folder / f"{view_stem(scene.cameras[i].name, i)}.png", m.shape)
         u = unseen_by[j]
         ratio.append(r.sum() / m.sum())
         if u.any():
@@ -403,7 +400,7 @@ def _grid(out: Path, sc_i, syn_i, res, res_n, ref_name: str, sc_r, syn_r, res_rf
     cam = sc_i.cameras[i]
     top = [syn_i.absent[j], syn_i.present[j], _render(res, cam)[0], _render(res_n, cam)[0]]
     n = sc_r.train_idx[0]
-    stem = _stem(sc_r.cameras[n].name)
+    stem = view_stem(sc_r.cameras[n].name, n)
     refined = read_mask(res_rf.out / "0_refine" / "masks" / f"{stem}.png", sc_r.masks[n].shape)
     train_j = [_syn_index(syn_r, sc_r.cameras[t].name) for t in sc_r.train_idx]
     unseen = truly_unseen(syn_r, train_j)[0]

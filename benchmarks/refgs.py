@@ -39,9 +39,11 @@ sys.path.insert(0, str(ROOT))
 from common import cpu_model, default_data, git_commit, write_result  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
-from coin_cl.gs.refgs import RefGSConfig, composite_targets  # noqa: E402
+from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
+from coin_cl.gs.targets import composite_targets  # noqa: E402
 from coin_cl.gs.trainer import model_from_state  # noqa: E402
 from coin_cl.pipeline.refgs import run_refgs  # noqa: E402
+from coin_cl.pipeline.reprojection import residual_to_reference  # noqa: E402
 from coin_cl.scene.splits import inpainted_targets  # noqa: E402
 
 _OFF = dict(composite=False, prune_points=False, adaptive_weights=False, feature_attention=False,
@@ -56,33 +58,22 @@ ROWS = {
 
 
 def cross_view_residual(scene, res: dict, k: int, target_k: np.ndarray) -> float:
-    """Masked cross-view residual of the other training views' renders to the reference's target."""
+    """Masked cross-view residual of the other training views' renders to the reference's target
+    (`residual_to_reference` on the renders' depths, where alpha > 0.5)."""
     from imageio.v2 import imread
 
     out = Path(res["out_dir"])
-    ck = scene.cameras[k]
-    mk = np.asarray(scene.masks[k], bool)
-    errs = []
+    n = len(scene.cameras)
+    depths, images, regions = [None] * n, [None] * n, [None] * n
     for i in scene.train_idx:
         if i == k:
             continue
         stem = Path(scene.cameras[i].name).stem
-        depth = np.load(out / "depths" / f"{stem}.npy")
+        depths[i] = np.load(out / "depths" / f"{stem}.npy")
         alpha = np.load(out / "alphas" / f"{stem}.npy")
-        m = np.asarray(scene.masks[i], bool) & (alpha > 0.5) & np.isfinite(depth)
-        ys, xs = np.nonzero(m)
-        if len(ys) == 0:
-            continue
-        pts = scene.cameras[i].unproject(np.stack([xs + 0.5, ys + 0.5], 1), depth[ys, xs])
-        uv, z = ck.project(pts)
-        ok = (z > 0) & ck.in_image(uv)
-        px = np.floor(uv[ok]).astype(int)
-        hit = mk[px[:, 1], px[:, 0]]
-        if not hit.any():
-            continue
-        r = imread(out / "renders" / f"{stem}.png").astype(np.float32) / 255
-        errs.append(np.abs(r[ys[ok][hit], xs[ok][hit]] - target_k[px[hit, 1], px[hit, 0]]).mean(1))
-    return float(np.concatenate(errs).mean()) if errs else float("nan")
+        regions[i] = np.asarray(scene.masks[i], bool) & (alpha > 0.5) & np.isfinite(depths[i])
+        images[i] = imread(out / "renders" / f"{stem}.png").astype(np.float32) / 255
+    return residual_to_reference(scene.cameras, depths, images, regions, k, target_k, scene.masks[k])
 
 
 def score(scene, res: dict, backend: str) -> dict:

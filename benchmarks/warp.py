@@ -20,7 +20,7 @@ SPIn-NeRF scene (images_4 at --clg-scale, default 0.5 = 504x283). I^_n: the data
 inpaints (RGB_inpainted/) composited with the capture outside the mask. R_n and depths: stand-in
 for Ref-GS (not merged yet): a short Scaffold-GS fit (--clg-gs-iters, default 300) on those
 inpaints via `coin_cl.gs.trainer.make_trainer`, rendered with depth; P_k: its reference depth
-unprojected by `coin_cl.pipeline.clg.reference_points` (the Ref-GS margin rule). Denoiser: the
+unprojected by `coin_cl.pipeline.reference.reference_points` (the Ref-GS margin rule). Denoiser: the
 scene prior (fixed --clg-prior-steps optimizer steps, cached); features: the analytic default.
 Time per view against the number of DDIM steps; the consistency residual (mean |I_n - warp(I_k)|
 over the support of view n's mask through P_k, `consistency_residual`) of I^_n (before), of the
@@ -142,9 +142,10 @@ def clg_part(args) -> dict:
 
     from coin_cl.diffusion import AnalyticFeatures, ScenePriorConfig, train_scene_prior
 
-    from coin_cl.gs.refgs import choose_reference
     from coin_cl.gs.trainer import TrainConfig, make_trainer
-    from coin_cl.pipeline.clg import CLGConfig, reference_points, run_clg
+    from coin_cl.pipeline.clg import run_clg
+    from coin_cl.pipeline.clg_config import CLGConfig
+    from coin_cl.pipeline.reference import choose_reference, reference_points
     from coin_cl.scene import load_scene
 
     logging.basicConfig(level=logging.WARNING)
@@ -202,10 +203,11 @@ def clg_part(args) -> dict:
     others = [i for i in train if i != k]
     views = [others[j] for j in np.linspace(0, len(others) - 1, min(args.clg_views, len(others))).astype(int)]
     base = CLGConfig(progress=False)
+    sc = base.sampler
     steps_list = [int(x) for x in args.clg_steps.split(",")]
     print()
     print(f"CLG per view, {len(views)} views {views}, scene prior (work {prior.work_size} px), analytic features, "  # noqa: E501
-          f"c = {base.guidance_scale}, window [{base.guidance_start}, {base.guidance_end}), 'quad'. "
+          f"c = {sc.guidance_scale}, window [{sc.guidance_start}, {sc.guidance_end}), 'quad'. "
           "residual = mean |I_n - warp(I^_k)| over the supported mask pixels ([0, 1] RGB):")  # fmt: skip
     print()
     print(
@@ -214,12 +216,12 @@ def clg_part(args) -> dict:
     print("|---|---|---|---|---|---|---|")
     res: dict = {}
     for steps in steps_list:
-        for c in (0.0, base.guidance_scale):
+        for c in (0.0, base.sampler.guidance_scale):
             out = work / f"clg_{steps}_{c}"
             import shutil
 
             shutil.rmtree(out, ignore_errors=True)
-            cfg = replace(base, steps=steps, guidance_scale=c)
+            cfg = replace(base, steps=steps, sampler=replace(base.sampler, guidance_scale=c))
             t0 = time.perf_counter()
             r = run_clg(
                 k, views, scene.cameras, inp, renders, depths, scene.masks, pk, prior, feats, out, cfg

@@ -5,7 +5,7 @@ import re
 import pytest
 
 from coin_cl.cli import main
-from coin_cl.gs.refgs import resolve_reference
+from coin_cl.pipeline.reference import resolve_reference
 
 NAMES = [f"{n:05d}.png" for n in (7, 12, 3, 0, 1, 2, 4, 5, 6, 8, 9, 10, 11, 13)]
 
@@ -46,7 +46,7 @@ def test_every_stage_shows_progress(tmp_path, capsys):
     from coin_cl.diffusion.scene_prior import ScenePriorConfig
 
     from coin_cl.gs.refgs import RefGSConfig
-    from coin_cl.pipeline.clg import CLGConfig
+    from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig, inpaint
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
     from coin_cl.pipeline.ted import TEDConfig

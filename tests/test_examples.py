@@ -50,3 +50,14 @@ def test_train_colmap(room, tmp_path):
         [str(room), "--out", str(tmp_path / "t"), "--model", "3dgs", "--iters", "4"]
     )
     assert res["step"] == 4 and (tmp_path / "t" / "ckpt.pt").is_file()
+
+
+def test_prepare_and_run(tmp_path):
+    # photos of the synthetic room -> posed scene + masks from one box; the run itself is not done here
+    out = load("prepare_and_run").main(["--out", str(tmp_path / "p"), "--width", "256"])
+    assert out["registered"] == 12
+    import coin_cl
+
+    scene = coin_cl.load_scene(out["scene"])
+    assert len(scene) == 12 and all(m.any() for m in scene.masks)
+    assert (out["scene"] / "masks_contact_sheet.png").is_file()

@@ -9,7 +9,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def imports(path: Path, top_level_only: bool = False) -> set[str]:
     """Every module name `path` imports (relative imports resolved against its package)."""
     tree = ast.parse(path.read_text())
-    pkg = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
+    pkg = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1]) if path.is_relative_to(ROOT) else ""
     nodes = tree.body if top_level_only else ast.walk(tree)
     out: set[str] = set()
     for node in nodes:
@@ -76,3 +76,39 @@ def test_testing_kit_is_for_tests_only():
         if f.name == "testing.py":
             continue
         assert not hits(imports(f), "coin_cl.testing"), f
+
+
+def public_names(package_init: Path) -> set[str]:
+    """The names in a package's `__all__` (read from its __init__.py's AST, nothing imported)."""
+    for node in ast.parse(package_init.read_text()).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__" for t in node.targets):
+            return {ast.literal_eval(e) for e in node.value.elts}
+    raise AssertionError(f"{package_init} has no __all__")
+
+
+def private_engine_imports(path: Path, public: set[str]) -> set[str]:
+    """The engine modules and names `path` imports that are not `coin_cl.engine.<public name>`."""
+    engine = hits(imports(path), "coin_cl.engine") - {"coin_cl.engine"}
+    return {n for n in engine if n.removeprefix("coin_cl.engine.") not in public}
+
+
+def test_stages_use_only_the_engines_public_names():
+    public = public_names(ROOT / "coin_cl/engine/__init__.py")
+    assert {"warp_features", "support_mask", "rasterize"} <= public
+    stages = modules("coin_cl/pipeline")
+    assert len(stages) >= 8
+    for f in stages:
+        private = private_engine_imports(f, public)
+        assert not private, f"{f} reaches into the engine: {private}; import public names of coin_cl.engine"
+
+
+def test_public_names_rule_catches_a_private_import(tmp_path):
+    """The rule above can fail: reaching into engine.ops or engine.constants is caught, at any depth."""
+    probe = tmp_path / "probe.py"
+    probe.write_text("from coin_cl.engine import warp_features\n"
+                     "def f():\n    from coin_cl.engine.ops.warp import support_mask\n"
+                     "import coin_cl.engine.constants\n")  # fmt: skip
+    public = public_names(ROOT / "coin_cl/engine/__init__.py")
+    assert private_engine_imports(probe, public) == {
+        "coin_cl.engine.ops.warp", "coin_cl.engine.ops.warp.support_mask", "coin_cl.engine.constants"
+    }  # fmt: skip

@@ -10,7 +10,7 @@ from coin_cl.diffusion.scene_prior import ScenePriorConfig
 
 from coin_cl.cli import main
 from coin_cl.gs.refgs import RefGSConfig
-from coin_cl.pipeline.clg import CLGConfig
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.runner import OutputFolderError
@@ -87,8 +87,8 @@ def test_ablation_skips_stages_and_says_why(room, tmp_path):
 def test_refgs_trains_around_the_pipeline_reference(room, first_run, tmp_path):
     # Ref-GS used to choose its reference again by its own rule (ignoring --ref, and on refined masks
     # or insertion footprints possibly another view), so P_k came from another view than CLG's camera k.
-    from coin_cl.gs.refgs import choose_reference
     from coin_cl.pipeline.coin import share_stages
+    from coin_cl.pipeline.reference import choose_reference
 
     scene = load_scene(room)
     rule = choose_reference(scene)
@@ -206,3 +206,19 @@ def test_auto_region_follows_the_visibility_estimate(room, tmp_path, caplog):
     want = "refined" if share >= AUTO_REFINE_SHARE else "input"
     assert f"inpaint region: {want} (other views see an estimated {100 * share:.0f}%" in caplog.text
     assert ("0_refine" in res.stages) == (want == "refined")
+
+
+def test_carve_keeps_the_object_volume_empty_in_the_final_model(room, first_run, tmp_path):
+    """With carve=True nothing the densification grows inside the carve volume survives: the final
+    model carries the volume and exports no Gaussian inside it (TE-D included)."""
+    import shutil
+
+    out = tmp_path / "carve"
+    shutil.copytree(first_run[0], out)
+    res = inpaint(room, out, config=replace(TINY, carve=True, skip=("clg",)))
+    assert res.stages["1_inpaint"]["status"] == "skipped: up to date"  # carving starts at Ref-GS
+    assert any("carving the object's volume" in n for n in res.stages["2_refgs"]["notes"])
+    vol = res.model.carve
+    assert vol is not None and len(vol) > 0
+    g = res.model.export_gaussians()
+    assert not vol.contains(g["means"]).any()

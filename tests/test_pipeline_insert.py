@@ -11,7 +11,7 @@ from coin_cl.diffusion.scene_prior import ScenePriorConfig
 
 from coin_cl.cli import main
 from coin_cl.gs.refgs import RefGSConfig
-from coin_cl.pipeline.clg import CLGConfig
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.insert import InsertConfig, hull_depth, load_edited

@@ -1,4 +1,4 @@
-"""The Ref-GS stage (`coin_cl.pipeline.refgs`) and its trainer plug-ins (`coin_cl.gs.refgs_terms`):
+"""The Ref-GS stage (`coin_cl.pipeline.refgs`) and its trainer plug-ins (`coin_cl.gs.refgs.refgs_terms`):
 outputs, bit-exact resume, each ablation switch removing its piece, and the cross-view consistency
 the reference brings on the synthetic room with deliberately inconsistent inpaints."""
 
@@ -13,13 +13,18 @@ import pytest
 import torch
 
 from coin_cl import load_scene
-from coin_cl.gs import refgs as refgs_mod
-from coin_cl.gs.refgs import DATASET_DEPTH_PRIOR, GS_DEPTH_PRIOR, AnchorAttention, RefGSConfig
+from coin_cl.gs import depth_prior
+from coin_cl.gs.anchor_attention import AnchorAttention
+from coin_cl.gs.depth_prior import DATASET_DEPTH_PRIOR, GS_DEPTH_PRIOR
+from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.gs.scaffold import ScaffoldModel
 from coin_cl.gs.terms import LossTerm
 from coin_cl.gs.trainer import REFERENCE_ITERS, TrainConfig, Trainer
+from coin_cl.pipeline import reference
 from coin_cl.pipeline import refgs as stage
-from coin_cl.pipeline.refgs import pk_margin_px, plan_iters, run_refgs
+from coin_cl.pipeline.reference import pk_margin_px
+from coin_cl.pipeline.refgs import plan_iters, run_refgs
+from coin_cl.pipeline.reprojection import residual_to_reference
 from coin_cl.scene.ply import read_points_ply
 from coin_cl.scene.synthetic import make_synthetic, write_synthetic
 
@@ -59,7 +64,7 @@ def test_stage_writes_every_output(room, tmp_path):
     res = run_refgs(scene, targets, out, _cfg(), budget_minutes=None, iters=20, seed=0)
     json.dumps(res)  # JSON-able
     k = res["reference"]["index"]
-    assert k == refgs_mod.choose_reference(scene)
+    assert k == reference.choose_reference(scene)
     assert res["steps"] == 20 and res["n_removed"] > 0
     # No dataset prior in the room: the stage trained its own GS of the captured images.
     assert res["depth_prior"] == GS_DEPTH_PRIOR
@@ -99,7 +104,7 @@ def _final_state(out: Path) -> dict:
 
 def test_resume_is_bit_exact(room, tmp_path):
     syn, scene, targets = room
-    k = refgs_mod.choose_reference(scene)
+    k = reference.choose_reference(scene)
     kw = dict(budget_minutes=None, iters=24, seed=1, gs_depth=_gs_depth(syn, scene, k), ckpt_every=6)
     run_refgs(scene, targets, tmp_path / "a", _cfg(), **kw)
 
@@ -131,14 +136,14 @@ def test_resume_is_bit_exact(room, tmp_path):
 
 def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
     syn, scene, targets = room
-    k = refgs_mod.choose_reference(scene)
+    k = reference.choose_reference(scene)
     called = {"attn": 0, "depth": 0, "features": 0, "return_depth": 0}
 
     def no_attn(*a, **kw):
         called["attn"] += 1
         raise AssertionError("attention ran although switched off")
 
-    real_depth = refgs_mod.reference_depth_loss
+    real_depth = depth_prior.reference_depth_loss
 
     def count_depth(*a, **kw):
         called["depth"] += 1
@@ -152,7 +157,7 @@ def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
         return real_render(self, cam, step, **kw)
 
     monkeypatch.setattr(AnchorAttention, "forward", no_attn)
-    monkeypatch.setattr("coin_cl.gs.refgs_terms.reference_depth_loss", count_depth)
+    monkeypatch.setattr("coin_cl.gs.depth_prior.reference_depth_loss", count_depth)
     monkeypatch.setattr(ScaffoldModel, "render", spy_render)
     cfg = _cfg(adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False)
     res = run_refgs(scene, targets, tmp_path / "off", cfg, budget_minutes=None, iters=12, seed=0)
@@ -164,7 +169,7 @@ def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
     assert not (tmp_path / "off" / "depth_prior.npy").exists()
     # The same run with the pieces on calls each of them (so the zero counts above mean something).
     monkeypatch.undo()
-    monkeypatch.setattr("coin_cl.gs.refgs_terms.reference_depth_loss", count_depth)
+    monkeypatch.setattr("coin_cl.gs.depth_prior.reference_depth_loss", count_depth)
     monkeypatch.setattr(ScaffoldModel, "render", spy_render)
     res = run_refgs(scene, targets, tmp_path / "on", _cfg(), budget_minutes=None, iters=12, seed=0,
                     gs_depth=_gs_depth(syn, scene, k))  # fmt: skip
@@ -176,7 +181,7 @@ def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
 
 def test_dataset_prior_wins_and_is_fitted_as_disparity(room, tmp_path):
     syn, scene, targets = room
-    k = refgs_mod.choose_reference(scene)
+    k = reference.choose_reference(scene)
     disp = 1.0 / np.asarray(syn.depth_absent[k], np.float32)
     scene2 = dataclasses.replace(scene, priors={"depth": {k: disp}})
     res = run_refgs(scene2, targets, tmp_path / "d", _cfg(feature_attention=False), budget_minutes=None,
@@ -243,34 +248,22 @@ def reference_residual(syn, scene, targets, out: Path, k: int) -> float:
     """Mean |R_n(p) - T_k(warp_k(p))| over mask pixels p of the non-reference training views
     whose object-absent surface point lands inside the reference's mask (true depth, true poses):
     how far the renders are from the reference's content in the hole."""
-    ck = scene.cameras[k]
-    mk = np.asarray(scene.masks[k], bool)
-    errs = []
-    for i in scene.train_idx:
-        if i == k:
-            continue
-        m = np.asarray(scene.masks[i], bool)
-        ys, xs = np.nonzero(m)
-        cam = scene.cameras[i]
-        pts = cam.unproject(np.stack([xs + 0.5, ys + 0.5], 1), np.asarray(syn.depth_absent[i])[ys, xs])
-        uv, z = ck.project(pts)
-        ok = (z > 0) & ck.in_image(uv)
-        px = np.floor(uv[ok]).astype(int)
-        hit = mk[px[:, 1], px[:, 0]]
-        if not hit.any():
-            continue
-        from imageio.v2 import imread
+    from imageio.v2 import imread
 
-        r = imread(out / "renders" / f"{Path(cam.name).stem}.png").astype(np.float32) / 255
-        pred = r[ys[ok][hit], xs[ok][hit]]
-        ref = targets[k][px[hit, 1], px[hit, 0]]
-        errs.append(np.abs(pred - ref).mean(1))
-    return float(np.concatenate(errs).mean())
+    n = len(scene.cameras)
+    images, regions = [None] * n, [None] * n
+    for i in scene.train_idx:
+        if i != k:
+            stem = Path(scene.cameras[i].name).stem
+            images[i] = imread(out / "renders" / f"{stem}.png").astype(np.float32) / 255
+            regions[i] = np.asarray(scene.masks[i], bool)
+    depths = [np.asarray(d) for d in syn.depth_absent]
+    return residual_to_reference(scene.cameras, depths, images, regions, k, targets[k], scene.masks[k])
 
 
 def _residuals(syn, scene, targets, tmp_path, cfg: RefGSConfig, iters: int = 300) -> tuple[float, float]:
     """(plain training, `cfg`) masked residuals to the reference after `iters` steps, seed 0."""
-    k = refgs_mod.choose_reference(scene)
+    k = reference.choose_reference(scene)
     kw = dict(budget_minutes=None, iters=iters, seed=0, gs_depth=_gs_depth(syn, scene, k))
     plain = RefGSConfig(adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False)
     run_refgs(scene, targets, tmp_path / "plain", plain, **kw)
@@ -289,7 +282,7 @@ def test_refgs_pulls_views_towards_the_reference(room, tmp_path):
     content in the other views' masks than plain training. Measured at 300 steps: plain 0.1375,
     Ref-GS 0.1161."""
     syn, scene, targets = room
-    k = refgs_mod.choose_reference(scene)
+    k = reference.choose_reference(scene)
     targets = list(targets)
     targets[k] = np.asarray(syn.absent[k], np.float32)
     e_plain, e_ref = _residuals(syn, scene, targets, tmp_path, RefGSConfig())

@@ -10,7 +10,7 @@ import pytest
 from coin_cl.diffusion.scene_prior import ScenePriorConfig
 
 from coin_cl.gs.refgs import RefGSConfig
-from coin_cl.pipeline.clg import CLGConfig
+from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.refine_masks import RefineConfig, read_refined, refine_masks

@@ -11,7 +11,7 @@ import pytest
 from coin_cl.scene import load_scene, save_scene
 from coin_cl.scene.colmap import ColmapCamera, Undistorter, write_model
 from coin_cl.scene.conventions import k_for_opencv
-from coin_cl.scene.geometry import mask_votes, object_points
+from coin_cl.scene.geometry import mask_vote_counts, object_points
 from coin_cl.scene.io import write_png
 from coin_cl.scene.synthetic import make_synthetic, write_synthetic
 
@@ -94,7 +94,10 @@ def test_real_points_project_within_bounds(real):
 def test_real_train_masks_agree_with_test_masks(real):
     idx = object_points(real)
     assert len(idx) > 1000
-    seen, inside = mask_votes(real, real.points[idx], real.test_idx)
+    views = real.test_idx
+    seen, inside = mask_vote_counts(
+        real.points[idx], [real.cameras[i] for i in views], [real.masks[i] for i in views]
+    )
     assert seen.sum() > 1000
     assert inside.sum() / seen.sum() >= 0.95
 

@@ -18,6 +18,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                         "removal): inpaint only the mask pixels no other view sees (stage 0_refine); "
                         "auto (default): refined when other views see at least 30%% of the masks "
                         "(estimated, logged)")  # fmt: skip
+    p.add_argument("--carve", action="store_true",
+                   help="removal: carve the object's volume out of the Gaussians for good and seed the "
+                        "background behind it (coin_cl.gs.carve; experimental, off by default)")  # fmt: skip
     p.add_argument("--ref", default=None,
                    help="reference view: a view name (with or without extension) or an index; a name that "
                         "exists wins (default: chosen by rule)")  # fmt: skip
@@ -58,7 +61,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
-        inpaint_region=args.inpaint_region,
+        inpaint_region=args.inpaint_region, carve=args.carve,
     ).with_iters(args.iters)  # fmt: skip
     res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
                   prompt=args.prompt or None, budget=args.budget, config=cfg, force=tuple(args.force),

@@ -141,7 +141,7 @@ def background_depth(cam: Any, mask: np.ndarray, points: np.ndarray, cell: int, 
     """D_bg of one view [H, W] float32 (camera z): the sparse `points` [N, 3] that project outside
     the mask dilated by `dilate_px`, nearest per `cell` x `cell` cell, filled in 2D (Telea) over the
     empty cells and the mask. Raises ValueError when no point lands outside the mask."""
-    from coin_cl.gs.refgs import inpaint_depth
+    from coin_cl.gs.depth_prior import inpaint_depth
 
     H, W = mask.shape
     grown = cv2.dilate(mask.astype(np.uint8), np.ones((2 * dilate_px + 1,) * 2, np.uint8)) > 0

@@ -132,7 +132,7 @@ def find_reference(edited: np.ndarray, scene: Any, masks: list[np.ndarray], trai
     """The view the edited image edits: `ref` when given (resolved by name or index), else the
     training view whose capture matches the edited image best outside its mask. Raises ValueError
     when the best match differs by more than `tol` (mean absolute, [0, 1] units)."""
-    from coin_cl.gs.refgs import choose_reference
+    from coin_cl.pipeline.reference import choose_reference
 
     def diff(i: int) -> float:
         if scene.images[i].shape != edited.shape:
@@ -173,7 +173,7 @@ def hull_depth(cam: Any, region: np.ndarray, cameras: list[Any], masks: list[np.
     an object of that size), then refined once between the last outside and the first inside sample
     (as many samples again). (H, W) float32.
     """
-    from coin_cl.gs.refgs import mask_vote_counts
+    from coin_cl.gs.prune import in_masks
 
     ys, xs = np.nonzero(region)
     out = np.full(region.shape, np.nan, np.float32)
@@ -184,9 +184,7 @@ def hull_depth(cam: Any, region: np.ndarray, cameras: list[Any], masks: list[np.
     def inside(z: np.ndarray) -> np.ndarray:  # z [P, S] -> [P, S] bool
         P, S = z.shape
         pts = cam.unproject(np.repeat(uv, S, 0), z.reshape(-1))
-        seen, ins = mask_vote_counts(pts, cameras, masks)
-        ok = (seen >= max(1, cfg.min_views)) & (ins >= cfg.hull_fraction * seen)
-        return ok.reshape(P, S)
+        return in_masks(pts, cameras, masks, cfg.hull_fraction, cfg.min_views).reshape(P, S)
 
     S = max(2, int(cfg.hull_samples))
     z = np.linspace(near, far, S)[None].repeat(len(uv), 0)
@@ -263,7 +261,7 @@ def propagate(edited: np.ndarray, lift: EditLift, cam_k: Any, cam_n: Any, captur
     """Step 3 for one view: (I^_n (H, W, 3) float32, footprint F_n (H, W) bool). The lift's points
     carry the edited colours from the reference into view n (z-buffered splat); F_n is where they
     land inside mask_n, with one-pixel cracks closed (colours there filled by Telea)."""
-    from coin_cl.pipeline.clg import reference_in_view
+    from coin_cl.pipeline.reprojection import reference_in_view
 
     if len(lift.points) == 0 or not np.asarray(mask_n).any():
         return captured_n.astype(np.float32), np.zeros(mask_n.shape, bool)

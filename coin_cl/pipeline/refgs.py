@@ -14,9 +14,8 @@ per-view inpaints I^_n, leaning toward one reference view k. CLG and TE-D stand 
 The JSON log (gs/log.json) carries under "refgs": the config, the reference, the prior's name,
 the pruned point count; under "view_weights": the per-visit weight history and per-view summary.
 
-P_k margin: pixels of the reference's mask dilated by `pk_margin_px(mask)` = max(4, 10 % of the
-mask's bounding-box larger side) pixels, restricted to rendered alpha > 0.5; the margin carries
-the hole's rim, which TE-D's warps need to blend the filled region into its surroundings.
+P_k: `coin_cl.pipeline.reference.reference_points` on the reference's render depth, restricted to
+rendered alpha > 0.5 (the margin rule `pk_margin_px` lives there too).
 
 Budget: `iters` wins; else `budget_minutes` sets iters = max(200, STEPS_PER_SECOND x seconds) and
 the trainer also stops when the budget's training time is spent; neither: the published 30k steps.
@@ -36,21 +35,14 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
 from coin_cl.gs.data import Camera, View, scene_extent
-from coin_cl.gs.refgs import (
-    DepthPrior,
-    RefGSConfig,
-    choose_reference,
-    composite_targets,
-    inpaint_depth,
-    prune_points_in_masks,
-    reference_depth_prior,
-)
-from coin_cl.gs.refgs_terms import adaptive_weights_of, refgs_terms
+from coin_cl.gs.depth_prior import DepthPrior, inpaint_depth, reference_depth_prior
+from coin_cl.gs.prune import prune_points_in_masks
+from coin_cl.gs.refgs import RefGSConfig, adaptive_weights_of, refgs_terms
+from coin_cl.gs.targets import composite_targets
 from coin_cl.gs.trainer import (
     REFERENCE_ITERS,
     TrainConfig,
@@ -60,6 +52,8 @@ from coin_cl.gs.trainer import (
     scaled_model_config,
     scaled_strategy,
 )
+from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
+from coin_cl.scene.io import view_stem, write_png
 
 log = logging.getLogger(__name__)
 
@@ -68,15 +62,6 @@ log = logging.getLogger(__name__)
 STEPS_PER_SECOND = 1.25
 MONOCULAR_PRIOR = "monocular (Depth Anything V2 small, COIN_DEPTH_WEIGHTS)"
 STAGE_JSON = "stage.json"
-
-
-def pk_margin_px(mask: np.ndarray) -> int:
-    """Margin around the mask kept in P_k: max(4, 10 % of the bounding box's larger side) px."""
-    m = np.asarray(mask, bool)
-    if not m.any():
-        return 4
-    ys, xs = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-    return int(max(4, round(0.1 * max(ys[-1] - ys[0] + 1, xs[-1] - xs[0] + 1))))
 
 
 def plan_iters(budget_minutes: float | None, iters: int | None) -> int:
@@ -90,10 +75,6 @@ def plan_iters(budget_minutes: float | None, iters: int | None) -> int:
             raise ValueError(f"budget_minutes must be > 0, got {budget_minutes}")
         return max(200, int(STEPS_PER_SECOND * budget_minutes * 60))
     return REFERENCE_ITERS
-
-
-def _stem(name: str, i: int) -> str:
-    return Path(name).stem if name else f"view_{i:03d}"
 
 
 def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
@@ -344,7 +325,6 @@ def run_refgs(
 def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt: int,
                    masks: Sequence[np.ndarray], out: Path, backend: str) -> dict[str, Any]:  # fmt: skip
     """Renders, depths and alphas of every training view, and P_k."""
-    from coin_cl.scene.io import write_png
     from coin_cl.scene.ply import write_points_ply
 
     rdir, ddir, adir = out / "renders", out / "depths", out / "alphas"
@@ -359,7 +339,7 @@ def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt
         img = r.image.clamp(0, 1).numpy()
         depth = r.depth.numpy().astype(np.float32)
         alpha = r.alpha.numpy().astype(np.float32)
-        stem = _stem(scene.cameras[i].name, i)
+        stem = view_stem(scene.cameras[i].name, i)
         write_png(rdir / f"{stem}.png", img)
         np.save(ddir / f"{stem}.npy", depth)
         np.save(adir / f"{stem}.npy", alpha)
@@ -369,12 +349,8 @@ def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt
     img, depth, alpha = ref
     m = masks[kt]
     margin = pk_margin_px(m)
-    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
-    region = cv2.dilate(m.astype(np.uint8), ker).astype(bool)
-    sel = region & (alpha > 0.5) & np.isfinite(depth) & (depth > 0)
-    ys, xs = np.nonzero(sel)
-    uv = np.stack([xs + 0.5, ys + 0.5], 1).astype(np.float64)  # pixel centres at +0.5
-    pts = scene.cameras[k].unproject(uv, depth[ys, xs].astype(np.float64)).astype(np.float32)
+    ys, xs = reference_pixels(depth, m, margin, alpha > 0.5)
+    pts = reference_points(scene.cameras[k], depth, m, margin, alpha > 0.5)
     pk = out / "reference_points.ply"
     write_points_ply(pk, pts, img[ys, xs])
     return {

@@ -76,7 +76,7 @@ def refine_masks(
     `cfg.iters` is None. Returns JSON-able figures: per-view areas and the refined / input ratio.
     A view with an empty input mask keeps an empty refined mask."""
     from coin_cl.gs.base import splat
-    from coin_cl.gs.refgs import mask_vote_counts
+    from coin_cl.gs.prune import in_masks
     from coin_cl.gs.sh import sh_to_rgb
     from coin_cl.scene.masks import write_mask
 
@@ -90,8 +90,9 @@ def refine_masks(
     with torch.no_grad():
         g = model.export_gaussians(centre)
     means = g["means"].float()
-    seen, inside = mask_vote_counts(means.numpy(), [v.camera for v in views], [masks[i] for i in train])
-    keep = torch.from_numpy(~((seen >= 1) & (inside >= cfg.min_fraction * seen)))
+    keep = torch.from_numpy(
+        ~in_masks(means.numpy(), [v.camera for v in views], [masks[i] for i in train], cfg.min_fraction)
+    )
     n_removed = int((~keep).sum())
     log.info("refine masks: %d of %d Gaussians removed (inside the masks in >= %.0f%% of the views "
              "seeing them)", n_removed, len(means), 100 * cfg.min_fraction)  # fmt: skip
@@ -120,7 +121,7 @@ def refine_masks(
         if mask.any() and not mask.all() and cfg.see_through > 0:
             # Removing the object can expose what lies *behind* a surface nobody saw (the floor
             # under a table): covered, but deeper than the surroundings' depth carried inward.
-            from coin_cl.gs.refgs import inpaint_depth
+            from coin_cl.gs.depth_prior import inpaint_depth
 
             d = depth.numpy().astype(np.float64)
             around = inpaint_depth(d, mask)

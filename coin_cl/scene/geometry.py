@@ -1,27 +1,44 @@
-"""Multi-view geometry helpers on a `Scene`: which sparse points lie on the masked object, and how
-well masks agree across views (used by checks and by the pipeline's 3D-first option)."""
+"""Multi-view geometry helpers on posed views: which points lie on the masked object, and how well
+masks agree across views (scene checks, the Ref-GS point pruning of paper 4.2, the pipeline's
+3D-first mask refinement and insertion's visual hull)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 
-from .types import Scene
+from .masks import mask_of_shape
+from .types import Camera, Scene
 
 
-def mask_votes(scene: Scene, points: np.ndarray, views: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """For points (N, 3): in how many of `views` each lands inside the image in front of the
-    camera (seen (N,)), and in how many of those inside the view's mask (inside (N,))."""
-    seen = np.zeros(len(points), np.int32)
-    inside = np.zeros(len(points), np.int32)
-    for i in views:
-        cam, m = scene.cameras[i], scene.masks[i]
-        uv, z = cam.project(points)
-        ok = cam.in_image(uv) & (z > 0)
-        px = np.floor(uv[ok]).astype(np.int64)
-        hit = np.zeros(len(points), bool)
-        hit[np.flatnonzero(ok)] = m[px[:, 1], px[:, 0]]
+def mask_vote_counts(
+    points: Any, cameras: Sequence[Any], masks: Sequence[Any], near: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The one mask vote of the package.
+
+    Args:
+        points: [P, 3] world positions (numpy or torch).
+        cameras: camera-likes (K, viewmat, width, height; see `Camera.from_any`); masks: their
+            [H, W] bool masks (numpy or torch), aligned.
+        near: a point counts as seen only at camera z > near (see `Camera.project`).
+    Returns:
+        (seen [P] int64: in how many views each point is in front of the camera and inside the
+        image, inside [P] int64: in how many of those its pixel is inside that view's mask).
+    """
+    if len(cameras) != len(masks):
+        raise ValueError(f"{len(cameras)} cameras but {len(masks)} masks")
+    pts = np.asarray(points.detach().cpu() if hasattr(points, "detach") else points, np.float64)
+    pts = pts.reshape(-1, 3)
+    seen = np.zeros(len(pts), np.int64)
+    inside = np.zeros(len(pts), np.int64)
+    for i, (cam, mask) in enumerate(zip(cameras, masks)):
+        cam = cam if isinstance(cam, Camera) else Camera.from_any(cam)
+        m = mask_of_shape(mask, cam.height, cam.width, f"view {i}")
+        px, ok = cam.pixels(pts, near)
         seen += ok
-        inside += hit
+        inside += ok & m[px[:, 1], px[:, 0]]
     return seen, inside
 
 
@@ -31,6 +48,8 @@ def object_points(
     """Indices of sparse points on the masked object: seen in >= min_views of `views` (default the
     training views) and inside the mask in >= min_frac of those. (M,) int64."""
     views = scene.train_idx if views is None else views
-    seen, inside = mask_votes(scene, scene.points, views)
+    seen, inside = mask_vote_counts(
+        scene.points, [scene.cameras[i] for i in views], [scene.masks[i] for i in views]
+    )
     ok = (seen >= min_views) & (inside >= min_frac * np.maximum(seen, 1))
     return np.flatnonzero(ok)

@@ -78,3 +78,9 @@ def write_npy(path: str | Path, arr: np.ndarray) -> None:
 def list_images(folder: Path) -> list[Path]:
     """Image files directly inside `folder`, sorted by name."""
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix in IMAGE_EXTS)
+
+
+def view_stem(name: str, index: int) -> str:
+    """File stem of a view's per-view outputs (renders/<stem>.png, ...): its image name without the
+    extension, or view_<index:03d> for a view without a name."""
+    return Path(name).stem if name else f"view_{index:03d}"

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -75,6 +76,14 @@ def check_mask(mask: np.ndarray, source: str = "mask") -> np.ndarray:
             "check that the mask is not inverted (True/non-zero must mark the object)"
         )
     return m
+
+
+def mask_of_shape(mask: Any, H: int, W: int, what: str) -> np.ndarray:
+    """`mask` (numpy or torch, [H, W]) as a bool array; ValueError naming `what` on another shape."""
+    m = np.asarray(mask.detach().cpu() if hasattr(mask, "detach") else mask)
+    if m.shape != (H, W):
+        raise ValueError(f"{what}: mask is {m.shape} but the camera is {H}x{W} (rows x columns)")
+    return m.astype(bool)
 
 
 def bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:

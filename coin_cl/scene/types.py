@@ -102,18 +102,37 @@ class Camera:
         """(viewmat (4, 4), K (3, 3)) as torch float32 tensors."""
         return self.viewmat_t, self.K_t
 
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points (N, 3) -> pixel coordinates (N, 2) in our convention and camera z (N,).
+    def project(self, points: Any, near: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) (numpy or torch) -> pixel coordinates (N, 2) in our convention and
+        camera z (N,), in float64.
 
-        Points at z <= 0 get NaN coordinates.
+        Points at z <= near get NaN coordinates: near 0 (default) drops what is behind the camera;
+        the renderer's near plane (`engine.constants.NEAR_PLANE`) keeps exactly what it could draw.
         """
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pts = np.asarray(points.detach().cpu() if hasattr(points, "detach") else points, dtype=np.float64)
+        pts = pts.reshape(-1, 3)
         pc = pts @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
         z = pc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc[:, :2] / z[:, None]) @ self.K[:2, :2].T + self.K[:2, 2]
-        uv[z <= 0] = np.nan
+        uv[~(z > near)] = np.nan  # also NaN z
         return uv, z
+
+    def pixels(self, points: Any, near: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels world points (N, 3) fall in.
+
+        Returns (px (N, 2) int64 (column, row), ok (N,) bool): ok = z > near and the projection is
+        finite and inside the image; px is only meaningful where ok (0 elsewhere). Pixel centres
+        are at +0.5, so (u, v) lies in pixel (floor(v), floor(u)).
+        """
+        uv, _ = self.project(points, near)
+        ok = self.in_image(uv) & np.isfinite(uv).all(1)
+        px = np.zeros((len(uv), 2), np.int64)
+        px[ok] = np.floor(uv[ok]).astype(np.int64)
+        # floor(u) can equal W only through rounding at the border; keep the index valid.
+        px[:, 0] = np.clip(px[:, 0], 0, self.width - 1)
+        px[:, 1] = np.clip(px[:, 1], 0, self.height - 1)
+        return px, ok
 
     def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) and camera z (N,) -> world points (N, 3)."""

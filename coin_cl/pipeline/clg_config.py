@@ -1,0 +1,86 @@
+"""Settings of the CLG stage (CoIn paper 4.3 and supplement): the sampler's (a nested
+`coin_cl.diffusion.SamplerConfig` with CLG's defaults), the energy's and the output's."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+from coin_cl.diffusion.sampling import Denoiser, SamplerConfig
+
+PAPER_STEPS = 200  # paper 4.3 / supplement: 200 'quad' DDIM steps with Stable Diffusion 2
+PRIOR_STEPS = 25  # the scene prior: a small pixel-space UNet on 2 cores, where 200 steps cost minutes a view
+
+
+def clg_sampler() -> SamplerConfig:
+    """CLG's sampler defaults (paper 4.3): 'quad' steps, FreeDoM's c = 0.5 over the first 80 % of
+    the trajectory (the last steps only sharpen; guiding them fights the model for little
+    consistency), time travel off. The step count is `CLGConfig.steps`."""
+    return SamplerConfig(discretization="quad", guidance_scale=0.5, guidance_end=0.8)
+
+
+@dataclass
+class CLGConfig:
+    """Settings of the CLG stage.
+
+    steps: DDIM steps; None = PAPER_STEPS (200) for Stable Diffusion 2, PRIOR_STEPS (25) for the
+        scene prior (the named smaller default: 200 steps of the prior cost minutes per view here).
+    sampler: the DDIM sampler's settings (`coin_cl.diffusion.SamplerConfig`, defaults `clg_sampler`):
+        discretization 'quad' (paper) or 'uniform', eta, FreeDoM's guidance_scale c (0 = unguided)
+        and its window guidance_start/end, time travel (travel_repeats 1 = off), cfg_scale
+        (classifier-free guidance, SD2 with a prompt only). Its num_steps must stay at the default:
+        the count depends on the model, so `steps` sets it (a changed num_steps is an error).
+    prompt: text (SD2 only).
+    alpha: position of the intermediate pose phi between k (0) and n (1) (paper 0.5).
+    context: crop side >= context x the mask's bounding box side (as stage 1).
+    w_hr, w_rgb: weights of the cosine and RGB terms of L3D (paper: 1 and 1).
+    depth_tol, src_depth_tol, footprint: the warp op's knobs (see `coin_cl.engine.warp_features`).
+    max_points: P_k is thinned to at most this many points (evenly by index) for speed; at the
+        sampler's scale many points share a pixel anyway.
+    feather_px: inward feather of the paste (outside the mask is untouched either way).
+    seed: view n samples with seed + n. progress: tqdm bars over views and steps.
+    sample: False = no diffusion sampler: every hole pixel takes the energy's own target, the
+        reference's colour warped through P_k where supported (S) and R_n elsewhere, i.e. the
+        minimiser of E(X) with the RGB term alone (`warp_fill`). The pipeline uses it for an
+        edited reference (`coin_cl.pipeline.insert`), where no model can draw the inserted object
+        and a sampler would paint the hole with the scene's own textures.
+    keep_if_worse: a view's output must not be worse than its input I^_n on what can be measured
+        without ground truth (issue 22): a larger consistency residual to the reference, less
+        texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
+        mask's surroundings (more than (1 + colour_tol) x the input's distance). Such a view keeps
+        I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg.no_worse`).
+    """
+
+    steps: int | None = None
+    sampler: SamplerConfig = field(default_factory=clg_sampler)
+    prompt: str = ""
+    alpha: float = 0.5
+    context: float = 1.5
+    w_hr: float = 1.0
+    w_rgb: float = 1.0
+    depth_tol: float = 0.01
+    src_depth_tol: float = 0.01
+    footprint: str = "bilinear"
+    max_points: int = 400_000
+    feather_px: int = 2
+    seed: int = 0
+    progress: bool = True
+    sample: bool = True
+    keep_if_worse: bool = True
+    texture_tol: float = 0.1
+    colour_tol: float = 0.25
+
+    def __post_init__(self) -> None:
+        if self.sampler.num_steps != SamplerConfig().num_steps:
+            raise ValueError(
+                f"CLGConfig.sampler.num_steps = {self.sampler.num_steps} is not read: set CLGConfig.steps "
+                "(None picks the model's default)"
+            )
+
+    def num_steps(self, denoiser: Denoiser) -> int:
+        if self.steps is not None:
+            return int(self.steps)
+        return PRIOR_STEPS if getattr(denoiser, "name", "") == "scene prior" else PAPER_STEPS
+
+    def sampler_config(self, denoiser: Denoiser) -> SamplerConfig:
+        """`sampler` with the step count for `denoiser`."""
+        return replace(self.sampler, num_steps=self.num_steps(denoiser))

@@ -1,0 +1,45 @@
+"""From a folder of photos to a scene coin-cl runs on: structure from motion (`sfm`) and object
+masks from one annotation (`annotate`, `propagate`, `scene_masks`). Weight-free: pycolmap and
+OpenCV's GrabCut; a user's segmenter (SAM) plugs in as `segment` (`propagate.Segmenter`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .propagate import PropagateConfig, PropagateResult, Segmenter, propagate_masks
+from .scene_masks import Annotation, make_masks
+from .sfm import SfmConfig, run_sfm
+from .sfm_report import SfmReport, read_report
+
+__all__ = [
+    "Annotation",
+    "PropagateConfig",
+    "PropagateResult",
+    "Segmenter",
+    "SfmConfig",
+    "SfmReport",
+    "make_masks",
+    "prepare",
+    "propagate_masks",
+    "read_report",
+    "run_sfm",
+]
+
+
+def prepare(
+    photos_dir: str | Path,
+    scene_dir: str | Path,
+    annotation: Annotation | None = None,
+    sfm: SfmConfig | None = None,
+    masks: PropagateConfig | None = None,
+    segment: Segmenter | None = None,
+) -> tuple[SfmReport, PropagateResult | None]:
+    """Photos -> `scene_dir` (plain COLMAP layout that `coin_cl.load_scene` reads) and, given an
+    annotation of the object in one view, its masks in every view. A box in the annotation is in
+    the photo's pixels (scaled here to the working size). Resumes what a previous run left."""
+    report = run_sfm(photos_dir, scene_dir, sfm)
+    if annotation is None:
+        return report, None
+    if annotation.box is not None and annotation.photos_dir is None:
+        annotation.photos_dir = Path(photos_dir)
+    return report, make_masks(scene_dir, annotation, masks, segment)
