@@ -254,6 +254,18 @@ def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
 # ------------------------------------------------------------------------------------------ kills
 
 
+def wrote_progress(folder: Path, since: float) -> bool:
+    """Whether a checkpoint or a per-view image under `folder` was written after `since`."""
+    for p in folder.rglob("*"):
+        keep = p.name == "ckpt.pt" or p.name.endswith(".ckpt.pt") or p.suffix == ".png"
+        try:
+            if keep and p.stat().st_mtime > since:
+                return True
+        except FileNotFoundError:
+            continue
+    return False
+
+
 def progress_kept(folder: Path) -> int:
     """Work a killed stage keeps for its resumption: training steps in its checkpoints (GS trainer,
     scene prior) plus per-view images already written."""
@@ -310,12 +322,18 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
             time.sleep(0.02)
         if proc.poll() is not None:
             continue
-        # late enough in the stage that its checkpoints hold work (each resumption repeats the
-        # stage's setup), early enough that a resumed stage is usually still running; a stage that
-        # finishes first just gets fewer kills
-        delay = rng.uniform(0.4, 0.95) * max(0.2, ref_seconds.get(st, 1.0))
-        t_end = time.time() + delay
-        while proc.poll() is None and time.time() < t_end and not stage_done(out, st):
+        # The moment: shortly (0-0.3 s) after the stage wrote new progress in this life (a checkpoint,
+        # a finished view), so that every resumption has work to keep and the stage is still
+        # running; stages that write no progress (0_scene, eval) at 30-90 % of their length.
+        t_st, rand_after, delay = time.time(), rng.uniform(0.0, 0.3), None
+        fallback = rng.uniform(0.3, 0.9) * max(0.2, ref_seconds.get(st, 1.0))
+        while proc.poll() is None and not stage_done(out, st):
+            now = time.time()
+            if delay is None and wrote_progress(out / st, t_st):
+                delay = now - t_st + rand_after
+            if (delay is not None and now - t_st >= delay) or (delay is None and now - t_st >= fallback):
+                delay = now - t_st
+                break
             time.sleep(0.01)
         if proc.poll() is not None or stage_done(out, st):
             continue
