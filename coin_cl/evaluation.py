@@ -119,8 +119,10 @@ def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None
         "per_view": per_view,
         "lpips": "available" if model is not None else reason,
         "fid": "available" if mean["fid"] is not None else fid_reason,
-        "notes": "m_* within the GT mask; bbox_*, m_lpips and m_fid on the mask's bounding-box "
-        "crop; SSIM Gaussian sigma 1.5; fid/m_fid are scene-level",
+        "notes": "m_* within the GT mask; bbox_*, swd, m_lpips and m_fid on the mask's bounding-box "
+        "crop; SSIM Gaussian sigma 1.5; fid/m_fid are scene-level; swd: sliced Wasserstein distance of "
+        "Laplacian-pyramid 7x7 patches (x1000, lower is better); color_dist: sliced W1 of the masked "
+        "pixels' Lab colours (about delta-E, lower is better)",
     }
     write_text(out / "metrics.json", json.dumps(M.jsonable(doc), indent=1))
     keys = [k for k in mean if k not in ("fid", "m_fid")]  # FID exists per scene only

@@ -4,6 +4,9 @@
 - m-PSNR: PSNR of the pixels inside the ground-truth mask; m-SSIM: the SSIM map averaged inside it;
 - bbox-PSNR / bbox-SSIM / m-LPIPS: the metric on the crop to the mask's bounding box (SPIn-NeRF's
   way of scoring the masked region with a metric that needs a whole image);
+- SWD: sliced Wasserstein distance of Laplacian-pyramid patch distributions on the bounding box
+  (Karras et al. 2018), and a colour check (sliced W1 of the masked pixels' Lab colours): weight-free
+  distances of texture and colour statistics that the HF ratio (which counts noise as texture) misses;
 - LPIPS (AlexNet or VGG16 backbone + LPIPS linear heads) and FID / m-FID (FID of the bounding-box
   crops, pytorch-fid's Inception-v3): the networks and their weights live in `coin_cl.nets` (local
   files named by environment variables, never downloaded). Nothing is ever computed with random
@@ -155,6 +158,95 @@ def hf_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, power: int = 1)
 
 
 # ----------------------------------------------------------------------------------------------
+# Distribution distances that see texture and colour (weight-free): sliced Wasserstein distances.
+
+SWD_PATCH = 7  # Laplacian-pyramid neighbourhood side, as Karras et al. 2018
+SWD_MIN_SIDE = 16  # the coarsest pyramid level's shorter side
+SWD_MAX_PATCHES = 4096  # patches drawn per level and image (all of them when fewer)
+SWD_DIRS = 256  # random projection directions
+COLOR_DIRS = 64
+
+
+def _random_dirs(dim: int, n: int, rng: np.random.Generator) -> np.ndarray:
+    d = rng.standard_normal((dim, n))
+    return d / np.linalg.norm(d, axis=0, keepdims=True)
+
+
+def _sliced_w1(a: np.ndarray, b: np.ndarray, d: np.ndarray) -> float:
+    """Sliced 1-Wasserstein distance of point sets a (N, D) and b (M, D): the mean over the unit
+    directions d (D, K) of the W1 distance of the projections (quantile functions on a common grid)."""
+    pa, pb = np.sort(a @ d, axis=0), np.sort(b @ d, axis=0)
+    if len(pa) != len(pb):
+        q = np.linspace(0, 1, max(len(pa), len(pb)))
+        pa, pb = np.quantile(pa, q, axis=0), np.quantile(pb, q, axis=0)
+    return float(np.abs(pa - pb).mean())
+
+
+def _laplacian_pyramid(img: np.ndarray, min_side: int) -> list[np.ndarray]:
+    levels, cur = [], img.astype(np.float32)
+    while min(cur.shape[:2]) // 2 >= min_side:
+        down = cv2.pyrDown(cur)
+        levels.append(cur - cv2.pyrUp(down, dstsize=(cur.shape[1], cur.shape[0])))
+        cur = down
+    levels.append(cur)  # the low-pass residual
+    return levels
+
+
+def _patches(level: np.ndarray, n_max: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, 7*7*3) neighbourhoods of one pyramid level (a random subset of at most n_max)."""
+    win = np.lib.stride_tricks.sliding_window_view(level, (SWD_PATCH, SWD_PATCH), axis=(0, 1))
+    flat = win.reshape(-1, level.shape[2] * SWD_PATCH * SWD_PATCH)
+    if len(flat) > n_max:
+        flat = flat[np.sort(rng.choice(len(flat), n_max, replace=False))]
+    return np.asarray(flat, np.float64)
+
+
+def swd(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None, seed: int = 0) -> float:
+    """Sliced Wasserstein distance between the Laplacian-pyramid patch distributions of prediction
+    and ground truth (Karras et al. 2018, "Progressive growing of GANs", section 5), on the crop to
+    the mask's bounding box (the whole image without a mask), x 1000 as in that paper.
+
+    Each level's 7 x 7 x 3 neighbourhoods are normalised by the ground truth's per-channel mean and
+    standard deviation at that level (the paper normalises each set by its own: here a loss of
+    contrast, i.e. blur, must count); the distance is the mean over levels of the sliced W1 over 256
+    random directions (fixed by `seed`). 0 for identical inputs; it compares patch statistics, not
+    positions, so a one-pixel shift scores low and blur high. NaN for an empty mask or a crop
+    smaller than 7 px."""
+    p, g = _check_pair(pred, gt)
+    if mask is not None:
+        crop = bbox_crop(mask, min_side=SWD_MIN_SIDE)
+        if crop is None:
+            return math.nan
+        p, g = p[crop], g[crop]
+    if min(p.shape[:2]) < SWD_PATCH:
+        return math.nan
+    rng = np.random.default_rng(seed)
+    dists = []
+    for lp, lg in zip(_laplacian_pyramid(p, SWD_MIN_SIDE), _laplacian_pyramid(g, SWD_MIN_SIDE)):
+        a, b = _patches(lp, SWD_MAX_PATCHES, rng), _patches(lg, SWD_MAX_PATCHES, rng)
+        a3, b3 = a.reshape(len(a), -1, 3), b.reshape(len(b), -1, 3)  # patches x pixels x RGB
+        mu, sd = b3.mean(axis=(0, 1)), b3.std(axis=(0, 1)) + 1e-6
+        na, nb = ((a3 - mu) / sd).reshape(len(a), -1), ((b3 - mu) / sd).reshape(len(b), -1)
+        dists.append(_sliced_w1(na, nb, _random_dirs(a.shape[1], SWD_DIRS, rng)))
+    return 1000.0 * float(np.mean(dists))
+
+
+def color_distance(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, seed: int = 0) -> float:
+    """Colour check: sliced 1-Wasserstein distance between the CIE Lab colours (L in 0-100, about
+    delta-E units) of the prediction's and the ground truth's pixels inside the mask, over 64 random
+    directions plus the three axes. Positions do not matter (a shifted fill scores about 0); colours
+    the truth does not have (hue noise, a tint) do. NaN for an empty mask."""
+    p, g = _check_pair(pred, gt)
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return math.nan
+    lab = lambda x: cv2.cvtColor(np.clip(x, 0, 1).astype(np.float32), cv2.COLOR_RGB2Lab)[m]  # noqa: E731
+    a, b = lab(p).astype(np.float64), lab(g).astype(np.float64)
+    dirs = np.concatenate([np.eye(3), _random_dirs(3, COLOR_DIRS, np.random.default_rng(seed))], axis=1)
+    return _sliced_w1(a, b, dirs)
+
+
+# ----------------------------------------------------------------------------------------------
 # LPIPS with a network from `coin_cl.nets.lpips` (load_lpips / lpips_from_env).
 
 
@@ -245,8 +337,8 @@ def evaluate_view(
     pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None, lpips_model=None
 ) -> dict[str, float | None]:
     """All metrics of one view: psnr, ssim, m_psnr, m_ssim, bbox_psnr, bbox_ssim, hf_ratio (in the
-    mask), bbox_gmsd, lpips, m_lpips (None when LPIPS is unavailable; NaN masked metrics for an
-    empty or absent mask)."""
+    mask), bbox_gmsd, swd (bbox), color_dist (mask), lpips, m_lpips (None when LPIPS is unavailable;
+    NaN masked metrics for an empty or absent mask)."""
     out: dict[str, float | None] = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
     m = np.zeros(gt.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     out["m_psnr"] = masked_psnr(pred, gt, m)
@@ -254,6 +346,8 @@ def evaluate_view(
     out.update(bbox_metrics(pred, gt, m))
     out["hf_ratio"] = hf_ratio(pred, gt, m)
     out["bbox_gmsd"] = bbox_gmsd(pred, gt, m)
+    out["swd"] = swd(pred, gt, m) if m.any() else math.nan
+    out["color_dist"] = color_distance(pred, gt, m)
     if lpips_model is None:
         out["lpips"] = out["m_lpips"] = None
     else:

@@ -1,5 +1,6 @@
 """CoIn's 2D branch in CPU torch: DDIM sampling with energy guidance, Stable Diffusion 2 inpainting from
-local weights, the embedded scene prior, feature extractors and the TE-D patch discriminator.
+local weights, LaMa from a local TorchScript file, the embedded exemplar inpainter and scene prior,
+feature extractors and the TE-D patch discriminator.
 
 This package never imports OpenCL or the engine; the pipeline joins the two. Inside it, imports are
 relative so it can move under another package.
@@ -22,6 +23,7 @@ from .discriminator import (  # noqa: E402
     g_loss,
     sample_patch_corners,
 )
+from .exemplar import EXEMPLAR_NAME, ExemplarConfig, exemplar_inpaint  # noqa: E402
 from .features import (  # noqa: E402
     ANALYTIC_NAME,
     DINO_ENV,
@@ -34,6 +36,7 @@ from .features import (  # noqa: E402
     make_feature_extractor,
 )
 from .inpaint2d import InpaintConfig, inpaint_image, opencv_inpaint  # noqa: E402
+from .lama import LAMA_ENV, lama_inpaint, load_lama  # noqa: E402
 from .sampling import (  # noqa: E402
     DDIMSampler,
     Denoiser,
@@ -55,9 +58,9 @@ def available_models(
 ) -> dict[str, dict]:
     """Which 2D models can run here, and why (for ``coin-cl doctor``). Loads nothing heavy.
 
-    Returns {'sd2': ..., 'dino': ..., 'scene_prior': ...}, each {'available': bool, 'reason': str}
-    plus 'path' where one is known. The scene prior is always available (trained on the scene at run
-    time); the reason says whether cached models exist in prior_cache_dir.
+    Returns {'sd2': ..., 'lama': ..., 'dino': ..., 'scene_prior': ...}, each {'available': bool,
+    'reason': str} plus 'path' where one is known. The scene prior is always available (trained on
+    the scene at run time); the reason says whether cached models exist in prior_cache_dir.
     """
     out: dict[str, dict] = {}
     p = resolve_sd2_path(sd2_path)
@@ -71,6 +74,16 @@ def available_models(
             "path": str(p),
             "reason": f"{src}={p}: "
             + ("complete diffusers folder" if not missing else f"missing {', '.join(missing)}"),
+        }
+    lp = os.environ.get(LAMA_ENV)
+    if not lp:
+        out["lama"] = {"available": False, "reason": f"{LAMA_ENV} not set (--lama-path at run time)"}
+    else:
+        ok = os.path.isfile(lp)
+        out["lama"] = {
+            "available": ok,
+            "path": lp,
+            "reason": f"{LAMA_ENV}={lp} " + ("found" if ok else "does not exist"),
         }
     dp = dino_path if dino_path is not None else os.environ.get(DINO_ENV)
     if not dp:
@@ -97,6 +110,12 @@ def available_models(
 
 __all__ = [
     "ANALYTIC_NAME",
+    "EXEMPLAR_NAME",
+    "LAMA_ENV",
+    "ExemplarConfig",
+    "exemplar_inpaint",
+    "lama_inpaint",
+    "load_lama",
     "DINO_ENV",
     "DINO_NAME",
     "SD2_ENV",

@@ -206,3 +206,90 @@ class SD2Denoiser(Denoiser):
         res = DDIMSampler(self, cfg).sample(z, cond, uncond, energy=energy, generator=generator)
         with torch.no_grad():
             return self.decode(res.z).clamp(0, 1)
+
+
+# ----------------------------------------------------------------------------------------------
+# Cost at the real size: the published configurations of stabilityai/stable-diffusion-2-inpainting
+# (diffusers unet/config.json and vae/config.json, the fields that set the architecture), built with
+# random weights by `benchmarks/inpaint2d.py --sd2` to time a step as a user with the weights waits.
+
+SD2_UNET_CONFIG: dict = {
+    "sample_size": 64,
+    "in_channels": 9,  # z_t (4) + mask (1) + masked-image latent (4)
+    "out_channels": 4,
+    "down_block_types": [
+        "CrossAttnDownBlock2D",
+        "CrossAttnDownBlock2D",
+        "CrossAttnDownBlock2D",
+        "DownBlock2D",
+    ],
+    "up_block_types": ["UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"],
+    "block_out_channels": [320, 640, 1280, 1280],
+    "layers_per_block": 2,
+    "attention_head_dim": [5, 10, 20, 20],
+    "cross_attention_dim": 1024,
+    "use_linear_projection": True,
+    "act_fn": "silu",
+    "norm_num_groups": 32,
+    "norm_eps": 1e-5,
+    "flip_sin_to_cos": True,
+    "freq_shift": 0,
+    "downsample_padding": 1,
+    "mid_block_scale_factor": 1,
+    "center_input_sample": False,
+}
+SD2_VAE_CONFIG: dict = {
+    "in_channels": 3,
+    "out_channels": 3,
+    "down_block_types": ["DownEncoderBlock2D"] * 4,
+    "up_block_types": ["UpDecoderBlock2D"] * 4,
+    "block_out_channels": [128, 256, 512, 512],
+    "layers_per_block": 2,
+    "latent_channels": 4,
+    "norm_num_groups": 32,
+    "act_fn": "silu",
+    "sample_size": 512,
+    "scaling_factor": 0.18215,
+}
+# Measured by `nice -n 15 python benchmarks/inpaint2d.py --sd2` (2 torch threads, float32, 512x512,
+# see docs/BENCHMARKS.md for the machine): seconds per DDIM step and peak resident memory.
+SD2_MEASURED = {"unguided_step_s": 43.3, "guided_step_s": 107.8, "peak_gib": 11.7, "threads": 2}
+
+
+def build_sd2_random(seed: int = 0) -> tuple[Any, Any]:
+    """(UNet2DConditionModel, AutoencoderKL) of SD2-inpainting's published sizes with random weights
+    (same cost as the real ones; nothing loaded or downloaded)."""
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+
+    torch.manual_seed(seed)
+    return UNet2DConditionModel(**SD2_UNET_CONFIG).eval(), AutoencoderKL(**SD2_VAE_CONFIG).eval()
+
+
+def sd2_run_estimate(
+    n_views: int, steps: int = 50, guided_views: int | None = None, measured: dict | None = None
+) -> dict:
+    """What an SD2 run costs on this CPU class, from the measured per-step figures: stage 1 samples
+    every masked view unguided (`n_views` x `steps` unguided steps), CLG samples the non-reference
+    views guided (`guided_views`, default n_views - 1, x `steps` guided steps: backprop through the
+    UNet and the VAE decoder). Returns {"stage1_s", "clg_s", "total_s", "peak_gib", "message"};
+    the seconds are None when no figures were measured."""
+    m = {**SD2_MEASURED, **(measured or {})}
+    gv = max(n_views - 1, 0) if guided_views is None else guided_views
+    u, g = m.get("unguided_step_s"), m.get("guided_step_s")
+    if u is None or g is None:
+        return {"stage1_s": None, "clg_s": None, "total_s": None, "peak_gib": None,
+                "message": "SD2 cost unknown: run benchmarks/inpaint2d.py --sd2"}  # fmt: skip
+    s1, clg = n_views * steps * u, gv * steps * g
+    msg = (
+        f"SD2 at 512x512 on {m['threads']} CPU threads: ~{u:.0f} s per unguided step, ~{g:.0f} s per guided "
+        f"step, peak ~{m['peak_gib']:.1f} GiB. Stage 1: {n_views} views x {steps} steps ~ {s1 / 3600:.1f} h; "
+        f"CLG: {gv} views x {steps} guided steps ~ {clg / 3600:.1f} h; total ~ {(s1 + clg) / 3600:.1f} h"
+    )
+    return {"stage1_s": s1, "clg_s": clg, "total_s": s1 + clg, "peak_gib": m["peak_gib"], "message": msg}
+
+
+def log_sd2_estimate(n_views: int, steps: int = 50, guided_views: int | None = None) -> dict:
+    """Log `sd2_run_estimate` before an SD2 run starts (the pipeline calls this); returns it."""
+    est = sd2_run_estimate(n_views, steps, guided_views)
+    log.warning("%s", est["message"])
+    return est

@@ -27,9 +27,9 @@ def test_demo_room_runs_coin_and_baselines(tmp_path, capsys):
     # a reconstruction, however short, beats a blank image on the held-out ground truth
     assert room["methods"]["masked_recon"]["psnr"] > 10.0
     # the embedded default standing in for Stable Diffusion 2 is named in the results
-    assert "scene prior" in room["inpainting_model"]
+    assert "embedded exemplar" in room["inpainting_model"]
     md = (tmp_path / "room" / "results.md").read_text()
-    assert "| coin |" in md and "scene prior" in md and md in capsys.readouterr().out
+    assert "| coin |" in md and "embedded exemplar" in md and md in capsys.readouterr().out
     # the baseline started from CoIn's very inpaints: its stage 1 was skipped, not redone
     log = json.loads((tmp_path / "room" / "inpaint_then_gs" / "log.json").read_text())
     assert log["stages"]["1_inpaint"]["status"] == "skipped: up to date"

@@ -169,8 +169,10 @@ def test_available_models_reports_why(tiny_sd2, tmp_path, monkeypatch):
 
     monkeypatch.delenv("COIN_SD2_PATH", raising=False)
     monkeypatch.delenv("COIN_DINO_WEIGHTS", raising=False)
+    monkeypatch.delenv("COIN_LAMA_PATH", raising=False)
     r = diffusion.available_models()
-    assert set(r) == {"sd2", "dino", "scene_prior"}
+    assert set(r) == {"sd2", "lama", "dino", "scene_prior"}
+    assert not r["lama"]["available"] and "COIN_LAMA_PATH" in r["lama"]["reason"]
     assert not r["sd2"]["available"] and "COIN_SD2_PATH" in r["sd2"]["reason"]
     assert not r["dino"]["available"] and "analytic" in r["dino"]["reason"]
     assert r["scene_prior"]["available"]

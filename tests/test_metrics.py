@@ -157,6 +157,7 @@ def test_eval_ground_truth_against_itself(eval_scene, tmp_path, monkeypatch):
     doc = json.loads((pred / "eval" / "metrics.json").read_text())
     assert doc["mean"]["psnr"] == "inf" and doc["mean"]["m_psnr"] == "inf"
     assert doc["mean"]["ssim"] == pytest.approx(1.0) and doc["mean"]["m_ssim"] == pytest.approx(1.0)
+    assert doc["mean"]["swd"] == 0.0 and doc["mean"]["color_dist"] == 0.0
     assert doc["mean"]["lpips"] is None and "COIN_LPIPS" in doc["lpips"]
     assert doc["mean"]["fid"] is None and "COIN_FID_WEIGHTS" in doc["fid"]
     assert set(doc["per_view"]) == {"view_000.png", "view_001.png"}
@@ -182,6 +183,7 @@ def test_eval_scores_a_worse_prediction_lower(eval_scene, tmp_path):
     doc = evaluate_folder(pred, eval_scene, tmp_path / "out")
     assert 10 < doc["mean"]["psnr"] < 60 and doc["mean"]["m_psnr"] < doc["mean"]["psnr"]
     assert doc["mean"]["m_ssim"] < doc["mean"]["ssim"] < 1
+    assert doc["mean"]["swd"] > 0 and doc["mean"]["color_dist"] > 0
 
 
 def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
@@ -250,3 +252,50 @@ def test_mask_texture_is_the_hf_ratio_terms():
     with pytest.raises(ValueError, match="does not match"):
         M.mask_texture(gt, np.ones((40, 49), bool))
     assert M.hf_ratio(pred, gt, mask) == pytest.approx(M.mask_texture(pred, mask) / M.mask_texture(gt, mask))
+
+
+# ---- SWD and the colour check (issue 22) ----
+
+
+def _texture(H=96, W=96, seed=0):
+    rng = np.random.default_rng(seed)
+    g = cv2.GaussianBlur(rng.random((H, W, 3)).astype(np.float32), (0, 0), 1.0)
+    return (g - g.min()) / (g.max() - g.min())
+
+
+def _box_mask(H=96, W=96):
+    m = np.zeros((H, W), bool)
+    m[20:70, 24:74] = True
+    return m
+
+
+def test_swd_zero_identical_blur_worse_than_shift():
+    g, m = _texture(), _box_mask()
+    assert M.swd(g, g, m) == 0.0
+    shifted = np.roll(g, 1, axis=1)
+    blurred = cv2.GaussianBlur(g, (0, 0), 2.0)
+    s_shift, s_blur = M.swd(shifted, g, m), M.swd(blurred, g, m)
+    assert 0 < s_shift < s_blur / 5
+    assert M.swd(g, g, np.zeros_like(m)) != M.swd(g, g, np.zeros_like(m))  # NaN for an empty mask
+    assert M.swd(shifted, g, None) == pytest.approx(M.swd(shifted, g, None))  # deterministic
+
+
+def test_color_distance_hue_noise_worse_than_shift():
+    g, m = _texture(), _box_mask()
+    assert M.color_distance(g, g, m) == 0.0
+    hsv = cv2.cvtColor(g, cv2.COLOR_RGB2HSV)
+    rng = np.random.default_rng(1)
+    hsv[..., 0] = (hsv[..., 0] + rng.normal(0, 60, hsv.shape[:2])) % 360
+    hsv[..., 1] = np.maximum(hsv[..., 1], 0.5)
+    noisy = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    c_shift, c_noise = M.color_distance(np.roll(g, 1, axis=1), g, m), M.color_distance(noisy, g, m)
+    assert c_shift < c_noise / 10
+    assert math.isnan(M.color_distance(g, g, np.zeros_like(m)))
+
+
+def test_evaluate_view_has_swd_and_colour():
+    g, m = _texture(), _box_mask()
+    d = M.evaluate_view(np.roll(g, 1, axis=1), g, m)
+    assert d["swd"] > 0 and d["color_dist"] >= 0
+    d0 = M.evaluate_view(g, g, None)
+    assert math.isnan(d0["swd"]) and math.isnan(d0["color_dist"])

@@ -46,7 +46,7 @@ def test_every_stage_runs_once_and_writes_its_outputs(first_run):
     assert res.model.n_primitives > 0
     assert len(list((out / "3_clg" / "images").glob("*.png"))) >= 1
     notes = res.stages["1_inpaint"]["notes"]
-    assert any("scene prior" in n for n in notes)  # the embedded default is named
+    assert any("embedded exemplar" in n for n in notes)  # the embedded default is named
 
 
 def test_rerun_skips_everything(room, first_run):

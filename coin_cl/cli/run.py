@@ -45,6 +45,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="training seconds of the embedded scene prior (replaces the budget's share; >= 120 "
                         "to be useful)")  # fmt: skip
     p.add_argument("--sd-path", default=None, help="Stable Diffusion 2 inpainting folder (diffusers format)")
+    p.add_argument("--inpainter", choices=("auto", "embedded", "telea", "lama"), default="auto",
+                   help="stage 1 without SD2 or dataset inpaints: auto = lama when a file is named, else "
+                        "embedded (exemplar patches + smooth structure, no weights)")  # fmt: skip
+    p.add_argument("--lama-path", default=None, help="LaMa TorchScript big-lama.pt (or COIN_LAMA_PATH)")
     p.add_argument("--dino-path", default=None, help="DINO ViT-S/16 checkpoint")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
     p.add_argument("--seed", type=int, default=0)
@@ -56,12 +60,14 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.pipeline.coin import CoInConfig, inpaint
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
     from coin_cl.pipeline.report import run_report
 
+    i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path)
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
-        inpaint_region=args.inpaint_region, carve=args.carve,
+        inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
     ).with_iters(args.iters)  # fmt: skip
     res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
                   prompt=args.prompt or None, budget=args.budget, config=cfg, force=tuple(args.force),

@@ -53,6 +53,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(
         f"{doc['n_views']} views: PSNR {fmt_metric(m['psnr'])}  SSIM {fmt_metric(m['ssim'])}  "
         f"m-PSNR {fmt_metric(m['m_psnr'])}  m-SSIM {fmt_metric(m['m_ssim'])}  LPIPS {fmt_metric(m['lpips'])}"
+        f"  SWD {fmt_metric(m.get('swd'))}  colour {fmt_metric(m.get('color_dist'))}"
     )
     print(f"wrote {out / 'metrics.json'}, {out / 'metrics.md'}, {out / 'grids'}/")
     return 0

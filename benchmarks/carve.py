@@ -1,0 +1,83 @@
+"""Benchmark: carving the object's volume (issue 21) against no carving, with the ghost figure.
+
+Rows share stages 0 and 1 and train Ref-GS only (no CLG, no TE-D, input masks), so they differ only by
+`CoInConfig.carve`. Ghost figure (`benchmarks/ghost.py`): the share of mask pixels of the object-absent
+test views rendered more than 10 % in front of the reference depth (exact on the synthetic room; on
+SPIn-NeRF a Scaffold-GS fitted to the 5 object-absent views). Also the visibility estimate.
+
+    python benchmarks/carve.py --scene spinnerf [--iters 400] [--out DIR]
+    python benchmarks/carve.py --scene room [--iters 300]
+
+Last line JSON: {row: {ghost, m_psnr, hf_ratio, bbox_gmsd, minutes}, observed_share, ...}.
+"""
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see coin_cl/__init__.py
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import cpu_model, default_data, git_commit  # noqa: E402
+from ghost import ghost_of_run, reference_depths  # noqa: E402
+
+from coin_cl.gs.carve import build_carve, observed_share  # noqa: E402
+from coin_cl.pipeline.coin import CoInConfig, inpaint, share_stages  # noqa: E402
+from coin_cl.scene import load_scene, write_synthetic  # noqa: E402
+from coin_cl.scene.synthetic import make_synthetic  # noqa: E402
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--scene", choices=("spinnerf", "room"), default="spinnerf")
+    ap.add_argument("--iters", type=int, default=None, help="Ref-GS steps (default 400 / 300)")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    out = args.out or Path(__file__).resolve().parent / "out" / f"carve_{args.scene}"
+    if args.scene == "spinnerf":
+        data, res_scale, iters, syn = default_data(), 0.5, args.iters or 400, None
+        scene = load_scene(data, resolution=res_scale)
+        depths = reference_depths(
+            scene, Path(__file__).resolve().parent / "out" / "ghost_reference" / "r0.5_i600"
+        )
+    else:
+        syn = make_synthetic(coverage=90, n_views=24, width=128, height=96, seed=0)
+        data, res_scale, iters = write_synthetic(out / "room", syn), 1.0, args.iters or 300
+        scene = load_scene(data)
+        depths = {i: syn.depth_absent[i].astype(np.float64) for i in scene.test_idx}
+    train = list(scene.train_idx)
+    vol = build_carve(
+        [scene.cameras[i] for i in train], [scene.masks[i] for i in train], np.asarray(scene.points)
+    )
+    share = observed_share(vol)[0]
+    base = CoInConfig(resolution=res_scale, iters_refgs=iters, iters_ted_finetune=0, iters_ted_adversarial=0,
+                      prior_seconds=120, skip=("clg",), inpaint_region="input")  # fmt: skip
+    rows = {}
+    for name, cfg in (("carve", replace(base, carve=True)), ("no_carve", base)):
+        if name != "carve":
+            share_stages(out / "carve", out / name, ("0_scene", "1_inpaint"))
+        t = time.perf_counter()
+        res = inpaint(data, out / name, config=cfg)
+        rows[name] = {k: res.metrics[k] for k in ("m_psnr", "hf_ratio", "bbox_gmsd")}
+        rows[name]["minutes"] = (time.perf_counter() - t) / 60
+        rows[name]["ghost"] = ghost_of_run(out / name, scene, depths)
+    print(f"\ncarve vs no carve on {args.scene} ({iters} Ref-GS steps, no CLG/TE-D); CPU {cpu_model()}; "
+          f"commit {git_commit()}; visibility estimate {share:.3f}")  # fmt: skip
+    print("| row | ghost | m-PSNR | HF ratio | bbox GMSD | minutes |\n|---|---|---|---|---|---|")
+    for name, r in rows.items():
+        print(f"| {name} | {r['ghost']:.3f} | {r['m_psnr']:.2f} | {r['hf_ratio']:.3f} | {r['bbox_gmsd']:.3f} "
+              f"| {r['minutes']:.1f} |")  # fmt: skip
+    print(json.dumps({**rows, "observed_share": share, "commit": git_commit(), "cpu": cpu_model()}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

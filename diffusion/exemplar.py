@@ -1,0 +1,279 @@
+"""The embedded inpainter without weights (paper 4.1's initial inpaint, when no SD2 / dataset inpaint
+exists): structure from a smooth solver, texture from exemplar patches of the same scene.
+
+Multi-scale patch-based completion (Wexler et al. 2007, with PatchMatch search, Barnes et al. 2009),
+at the hole's own resolution: an image pyramid of a window around the hole is built, the hole at the
+coarsest level is started from OpenCV's smooth fill (Telea / FSR), and every level alternates
+- search: for each patch overlapping the hole, the nearest patch (sum of squared differences) among the
+  patches lying wholly in known pixels of the window, in this view and in the other views given as
+  sources (the same window of each; their own masks excluded), by PatchMatch: propagation from
+  neighbours at 1, 2, 4 and 8 pixels, random search at halving radii and one global random draw;
+- vote: each hole pixel becomes the similarity-weighted mean of the pixels the overlapping patches
+  copied (weights exp(-d / 2h^2), h^2 the median patch distance of the level).
+The nearest-neighbour field is upsampled to the next level. Two outputs (`ExemplarConfig.mode`):
+"full" (the synthesis itself) and "hf" (the smooth solver's fill plus the synthesis's high-frequency
+band, ``X - G_sigma * X``, times ``hf_gain``): the benchmark `benchmarks/inpaint2d.py` measures both.
+
+Pure numpy + OpenCV, deterministic for a fixed seed (one ``np.random.default_rng(seed)``).
+Images (H, W, 3) float [0, 1]; masks (H, W) bool, True = fill.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .inpaint2d import check_image_mask, opencv_inpaint
+
+log = logging.getLogger(__name__)
+
+EXEMPLAR_NAME = "embedded exemplar inpainting (smooth structure + the scene's patches)"
+
+
+@dataclass
+class ExemplarConfig:
+    """patch: patch side in pixels (odd). min_coarse: the hole's longer side at the coarsest pyramid
+    level (levels are added until it is reached). em_iters: search+vote rounds per level (the coarsest
+    level gets twice as many). pm_iters: PatchMatch iterations per round. context: the working window
+    is the hole's bounding box grown by context x its longer side on every side (clipped to the image);
+    sources are drawn from it. structure: the smooth solver ('telea', 'ns', 'fsr_fast', 'fsr_best').
+    mode: 'full' or 'hf' (module docstring). hf_sigma: Gaussian sigma (px) splitting the bands in
+    'hf' mode. hf_gain: gain of the synthesised high band in 'hf' mode. vote_h: the vote's weight
+    bandwidth h^2 in units of the level's median patch distance (smaller: the best patches dominate,
+    sharper and noisier)."""
+
+    patch: int = 7
+    min_coarse: int = 12
+    em_iters: int = 3
+    pm_iters: int = 3
+    context: float = 1.0
+    structure: str = "fsr_fast"
+    mode: str = "hf"
+    hf_sigma: float = 2.0
+    hf_gain: float = 1.05
+    vote_h: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.patch < 3 or self.patch % 2 == 0:
+            raise ValueError(f"ExemplarConfig.patch must be odd and >= 3, got {self.patch}")
+        if self.mode not in ("full", "hf"):
+            raise ValueError(f"ExemplarConfig.mode must be 'full' or 'hf', got {self.mode!r}")
+        if self.min_coarse < 2 or self.em_iters < 1 or self.pm_iters < 0 or self.context < 0:
+            raise ValueError("ExemplarConfig: min_coarse >= 2, em_iters >= 1, pm_iters >= 0, context >= 0")
+
+
+def _window(mask: np.ndarray, context: float, margin: int) -> tuple[slice, slice]:
+    ys, xs = np.nonzero(mask)
+    side = max(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
+    g = int(math.ceil(context * side)) + margin
+    H, W = mask.shape
+    return slice(max(ys.min() - g, 0), min(ys.max() + 1 + g, H)), slice(
+        max(xs.min() - g, 0), min(xs.max() + 1 + g, W)
+    )
+
+
+def _down(img: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Half size: area-averaged image; a low-res pixel is a hole if any of its pixels is."""
+    h, w = hole.shape
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+    im = cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA)
+    hp = np.pad(hole, ((0, 2 * h2 - h), (0, 2 * w2 - w)), mode="edge")
+    return im, hp.reshape(h2, 2, w2, 2).any(axis=(1, 3))
+
+
+class _Level:
+    """One pyramid level: N views of the window, padded by the patch radius r, flattened."""
+
+    def __init__(self, imgs: np.ndarray, holes: np.ndarray, target_hole: np.ndarray, r: int):
+        self.r = r
+        self.n, self.h, self.w = holes.shape
+        pad = ((0, 0), (r, r), (r, r))
+        self.hp, self.wp = self.h + 2 * r, self.w + 2 * r
+        self.S = np.pad(imgs, pad + ((0, 0),), mode="reflect").reshape(-1, 3).astype(np.float32)
+        known = np.pad(~holes, pad, constant_values=False)
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        valid = np.stack([cv2.erode(v.astype(np.uint8), k, borderValue=0) > 0 for v in known])
+        self.valid = valid.reshape(-1)
+        self.valid_idx = np.flatnonzero(self.valid)
+        if len(self.valid_idx) == 0:
+            raise ValueError("no fully known patch around the hole: grow the window or use a smaller patch")
+        th = np.pad(target_hole, r, constant_values=False)
+        self.hole_idx = np.flatnonzero(th)  # in view 0's flat range
+        act = cv2.dilate(th.astype(np.uint8), k) > 0
+        act[:r], act[-r:], act[:, :r], act[:, -r:] = False, False, False, False
+        act |= th
+        self.act_idx = np.flatnonzero(act)  # patches overlapping the hole
+        dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
+        self.off = (dy * self.wp + dx).reshape(-1)
+
+    def yx(self, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n, rem = np.divmod(f, self.hp * self.wp)
+        y, x = np.divmod(rem, self.wp)
+        return n, y, x
+
+    def flat(self, n, y, x) -> np.ndarray:
+        return (n * self.hp + y) * self.wp + x
+
+
+def _patch_cost(L: _Level, tgt: np.ndarray, src: np.ndarray) -> np.ndarray:
+    d = L.S[src[:, None] + L.off[None, :]] - tgt
+    return np.einsum("mkc,mkc->m", d, d)
+
+
+def _search(L: _Level, nnf: np.ndarray, cost: np.ndarray, tgt: np.ndarray, iters: int, rng) -> None:
+    """PatchMatch on the active patches (in place): propagation, random search, one global draw."""
+    grid = np.full(L.hp * L.wp, -1, np.int64)
+    size = L.S.shape[0]
+
+    def try_cand(cand: np.ndarray, ok: np.ndarray) -> None:
+        ok = ok & (cand >= 0) & (cand < size)
+        ok[ok] = L.valid[cand[ok]]
+        if not ok.any():
+            return
+        c = _patch_cost(L, tgt[ok], cand[ok])
+        better = c < cost[ok]
+        sel = np.flatnonzero(ok)[better]
+        nnf[sel], cost[sel] = cand[ok][better], c[better]
+
+    for it in range(iters):
+        grid[L.act_idx] = nnf
+        sign = 1 if it % 2 == 0 else -1
+        for step in (1, 2, 4, 8):
+            for d in (sign * step, sign * step * L.wp, -sign * step, -sign * step * L.wp):
+                q = L.act_idx - d
+                inside = (q >= 0) & (q < len(grid))
+                nb = np.where(inside, grid[np.clip(q, 0, len(grid) - 1)], -1)
+                try_cand(nb + d, nb >= 0)
+        n, y, x = L.yx(nnf)
+        R = max(L.h, L.w)
+        while R >= 1:
+            yy = np.clip(y + rng.integers(-R, R + 1, len(nnf)), 0, L.hp - 1)
+            xx = np.clip(x + rng.integers(-R, R + 1, len(nnf)), 0, L.wp - 1)
+            try_cand(L.flat(n, yy, xx), np.ones(len(nnf), bool))
+            R //= 2
+        try_cand(rng.choice(L.valid_idx, len(nnf)), np.ones(len(nnf), bool))
+
+
+def _vote(L: _Level, nnf: np.ndarray, cost: np.ndarray, vote_h: float = 1.0) -> np.ndarray:
+    """New values (K, 3) of the hole pixels: similarity-weighted mean of the overlapping patches' copies."""
+    grid = np.full(L.hp * L.wp, -1, np.int64)
+    grid[L.act_idx] = nnf
+    wgrid = np.zeros(L.hp * L.wp, np.float32)
+    h2 = max(vote_h * float(np.median(cost)), 1e-8)
+    # exponent capped: a pixel covered only by poor matches must keep a (tiny) weight, not 0/0
+    wgrid[L.act_idx] = np.exp(-np.minimum(cost / (2 * h2), 60.0))
+    acc = np.zeros((len(L.hole_idx), 3), np.float32)
+    wsum = np.zeros(len(L.hole_idx), np.float32)
+    for o in L.off:
+        p = L.hole_idx - o
+        src = grid[p]
+        ok = src >= 0
+        w = wgrid[p[ok]]
+        acc[ok] += w[:, None] * L.S[src[ok] + o]
+        wsum[ok] += w
+    return acc / np.maximum(wsum, 1e-35)[:, None]
+
+
+def _upsample_nnf(Lc: _Level, nnf_c: np.ndarray, Lf: _Level, rng) -> np.ndarray:
+    gc = np.full(Lc.hp * Lc.wp, -1, np.int64)
+    gc[Lc.act_idx] = nnf_c
+    r = Lf.r
+    _, y, x = Lf.yx(Lf.act_idx)
+    yc = np.clip((y - r) // 2 + r, 0, Lc.hp - 1)
+    xc = np.clip((x - r) // 2 + r, 0, Lc.wp - 1)
+    src = gc[Lc.flat(0, yc, xc)]
+    n, sy, sx = Lc.yx(np.maximum(src, 0))
+    fy = np.clip(2 * (sy - r) + r + (y - r) % 2, 0, Lf.hp - 1)
+    fx = np.clip(2 * (sx - r) + r + (x - r) % 2, 0, Lf.wp - 1)
+    out = Lf.flat(n, fy, fx)
+    bad = (src < 0) | ~Lf.valid[out]
+    out[bad] = rng.choice(Lf.valid_idx, int(bad.sum()))
+    return out
+
+
+def _synthesise(
+    imgs: np.ndarray, holes: np.ndarray, init: np.ndarray, cfg: ExemplarConfig, rng
+) -> np.ndarray:
+    """imgs (N, h, w, 3) window crops (view 0 = the target, its hole pixels ignored), holes (N, h, w)
+    unknown pixels, init (h, w, 3) the smooth fill of view 0. Returns view 0 completed (h, w, 3)."""
+    r = cfg.patch // 2
+    ys, xs = np.nonzero(holes[0])
+    side = max(np.ptp(ys) + 1, np.ptp(xs) + 1)
+    n_levels = 1
+    while side / 2**n_levels >= cfg.min_coarse and min(holes.shape[1:]) / 2**n_levels >= 4 * cfg.patch:
+        n_levels += 1
+    pyr = [(imgs, holes, init)]
+    for _ in range(n_levels - 1):
+        im, ho, it = pyr[-1]
+        dn = [_down(im[i], ho[i]) for i in range(len(im))]
+        it2 = cv2.resize(it, (dn[0][0].shape[1], dn[0][0].shape[0]), interpolation=cv2.INTER_AREA)
+        pyr.append((np.stack([d[0] for d in dn]), np.stack([d[1] for d in dn]), it2))
+    prev = None
+    for lev in range(n_levels - 1, -1, -1):
+        im, ho, it = pyr[lev]
+        if not (~ho[0]).any():
+            continue
+        im = im.copy()
+        im[0][ho[0]] = it[ho[0]]  # never the masked-out object's own pixels
+        L = _Level(im, ho, ho[0], r)
+        if prev is None:
+            nnf = rng.choice(L.valid_idx, len(L.act_idx))
+        else:
+            nnf = _upsample_nnf(prev[0], prev[1], L, rng)
+            L.S[L.hole_idx] = _vote(L, nnf, np.ones(len(nnf), np.float32))
+        rounds = cfg.em_iters * (2 if prev is None else 1)
+        for _ in range(rounds):
+            tgt = L.S[L.act_idx[:, None] + L.off[None, :]]
+            cost = _patch_cost(L, tgt, nnf)
+            _search(L, nnf, cost, tgt, cfg.pm_iters, rng)
+            L.S[L.hole_idx] = _vote(L, nnf, cost, cfg.vote_h)
+        prev = (L, nnf)
+    out = prev[0].S.reshape(prev[0].n, prev[0].hp, prev[0].wp, 3)[0]
+    return out[r:-r, r:-r].copy()
+
+
+def exemplar_inpaint(
+    image: np.ndarray,
+    mask: np.ndarray,
+    cfg: ExemplarConfig | None = None,
+    seed: int = 0,
+    sources: list[tuple[np.ndarray, np.ndarray]] | None = None,
+) -> np.ndarray:
+    """Fill `mask` of `image` (module docstring). image (H, W, 3) float [0, 1], mask (H, W) bool;
+    sources: other views of the scene as (image (H, W, 3), unknown (H, W) bool) pairs of the same size,
+    whose known pixels in the same window are also copied from. Returns (H, W, 3) float32, pixels
+    outside the mask bit-identical. Empty mask: the input; a mask covering everything: ValueError."""
+    cfg = cfg or ExemplarConfig()
+    image, mask = check_image_mask(image, mask)
+    if not mask.any():
+        return image.copy()
+    if mask.all():
+        raise ValueError("mask covers the whole image: no exemplar patches to copy")
+    structure = opencv_inpaint(image, mask, cfg.structure)
+    win = _window(mask, cfg.context, 2 * cfg.patch)
+    views = [(image, mask)]
+    for k, (im, un) in enumerate(sources or []):
+        im, un = check_image_mask(im, un)
+        if im.shape != image.shape:
+            raise ValueError(f"source view {k} is {im.shape}, the image {image.shape}: sources must match")
+        views.append((im, un))
+    imgs = np.stack([v[0][win] for v in views])
+    holes = np.stack([v[1][win] for v in views])
+    rng = np.random.default_rng(seed)
+    try:
+        synth = _synthesise(imgs, holes, structure[win], cfg, rng)
+    except ValueError as e:
+        raise ValueError(f"exemplar inpainting: {e}") from None
+    fill = structure.copy()
+    if cfg.mode == "full":
+        fill[win] = synth
+    else:
+        hf = synth - cv2.GaussianBlur(synth, (0, 0), cfg.hf_sigma)
+        fill[win] = structure[win] + cfg.hf_gain * hf
+    out = image.copy()
+    out[mask] = np.clip(fill[mask], 0, 1)
+    return out

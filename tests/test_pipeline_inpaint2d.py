@@ -1,0 +1,119 @@
+"""Stage 1 (coin_cl.pipeline.inpaint2d): the inpainter choice. Without SD2 or dataset inpaints "auto"
+is the embedded exemplar inpainter (or LaMa when a file is named), each named in sources.json;
+"lama" without a file is a clear error naming COIN_LAMA_PATH; the SD2 cost estimate is logged
+before an SD2 run; `coin-cl run --inpainter/--lama-path` reach the config."""
+
+import json
+import logging
+
+import numpy as np
+import pytest
+import torch
+from coin_cl.diffusion.exemplar import EXEMPLAR_NAME
+from coin_cl.diffusion.lama import LAMA_ENV, LAMA_NAME
+from coin_cl.diffusion.sd2 import sd2_run_estimate
+
+from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, neighbour_views, resolve_inpainter, run_inpaint2d
+from coin_cl.scene import load_scene, write_synthetic
+from coin_cl.scene.io import read_image
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return load_scene(write_synthetic(tmp_path_factory.mktemp("room"), n_views=8, width=64, height=48))
+
+
+class _MeanFill(torch.nn.Module):
+    def forward(self, image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return image * (1 - mask) + 0.25 * mask
+
+
+def _views(scene):
+    return [i for i in scene.train_idx if scene.masks[i].any()][:2]
+
+
+def test_auto_is_embedded_without_lama(scene, tmp_path, monkeypatch):
+    monkeypatch.delenv(LAMA_ENV, raising=False)
+    cfg = Inpaint2DConfig(use_dataset=False)
+    assert resolve_inpainter(cfg) == "embedded"
+    views = _views(scene)
+    res = run_inpaint2d(scene, scene.masks, views, tmp_path, cfg)
+    assert res["sources"] == [EXEMPLAR_NAME] and res["prior"] is None  # no scene prior trained
+    src = json.loads((tmp_path / "sources.json").read_text())
+    assert set(src.values()) == {EXEMPLAR_NAME}
+    for i in views:
+        out = read_image(tmp_path / "images" / (scene.cameras[i].name.rsplit(".", 1)[0] + ".png"))
+        m = scene.masks[i]
+        assert np.abs(out[~m] - scene.images[i][~m]).max() <= 1 / 255 + 1e-6
+        assert np.isfinite(out).all()
+
+
+def test_lama_by_env_and_missing_file(scene, tmp_path, monkeypatch):
+    p = tmp_path / "big-lama.pt"
+    torch.jit.script(_MeanFill()).save(str(p))
+    monkeypatch.setenv(LAMA_ENV, str(p))
+    cfg = Inpaint2DConfig(use_dataset=False)
+    assert resolve_inpainter(cfg) == "lama"
+    i = _views(scene)[0]
+    res = run_inpaint2d(scene, scene.masks, [i], tmp_path / "a", cfg)
+    assert res["sources"] == [LAMA_NAME]
+    out = read_image(tmp_path / "a" / "images" / (scene.cameras[i].name.rsplit(".", 1)[0] + ".png"))
+    from coin_cl.diffusion.inpaint2d import feather_weights
+
+    deep = feather_weights(scene.masks[i], 2) == 1.0
+    np.testing.assert_allclose(out[deep], 0.25, atol=1 / 255)
+    monkeypatch.delenv(LAMA_ENV)
+    with pytest.raises(FileNotFoundError, match=LAMA_ENV):
+        run_inpaint2d(
+            scene, scene.masks, [i], tmp_path / "b", Inpaint2DConfig(use_dataset=False, inpainter="lama")
+        )
+    with pytest.raises(ValueError, match="inpainter must be"):
+        Inpaint2DConfig(inpainter="magic")
+
+
+def test_neighbour_views():
+    assert neighbour_views(5, list(range(10)), 3) == [4, 6, 3]
+    assert neighbour_views(0, [0], 4) == []
+
+
+def test_sd2_estimate_is_arithmetic():
+    e = sd2_run_estimate(10, 50, measured={"unguided_step_s": 2.0, "guided_step_s": 6.0, "peak_gib": 9.0})
+    assert e["stage1_s"] == 10 * 50 * 2.0 and e["clg_s"] == 9 * 50 * 6.0
+    assert e["total_s"] == e["stage1_s"] + e["clg_s"] and "h" in e["message"]
+
+
+def test_cli_flags_reach_the_config(monkeypatch, tmp_path):
+    import coin_cl.pipeline.coin as coin
+    from coin_cl.cli import main
+
+    seen = {}
+
+    def fake_inpaint(scene, out, **kw):
+        seen["cfg"] = kw["config"]
+        raise SystemExit(0)
+
+    monkeypatch.setattr(coin, "inpaint", fake_inpaint)
+    with pytest.raises(SystemExit):
+        main(
+            [
+                "run",
+                str(tmp_path),
+                "--out",
+                str(tmp_path / "o"),
+                "--inpainter",
+                "telea",
+                "--lama-path",
+                "x.pt",
+            ]
+        )
+    assert seen["cfg"].inpaint2d.inpainter == "telea" and seen["cfg"].inpaint2d.lama_path == "x.pt"
+
+
+def test_sd2_estimate_logged_before_sd2_run(scene, tmp_path, caplog):
+    class _Boom:  # an SD2 stand-in that stops the run at its first use
+        def inpaint(self, *a, **k):
+            raise RuntimeError("stop")
+
+    with caplog.at_level(logging.WARNING), pytest.raises(RuntimeError, match="stop"):
+        run_inpaint2d(scene, scene.masks, _views(scene), tmp_path, Inpaint2DConfig(), sd2=_Boom())
+    assert any("SD2" in r.message for r in caplog.records)
