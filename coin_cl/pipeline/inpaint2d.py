@@ -31,7 +31,7 @@ from coin_cl.diffusion.exemplar import EXEMPLAR_NAME, ExemplarConfig, exemplar_i
 from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, paste
 from coin_cl.diffusion.lama import LAMA_ENV, LAMA_NAME, lama_inpaint, load_lama
 from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds, train_scene_prior
-from coin_cl.scene.io import read_image, to_uint8, write_png
+from coin_cl.scene.io import read_image, to_uint8, write_png, write_text
 
 log = logging.getLogger(__name__)
 
@@ -142,14 +142,23 @@ def run_inpaint2d(
     if todo:
         log.info("1_inpaint: %d views without SD2 or dataset inpaints use the %s inpainter", len(todo), kind)
     sources: dict[str, str] = {}
+    record = out_dir / "sources.json"
+    # Recorded view by view, before its image: a killed run's resumption keeps each finished view's
+    # source (a kill between the two redoes the view).
+    done: dict[str, str] = json.loads(record.read_text()) if record.is_file() else {}
+
+    def note(name: str, src: str) -> None:
+        sources[name] = done[name] = src
+        write_text(record, json.dumps(done, indent=1, sort_keys=True))
+
     for i in views:
         name = Path(scene.cameras[i].name).stem + ".png"
         path = img_dir / name
         if path.is_file():
-            sources[name] = "(kept from an earlier run)"
+            sources[name] = done.get(name, "(kept from an earlier run)")
             continue
         if not masks[i].any():
-            sources[name] = "captured image (no mask)"
+            note(name, "captured image (no mask)")
             write_png(path, to_uint8(scene.images[i]))
             continue
         if i in todo and kind == "embedded":
@@ -164,15 +173,10 @@ def run_inpaint2d(
                 scene.images[i], masks[i], sd2=sd2, dataset_inpaint=dataset.get(i), scene_prior=prior,
                 cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i,
             )  # fmt: skip
-        sources[name] = src
+        note(name, src)
         write_png(path, to_uint8(img))
-    old = out_dir / "sources.json"
-    if old.is_file():
-        sources = {
-            **json.loads(old.read_text()),
-            **{k: v for k, v in sources.items() if not v.startswith("(")},
-        }
-    old.write_text(json.dumps(sources, indent=1, sort_keys=True))
+    sources = {**done, **sources}
+    write_text(record, json.dumps(sources, indent=1, sort_keys=True))
     names = sorted(set(sources.values()))
     log.info("1_inpaint: sources used: %s", ", ".join(names))
     return {"sources": names, "prior": prior_info}
