@@ -15,8 +15,9 @@ Training data: random square patches of the scene's images at a few scales (side
 s in ``scales``, area-averaged down to P so the model also works on crops larger than P); synthetic
 holes (rectangles, ellipses, thick strokes) are placed only where pixels are known, never inside the
 excluded (object) masks; excluded pixels inside a patch are part of the conditioning hole and carry no
-loss. A fixed wall-clock budget; the result is cached by a hash of the images, the excluded masks and
-the settings (temp file then rename), so a second run reuses it.
+loss. A fixed step count (`train_steps`; the pipeline's choice) or a wall-clock budget; training
+checkpoints every minute and resumes after a kill; the result is cached by a hash of the images,
+the excluded masks and the settings (written atomically), so a second run reuses it.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import hashlib
 import logging
 import math
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -37,12 +37,25 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from coin_cl.atomic import atomic_write  # pure stdlib: no engine, no OpenCL
+
 from .sampling import DDIMSampler, Denoiser, EnergyFn, SamplerConfig, split_prediction
 from .schedule import ScheduleConfig, alphas_cumprod
 
 log = logging.getLogger(__name__)
 NAME = "scene prior"
 _VERSION = 1  # bump when the model or the training changes, so old caches are not reused
+# Optimizer steps per second of the default prior (base 32, batch 16 of 64x64 patches) on the
+# project's 2-core machine kind: 133 steps in 120 s (docs/BENCHMARKS.md, "Diffusion").
+STEPS_PER_SECOND = 133 / 120
+# Wall-clock seconds between training checkpoints, so that a kill loses at most about this much
+# ($COIN_CKPT_SECONDS overrides it, as for the GS trainer: benchmarks/faults.py uses 1).
+CKPT_SECONDS = float(os.environ.get("COIN_CKPT_SECONDS", 60.0))
+
+
+def steps_for_seconds(seconds: float) -> int:
+    """The step count that takes about `seconds` on 2 cores at the default size (at least 1)."""
+    return max(1, round(seconds * STEPS_PER_SECOND))
 
 
 @dataclass
@@ -53,7 +66,11 @@ class ScenePriorConfig:
     base: channels at full resolution; the 3 levels have (1, 2, 4) x base.
     scales: patch scales s (a P s crop area-averaged to P), so the prior also fills larger holes.
     batch: patches per step. lr: AdamW learning rate (cosine-free, constant: the budget is in seconds).
-    train_seconds: wall-clock training budget. max_steps: optional cap on optimizer steps (tests).
+    train_steps: optimizer steps to train (the pipeline's setting: a fixed count gives the same
+    model on any machine and lets a killed run resume to exactly the model it would have made);
+    None: train for `train_seconds` of wall-clock time (kept for compatibility; a resumed run then
+    differs). `steps_for_seconds` converts a time budget at the measured 2-core rate.
+    max_steps: optional cap on optimizer steps in either mode (tests).
     hole_weight: loss weight inside the synthetic hole (outside: 1), since the hole is what it must do.
     prediction_type: 'v' (better conditioned than eps at high noise for a small pixel-space model).
     seed: RNG seed for init and sampling of patches/holes.
@@ -65,6 +82,7 @@ class ScenePriorConfig:
     batch: int = 16
     lr: float = 1e-3
     train_seconds: float = 300.0
+    train_steps: int | None = None
     max_steps: int | None = None
     hole_weight: float = 4.0
     prediction_type: str = "v"
@@ -312,12 +330,16 @@ def train_scene_prior(
     cfg: ScenePriorConfig | None = None,
     cache_dir: str | os.PathLike | None = None,
     progress: bool = True,
+    ckpt_seconds: float = CKPT_SECONDS,
 ) -> ScenePrior:
     """Train (or load from the cache) the scene prior.
 
     images: list of (H, W, 3) float32 arrays in [0, 1]; exclude: list of (H, W) bool masks of pixels
     whose truth is unknown (the object masks, plus any held-out holes); they are never used as hole
-    targets nor as loss. cache_dir: where ``scene_prior_<hash>.pt`` is kept (None = no cache).
+    targets nor as loss. cache_dir: where ``scene_prior_<hash>.pt`` is kept (None = no cache);
+    training also checkpoints there every `ckpt_seconds` (``scene_prior_<hash>.ckpt.pt``, removed
+    when done) and a call that finds a checkpoint resumes from it: with `train_steps` set the
+    resumed model is the one an uninterrupted run makes.
     """
     from tqdm import tqdm
 
@@ -346,22 +368,37 @@ def train_scene_prior(
     acp = alphas_cumprod(cfg.schedule)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=0.0)
     g = torch.Generator().manual_seed(cfg.seed)
+    total = cfg.train_steps
+    if cfg.max_steps is not None:
+        total = cfg.max_steps if total is None else min(total, cfg.max_steps)
+    by_steps = cfg.train_steps is not None
+    ckpt = None if path is None else path.with_name(path.stem + ".ckpt.pt")
+    steps, ema, spent = 0, None, 0.0
+    if ckpt is not None and ckpt.is_file():
+        st = torch.load(ckpt, map_location="cpu", weights_only=False)
+        net.load_state_dict(st["net"])
+        opt.load_state_dict(st["opt"])
+        g.set_state(st["gen"])
+        sampler.rng.bit_generator.state = st["rng"]
+        steps, ema, spent = st["steps"], st["ema"], st["train_s"]
+        log.info("%s: resuming the interrupted training at step %d (%s)", NAME, steps, ckpt)
     log.info(
-        "%s: training %.2f M parameters on %d images for %.0f s (patch %d, scales %s)",
+        "%s: training %.2f M parameters on %d images for %s (patch %d, scales %s)",
         NAME,
         n_par / 1e6,
         len(images),
-        cfg.train_seconds,
+        f"{total} steps" if by_steps else f"{cfg.train_seconds:.0f} s",
         cfg.patch,
         sampler.scales,
     )
-    t0 = time.perf_counter()
-    steps, ema = 0, None
-    bar = tqdm(total=round(cfg.train_seconds), desc=NAME, unit="s", disable=not progress, leave=False)
+    t0 = time.perf_counter() - spent
+    last_ckpt = time.monotonic()
+    bar = tqdm(total=total if by_steps else round(cfg.train_seconds), initial=steps if by_steps else 0,
+               desc=NAME, unit="step" if by_steps else "s", disable=not progress, leave=False)  # fmt: skip
     net.train()
     while True:
         el = time.perf_counter() - t0
-        if el >= cfg.train_seconds or (cfg.max_steps is not None and steps >= cfg.max_steps):
+        if (total is not None and steps >= total) or (not by_steps and el >= cfg.train_seconds):
             break
         x0, hole, w = sampler.batch()
         t = torch.randint(1, cfg.schedule.num_train_steps, (x0.shape[0],), generator=g)
@@ -374,29 +411,30 @@ def train_scene_prior(
         steps += 1
         lv = loss.item()
         ema = lv if ema is None else 0.98 * ema + 0.02 * lv
-        bar.n = min(round(time.perf_counter() - t0), bar.total)
+        bar.n = steps if by_steps else min(round(time.perf_counter() - t0), bar.total)
         bar.set_postfix(loss=f"{ema:.4f}", steps=steps, refresh=False)
         bar.refresh()
+        if ckpt is not None and time.monotonic() - last_ckpt >= ckpt_seconds:
+            state = {"net": net.state_dict(), "opt": opt.state_dict(), "gen": g.get_state(),
+                     "rng": sampler.rng.bit_generator.state, "steps": steps, "ema": ema,
+                     "train_s": time.perf_counter() - t0}  # fmt: skip
+            atomic_write(ckpt, lambda p, st=state: torch.save(st, p))
+            last_ckpt = time.monotonic()
     bar.close()
     net.eval()
     info = {
         "train_s": time.perf_counter() - t0,
         "steps": steps,
+        "steps_asked": total,
         "loss_ema": ema,
         "params": n_par,
         "cached": False,
     }
     log.info("%s: trained %d steps in %.1f s, loss %.4f", NAME, steps, info["train_s"], ema or float("nan"))
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".scene_prior_", suffix=".tmp")
-        os.close(fd)
-        try:
-            torch.save({"state_dict": net.state_dict(), "config": asdict(cfg), "info": info}, tmp)
-            os.replace(tmp, path)  # atomic: a reader never sees a half-written model
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        blob = {"state_dict": net.state_dict(), "config": asdict(cfg), "info": info}
+        atomic_write(path, lambda p: torch.save(blob, p))  # a reader never sees a half-written model
+        ckpt.unlink(missing_ok=True)
         info["path"] = str(path)
     return ScenePrior(net, cfg, info)
 

@@ -138,3 +138,39 @@ def test_bad_inputs():
         train_scene_prior([bad], cfg=CFG)
     with pytest.raises(ValueError, match="exclusion mask 0"):
         train_scene_prior([texture(0)], [np.zeros((5, 5), bool)], cfg=CFG)
+
+
+def test_steps_mode_resumes_after_a_kill_to_the_same_model(tmp_path, monkeypatch):
+    """train_steps fixes the run: killed after step 3 (checkpoint after every step here) and called
+    again, the training resumes at step 3 and ends with the weights an uninterrupted run makes."""
+    import coin_cl.diffusion.scene_prior as sp
+
+    cfg = ScenePriorConfig(patch=16, base=8, scales=(1,), batch=2, train_steps=6, train_seconds=0.0)
+    imgs = [texture(s, 48) for s in range(2)]
+    ref = train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "ref", progress=False)
+    assert ref.info["steps"] == 6  # train_seconds=0 is ignored in steps mode
+
+    real, calls = sp.denoising_loss, []
+
+    def dying(*a, **k):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt  # the kill, inside step 4
+        return real(*a, **k)
+
+    monkeypatch.setattr(sp, "denoising_loss", dying)
+    with pytest.raises(KeyboardInterrupt):
+        train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "run", progress=False, ckpt_seconds=0.0)
+    (ck,) = (tmp_path / "run").glob("*.ckpt.pt")
+    assert torch.load(ck, weights_only=False)["steps"] == 3
+    monkeypatch.setattr(sp, "denoising_loss", real)
+    res = train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "run", progress=False)
+    assert res.info["steps"] == 6 and not list((tmp_path / "run").glob("*.ckpt.pt"))
+    for k, v in ref.net.state_dict().items():
+        assert torch.equal(v, res.net.state_dict()[k]), k
+
+
+def test_steps_for_seconds_matches_the_measured_rate():
+    from coin_cl.diffusion.scene_prior import steps_for_seconds
+
+    assert steps_for_seconds(120) == 133 and steps_for_seconds(0) == 1

@@ -155,3 +155,36 @@ def test_checkpoint_from_before_the_strategy_split_still_resumes(scene, kind, tm
     assert torch.equal(old.sampler.gen.get_state(), tr.sampler.gen.get_state())
     for k, p in old.model.optimizer.params.items():
         assert torch.equal(p, tr.model.optimizer.params[k]), k
+
+
+def test_checkpoint_by_wall_time_resumes_identically_with_the_same_log(scene, tmp_path):
+    """ckpt_seconds checkpoints whatever the step count (here: after every step, ckpt_every off);
+    the resumed run equals the uninterrupted one, parameters bit for bit and the loss log too (the
+    running means of the interrupted log interval are in the checkpoint)."""
+    iters, kw = 24, dict(backend="opencl", export_ply=False, ckpt_every=0)
+    ref = _trainer(scene, "scaffold", tmp_path / "ref", iters, ckpt_seconds=0.0, **kw)
+    ref.train()
+
+    def kill(tr, step):
+        if step == 13:  # mid log interval (log_every=5)
+            raise Killed
+
+    run = _trainer(scene, "scaffold", tmp_path / "run", iters, kill, ckpt_seconds=1e-9, **kw)
+    with pytest.raises(Killed):
+        run.train()
+    resumed = _trainer(scene, "scaffold", tmp_path / "run", iters, ckpt_seconds=1e-9, **kw)
+    resumed.load_checkpoint()
+    assert resumed.step == 13
+    resumed.train()
+    for k, a in ref.model.optimizer.params.items():
+        assert torch.equal(a, resumed.model.optimizer.params[k]), k
+    assert resumed.model.cfg == ref.model.cfg  # the config as given (voxel size 0: automatic), not resolved
+
+    def losses(tr):  # timings aside
+        return [
+            {k: v for k, v in e.items() if "seconds" not in k and not k.startswith("t_")}
+            for e in tr.log["train"]
+        ]
+
+    assert losses(ref) == losses(resumed) and len(losses(ref)) == iters // 5 + 1
+    assert not [p for p in (tmp_path / "run").iterdir() if p.name.startswith(".tmp")]

@@ -109,3 +109,23 @@ def test_check_mask_empty_warns_and_full_raises(caplog):
     assert "label/a.png" in caplog.text and "empty" in caplog.text
     with pytest.raises(ValueError, match="label/b.png.*whole image"):
         check_mask(np.ones((4, 4), bool), source="label/b.png")
+
+
+def test_jpeg_mask_reads_as_the_saved_mask(tmp_path):
+    """A 0/255 mask saved as JPEG has values near 0 and 255 (ringing, noise); the half-range
+    threshold reads it back (up to the blurred edge pixels), where `> 0` would speckle it."""
+    m = np.zeros((48, 64), bool)
+    m[10:30, 20:44] = True
+    p = tmp_path / "m.jpg"
+    iio.imwrite(p, m.astype(np.uint8) * 255, extension=".jpg", quality=75)
+    raw = iio.imread(p)
+    assert ((raw > 0) != m).sum() > 20  # the file really holds off values near 0 (else no test)
+    assert (read_mask(p, m.shape) != m).sum() <= 4
+
+
+def test_unreadable_mask_names_file(tmp_path):
+    p = tmp_path / "label" / "v.png"
+    p.parent.mkdir()
+    p.write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    with pytest.raises(ValueError, match=r"mask .*v\.png cannot be read"):
+        read_mask(p)

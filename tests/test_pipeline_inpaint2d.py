@@ -117,3 +117,29 @@ def test_sd2_estimate_logged_before_sd2_run(scene, tmp_path, caplog):
     with caplog.at_level(logging.WARNING), pytest.raises(RuntimeError, match="stop"):
         run_inpaint2d(scene, scene.masks, _views(scene), tmp_path, Inpaint2DConfig(), sd2=_Boom())
     assert any("SD2" in r.message for r in caplog.records)
+
+
+def test_killed_between_views_resumes_with_every_source_recorded(scene, tmp_path, monkeypatch):
+    """sources.json is written view by view (before the view's image), so a run killed after its
+    first view resumes to the same record and images as an uninterrupted one (issue 25)."""
+    import coin_cl.pipeline.inpaint2d as stage
+
+    monkeypatch.delenv(LAMA_ENV, raising=False)
+    cfg, views = Inpaint2DConfig(use_dataset=False), _views(scene)
+    run_inpaint2d(scene, scene.masks, views, tmp_path / "ref", cfg)
+    real, calls = stage.exemplar_inpaint, []
+
+    def dying(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # the kill, inside the second view
+        return real(*a, **k)
+
+    monkeypatch.setattr(stage, "exemplar_inpaint", dying)
+    with pytest.raises(KeyboardInterrupt):
+        run_inpaint2d(scene, scene.masks, views, tmp_path / "run", cfg)
+    monkeypatch.setattr(stage, "exemplar_inpaint", real)
+    run_inpaint2d(scene, scene.masks, views, tmp_path / "run", cfg)
+    assert (tmp_path / "run" / "sources.json").read_text() == (tmp_path / "ref" / "sources.json").read_text()
+    for p in (tmp_path / "ref" / "images").iterdir():
+        assert (tmp_path / "run" / "images" / p.name).read_bytes() == p.read_bytes(), p.name

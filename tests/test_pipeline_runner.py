@@ -1,6 +1,7 @@
 """The stage runner: manifests decide what reruns; killed stages resume; folders belong to a scene."""
 
 import json
+import logging
 
 import pytest
 
@@ -96,13 +97,28 @@ def test_killed_stage_resumes_in_place_and_loses_nothing(tmp_path):
     assert calls.n["part1"] == 1 and calls.n["part2"] == 1  # part1 was not redone
 
 
-def test_interrupted_folder_with_other_settings_is_cleared(tmp_path):
+def test_interrupted_folder_with_other_settings_is_moved_aside(tmp_path, caplog):
     calls = Calls()
     run_stages(tmp_path, chain(calls))
     (tmp_path / "2_b" / "manifest.json").unlink()  # as if killed
     (tmp_path / "2_b" / "stale.bin").write_bytes(b"x")
-    run_stages(tmp_path, chain(calls, b_setting="z"))
-    assert not (tmp_path / "2_b" / "stale.bin").exists()
+    with caplog.at_level(logging.WARNING):
+        run_stages(tmp_path, chain(calls, b_setting="z"))
+    assert not (tmp_path / "2_b" / "stale.bin").exists()  # nothing stale is resumed...
+    (old,) = tmp_path.glob("2_b.old-*")  # ...and nothing is lost
+    assert (old / "stale.bin").read_bytes() == b"x" and old.name in caplog.text
+
+
+def test_finished_folder_with_other_settings_is_kept_unless_forced(tmp_path):
+    calls = Calls()
+    run_stages(tmp_path, chain(calls))
+    run_stages(tmp_path, chain(calls, b_setting="y"))
+    run_stages(tmp_path, chain(calls, b_setting="w"))  # two moves within a second get two names
+    kept = sorted(p for p in tmp_path.glob("2_b.old-*"))
+    assert sorted((p / "out.txt").read_text() for p in kept) == ["bx", "by"]
+    assert len(list(tmp_path.glob("3_c.old-*"))) == 2  # c's inputs changed each time
+    run_stages(tmp_path, chain(calls, b_setting="v"), force=["2_b"])
+    assert len(list(tmp_path.glob("2_b.old-*"))) == 2  # forced: cleared, not kept
 
 
 def test_skipped_stage_is_logged_with_its_reason(tmp_path):
@@ -129,3 +145,19 @@ def test_output_folder_of_another_scene_is_refused(tmp_path):
     (other / "2_refgs").mkdir(parents=True)
     with pytest.raises(OutputFolderError, match="not a coin-cl run"):
         check_output_folder(other, {"scene": "x"})
+
+
+def test_read_only_output_folder_is_one_line_naming_it(tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    from coin_cl.atomic import OutputWriteError
+
+    def mkdir(self, *a, **k):
+        raise OSError(errno.EROFS, "Read-only file system", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    with pytest.raises(
+        OutputWriteError, match=f"cannot write in {tmp_path / 'out'}: the file system is read-only"
+    ):
+        check_output_folder(tmp_path / "out", {"scene": "a"})

@@ -275,3 +275,92 @@ def test_no_poses_and_no_images(tmp_path):
         load_scene(tmp_path)
     with pytest.raises(FileNotFoundError, match="not_here"):
         load_scene(tmp_path / "not_here")
+
+
+def test_truncated_image_names_file_and_what_to_do(scene_copy):
+    p = scene_copy / "images_4" / "view_004.png"
+    p.write_bytes(p.read_bytes()[:200])
+    with pytest.raises(ValueError, match=r"image .*view_004\.png cannot be read .*truncated or not an image"):
+        load_scene(scene_copy)
+
+
+def test_unreadable_image_names_file(scene_copy):
+    (scene_copy / "images_4" / "view_005.png").write_bytes(b"this is not a picture at all" * 10)
+    with pytest.raises(ValueError, match=r"view_005\.png cannot be read"):
+        load_scene(scene_copy)
+
+
+@pytest.mark.parametrize("kind", ["grey", "rgba", "16bit"])
+def test_grey_rgba_and_16bit_images_are_read_as_rgb(scene_copy, kind):
+    p = scene_copy / "images_4" / "view_006.png"
+    rgb = iio.imread(p)[..., :3]
+    if kind == "grey":
+        iio.imwrite(p, rgb[..., 1])
+        want = np.repeat(rgb[..., 1:2], 3, 2) / 255.0
+    elif kind == "rgba":
+        iio.imwrite(p, np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 7, np.uint8)], 2))
+        want = rgb / 255.0  # alpha dropped, colour as stored
+    else:  # 16-bit colour (PIL reads it at 8 bits: the same picture to 1/255)
+        cv2.imwrite(str(p), rgb[..., ::-1].astype(np.uint16) * 257)
+        want = rgb / 255.0
+    sc = load_scene(scene_copy)
+    assert sc.images[6].shape == (48, 64, 3) and sc.images[6].dtype == np.float32
+    np.testing.assert_allclose(sc.images[6], want, atol=1e-6)
+
+
+def test_duplicate_names_are_refused(scene_copy):
+    img = scene_copy / "images_4" / "view_002.png"
+    iio.imwrite(img.with_suffix(".jpg"), iio.imread(img))
+    with pytest.raises(
+        ValueError, match=r"same name.*view_002\.jpg.*view_002\.png|view_002\.png.*view_002\.jpg"
+    ):
+        load_scene(scene_copy)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_nan_or_inf_in_llff_poses_and_bounds_names_the_row(scene_copy, bad):
+    (scene_copy / "sparse" / "0" / "images.bin").unlink()
+    pb0 = np.load(scene_copy / "poses_bounds.npy")
+    pb = pb0.copy()
+    pb[3, 5] = bad  # a pose entry
+    np.save(scene_copy / "poses_bounds.npy", pb)
+    with pytest.raises(
+        ValueError, match=r"pose of image view_003\.png in .*poses_bounds\.npy holds NaN or Inf"
+    ):
+        load_scene(scene_copy)
+    pb = pb0.copy()
+    pb[2, -1] = bad  # far bound
+    np.save(scene_copy / "poses_bounds.npy", pb)
+    with pytest.raises(ValueError, match=r"near/far bounds of image view_002\.png"):
+        load_scene(scene_copy)
+
+
+def test_nan_in_colmap_pose_names_the_image(syn, tmp_path):
+    root = _plain_colmap(syn, tmp_path / "nan")
+    V = [c.viewmat.copy() for c in syn.cameras]
+    V[4][0, 3] = np.nan
+    K = syn.cameras[0].K
+    cam = ColmapCamera("PINHOLE", 64, 48, np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+    for f in (root / "sparse" / "0").iterdir():
+        f.unlink()
+    names = [c.name for c in syn.cameras]
+    write_model(root / "sparse" / "0", cam, names, V, syn.points, (syn.colors * 255).astype(np.uint8))
+    with pytest.raises(ValueError, match=rf"pose of image {names[4]} in COLMAP model .*holds NaN or Inf"):
+        load_scene(root)
+
+
+def test_colmap_model_naming_missing_images_loads_the_rest(syn, tmp_path, caplog):
+    root = _plain_colmap(syn, tmp_path / "missing")
+    for sub in ("images", "masks"):
+        (root / sub / syn.cameras[2].name).unlink()
+    with caplog.at_level(logging.INFO):
+        sc = load_scene(root)
+    assert len(sc) == len(syn.cameras) - 1 and syn.cameras[2].name not in [c.name for c in sc.cameras]
+    assert "have no file" in caplog.text and syn.cameras[2].name in caplog.text
+
+
+def test_paths_with_spaces_and_non_ascii_letters(syn_dir, tmp_path):
+    d = tmp_path / "my scène – ünïcode 場景"
+    shutil.copytree(syn_dir, d)
+    sc = load_scene(d)
+    assert len(sc) == 8 and sc.path == d

@@ -51,11 +51,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         return int(args.func(args) or 0)
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        # User-facing failures carry a message naming the file or value; no traceback needed.
+    except (OSError, ValueError, RuntimeError) as exc:
+        # User-facing failures carry a message naming the file or value (OSError: a file the
+        # system refused, a full or read-only disk); no traceback needed. One line, always.
         if args.verbose:
             raise
-        print(f"coin-cl {args.command}: error: {exc}", file=sys.stderr)
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"coin-cl {args.command}: error: {msg}", file=sys.stderr)
         return 2
 
 

@@ -4,7 +4,7 @@ log. The loop knows no model kind: the recipes beside it (`build_model`, `defaul
 `default_terms`, `scaled_model_config`, `scaled_strategy`) do.
 
 Output folder layout:
-    ckpt.pt          last good checkpoint (written to ckpt.pt.tmp, then renamed)
+    ckpt.pt          last good checkpoint (written to a temporary file, fsynced, then renamed)
     log.json         config, per-interval losses and timings, evaluations, refinement events
     cameras.json     train/test cameras, so that `coin-cl render` needs no scene
     point_cloud.ply  final Gaussians (Scaffold-GS decoded to plain Gaussians)
@@ -46,6 +46,12 @@ PLY_NAME = "point_cloud.ply"
 MODELS = ("scaffold", "3dgs")
 
 
+def ckpt_seconds_default() -> float:
+    """Seconds between wall-time checkpoints: 60, or $COIN_CKPT_SECONDS (benchmarks/faults.py sets
+    1 so that its kills land between checkpoints of its tiny runs)."""
+    return float(os.environ.get("COIN_CKPT_SECONDS", 60.0))
+
+
 class TrainingDivergedError(RuntimeError):
     """A loss, gradient or parameter became non-finite; training stopped without saving."""
 
@@ -61,6 +67,10 @@ class TrainConfig:
     eval_every: int = 0  # steps between held-out evaluations (0: only at the end)
     eval_at_seconds: tuple[float, ...] = ()  # also evaluate when training time crosses these
     ckpt_every: int = 1000  # steps between checkpoints (0: only at the end)
+    # ... and at least every this many seconds of wall time (0: off), so that a kill loses at most
+    # about a minute of work whatever the step rate (a checkpoint resumes bit-exactly, so when it
+    # is written does not change the result).
+    ckpt_seconds: float = field(default_factory=ckpt_seconds_default)
     log_every: int = 50
     max_seconds: float = 0.0  # stop when training time (evaluation excluded) exceeds this
     progress: bool = True  # tqdm bar
@@ -149,8 +159,11 @@ def model_from_state(sd: dict[str, Any]) -> Model:
     params = sd["optimizer"]["params"]
     if sd["kind"] == "scaffold":
         cfg = scaffold_config_from_dict(sd["cfg"])
-        cfg.voxel_size = sd["voxel_size"]
-        m: Model = ScaffoldModel(params["anchors"].numpy(), None, sd["extent"], cfg)
+        # the saved anchors are voxelised at their own (resolved) size; the config stays as given
+        # (0: automatic), so that a checkpoint written after a resume is the same as without one
+        m: Model = ScaffoldModel(params["anchors"].numpy(), None, sd["extent"],
+                                 replace(cfg, voxel_size=sd["voxel_size"]))  # fmt: skip
+        m.cfg = cfg
     elif sd["kind"] == "3dgs":
         cfg3 = gaussian_config_from_dict(sd["cfg"])
         m = GaussianModel(params["means"].numpy(), None, sd["extent"], cfg3)
@@ -265,6 +278,9 @@ class Trainer:
         self.log["strategy"] = {"kind": type(self.strategy).__name__, **self.strategy.config()}
         self.log["terms"] = {t.name: t.weight for t in self.terms}
         self._evals_done: set[float] = set()
+        self._acc: dict[str, float] = {}  # loss sums of the current log interval
+        self._n_acc = 0
+        self._last_ckpt = time.monotonic()
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
             cams = {"train": cameras_to_json([v.camera for v in self.train_views]),
@@ -282,9 +298,10 @@ class Trainer:
         return None if self.out is None else self.out / CKPT_NAME
 
     def save_checkpoint(self) -> None:
-        """Write the whole training state to ckpt.pt.tmp, then rename over ckpt.pt."""
+        """Write the whole training state to ckpt.pt, atomically (`coin_cl.atomic`)."""
         if self.out is None:
             return
+        self._last_ckpt = time.monotonic()
         state = {
             "model": self.model.state_dict(),
             "strategy": self.strategy.state_dict(),
@@ -295,11 +312,12 @@ class Trainer:
                 "train_seconds": self.train_seconds,
                 "log": self.log,
                 "evals_done": sorted(self._evals_done),
+                # the running means of the current log interval, so a resumed log is the same
+                "acc": dict(self._acc),
+                "n_acc": self._n_acc,
             },
         }
-        tmp = self.out / (CKPT_NAME + ".tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, self.out / CKPT_NAME)
+        atomic_write(self.out / CKPT_NAME, lambda tmp: torch.save(state, tmp))
         self.save_log()
 
     def load_checkpoint(self, path: str | Path | None = None) -> None:
@@ -332,6 +350,7 @@ class Trainer:
         self.train_seconds = float(t["train_seconds"])
         self.log = t["log"]
         self._evals_done = set(t["evals_done"])
+        self._acc, self._n_acc = dict(t.get("acc", {})), int(t.get("n_acc", 0))
 
     def save_log(self) -> None:
         if self.out is not None:
@@ -441,8 +460,7 @@ class Trainer:
 
             bar = tqdm(total=cfg.iters, initial=self.step, desc=f"train {self.model.kind}",
                        dynamic_ncols=True)  # fmt: skip
-        acc: dict[str, float] = {}
-        n_acc = 0
+        self._last_ckpt = time.monotonic()
         try:
             while self.step < cfg.iters:
                 if cfg.max_seconds and self.train_seconds >= cfg.max_seconds:
@@ -455,15 +473,15 @@ class Trainer:
                 self.train_seconds += time.perf_counter() - t
                 self.step += 1
                 for k, v in rec.items():
-                    acc[k] = acc.get(k, 0.0) + v
-                n_acc += 1
+                    self._acc[k] = self._acc.get(k, 0.0) + v
+                self._n_acc += 1
                 if self.step % cfg.log_every == 0 or self.step == cfg.iters:
-                    mean = {k: v / n_acc for k, v in acc.items()}
+                    mean = {k: v / self._n_acc for k, v in self._acc.items()}
                     self.log["train"].append({"step": self.step, "train_seconds": self.train_seconds,
                                               "n": self.model.n_primitives, **mean})  # fmt: skip
                     if bar is not None:
                         bar.set_postfix(loss=f"{mean['loss']:.4f}", n=self.model.n_primitives)
-                    acc, n_acc = {}, 0
+                    self._acc, self._n_acc = {}, 0
                 if bar is not None:
                     bar.update(1)
                 due = [s for s in cfg.eval_at_seconds
@@ -472,7 +490,9 @@ class Trainer:
                     self._evals_done.update(due)
                     if self.test_views:
                         self.evaluate()
-                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
+                if (cfg.ckpt_every and self.step % cfg.ckpt_every == 0) or (
+                    cfg.ckpt_seconds and time.monotonic() - self._last_ckpt >= cfg.ckpt_seconds
+                ):
                     self.save_checkpoint()
         finally:
             if bar is not None:

@@ -280,6 +280,9 @@ def inpaint(
             f"scene {scene.path} has no training view with a mask: nothing to inpaint "
             "(give masks, e.g. a label/ or masks/ folder)"
         )
+    from coin_cl.pipeline.memory import check_memory
+
+    log.info("memory: about %.1f GiB needed at most", check_memory(scene).bytes / 2**30)  # issue 25
     edited = None
     if edited_ref is not None or cfg.edited_ref:
         from coin_cl.pipeline.insert import load_edited

@@ -30,8 +30,8 @@ import numpy as np
 from coin_cl.diffusion.exemplar import EXEMPLAR_NAME, ExemplarConfig, exemplar_inpaint
 from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, paste
 from coin_cl.diffusion.lama import LAMA_ENV, LAMA_NAME, lama_inpaint, load_lama
-from coin_cl.diffusion.scene_prior import ScenePriorConfig, train_scene_prior
-from coin_cl.scene.io import read_image, to_uint8, write_png
+from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds, train_scene_prior
+from coin_cl.scene.io import read_image, to_uint8, write_png, write_text
 
 log = logging.getLogger(__name__)
 
@@ -82,14 +82,17 @@ def effective_config(
     cfg: Inpaint2DConfig, prior_seconds: float, seed: int, width: int, height: int
 ) -> Inpaint2DConfig:
     """The settings stage 1 really uses (and CLG must repeat to find its cached prior): the
-    pipeline's time budget and seed, and a working patch no larger than the images (the largest
-    multiple of 8 that fits, at least 16)."""
+    pipeline's time budget (as a step count, `steps_for_seconds`) and seed, and a working patch no
+    larger than the images (the largest multiple of 8 that fits, at least 16)."""
     patch = max(16, min(cfg.prior.patch, (min(width, height) // 8) * 8))
     if patch != cfg.prior.patch:
         log.info(
             "1_inpaint: scene prior patch %d -> %d to fit %dx%d images", cfg.prior.patch, patch, width, height
         )
-    prior = replace(cfg.prior, train_seconds=prior_seconds, seed=seed, patch=patch)
+    # A step count, not the seconds themselves: the same prior on any machine, and a killed run
+    # resumes to it (an explicit `prior.train_steps` wins).
+    steps = cfg.prior.train_steps if cfg.prior.train_steps is not None else steps_for_seconds(prior_seconds)
+    prior = replace(cfg.prior, train_seconds=prior_seconds, train_steps=steps, seed=seed, patch=patch)
     # The run's seed reaches stage 1's sampling too: `cfg.seed` is an offset to it.
     return replace(cfg, prior=prior, seed=seed + cfg.seed)
 
@@ -139,14 +142,23 @@ def run_inpaint2d(
     if todo:
         log.info("1_inpaint: %d views without SD2 or dataset inpaints use the %s inpainter", len(todo), kind)
     sources: dict[str, str] = {}
+    record = out_dir / "sources.json"
+    # Recorded view by view, before its image: a killed run's resumption keeps each finished view's
+    # source (a kill between the two redoes the view).
+    done: dict[str, str] = json.loads(record.read_text()) if record.is_file() else {}
+
+    def note(name: str, src: str) -> None:
+        sources[name] = done[name] = src
+        write_text(record, json.dumps(done, indent=1, sort_keys=True))
+
     for i in views:
         name = Path(scene.cameras[i].name).stem + ".png"
         path = img_dir / name
         if path.is_file():
-            sources[name] = "(kept from an earlier run)"
+            sources[name] = done.get(name, "(kept from an earlier run)")
             continue
         if not masks[i].any():
-            sources[name] = "captured image (no mask)"
+            note(name, "captured image (no mask)")
             write_png(path, to_uint8(scene.images[i]))
             continue
         if i in todo and kind == "embedded":
@@ -161,15 +173,10 @@ def run_inpaint2d(
                 scene.images[i], masks[i], sd2=sd2, dataset_inpaint=dataset.get(i), scene_prior=prior,
                 cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i,
             )  # fmt: skip
-        sources[name] = src
+        note(name, src)
         write_png(path, to_uint8(img))
-    old = out_dir / "sources.json"
-    if old.is_file():
-        sources = {
-            **json.loads(old.read_text()),
-            **{k: v for k, v in sources.items() if not v.startswith("(")},
-        }
-    old.write_text(json.dumps(sources, indent=1, sort_keys=True))
+    sources = {**done, **sources}
+    write_text(record, json.dumps(sources, indent=1, sort_keys=True))
     names = sorted(set(sources.values()))
     log.info("1_inpaint: sources used: %s", ", ".join(names))
     return {"sources": names, "prior": prior_info}

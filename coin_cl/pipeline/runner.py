@@ -10,8 +10,10 @@ same: a manifest decides, never the mere existence of files. Consequences:
   (their key includes its output hashes);
 - a run killed inside a stage leaves no manifest for it; the next run calls the stage again in the
   same folder, so a stage that checkpoints (training) or writes per-view files resumes where it
-  stopped. A folder left by a killed run with *other* settings (`started.json` says which) is
-  cleared first, so nothing stale is resumed;
+  stopped. A folder made with *other* settings (`started.json` says which) is moved aside to
+  `<name>.old-<time>` (deleted only when the stage is forced), so nothing stale is resumed and
+  nothing costly is lost;
+- one run per folder: `OUT/.coin-cl.lock` (`coin_cl.pipeline.lock`) names the run holding it;
 - `OUT/run.json` names the scene the folder belongs to; another scene is a clear error.
 
 Every stage decision (ran, skipped and why, resumed, cleared) is logged and recorded in
@@ -92,9 +94,9 @@ def hash_files(folder: Path) -> dict[str, str]:
 
 
 def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".tmp-{path.name}")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=str))
-    tmp.replace(path)
+    from coin_cl.atomic import write_text
+
+    write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str))
 
 
 def _read_json(path: Path) -> dict | None:
@@ -106,7 +108,12 @@ def _read_json(path: Path) -> dict | None:
 
 def check_output_folder(out: Path, scene_id: dict[str, Any]) -> None:
     """Claim `out` for the scene `scene_id` (JSON-able: path, content hash); refuse another's."""
-    out.mkdir(parents=True, exist_ok=True)
+    from coin_cl.atomic import disk_error
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a read-only or full disk: one line naming the folder
+        raise (disk_error(exc, out) or exc) from None
     run = out / "run.json"
     have = _read_json(run)
     if have is None:
@@ -133,8 +140,30 @@ def run_stages(
 
     A record holds status ("ran", "skipped: up to date", "skipped: <reason>"), seconds (of this
     run; an up-to-date stage has `seconds_when_run` instead, from its manifest), the stage's result
-    and notes. `force` names stages to rerun regardless of their manifest.
+    and notes. `force` names stages to rerun regardless of their manifest. The run holds `out`'s
+    lock throughout (`coin_cl.pipeline.lock`: a second run on the folder is refused, naming this one).
     """
+    from coin_cl.pipeline.lock import folder_lock
+
+    with folder_lock(out):
+        return _run_stages(Path(out), stages, shared, force)
+
+
+def move_aside(folder: Path) -> Path:
+    """Rename a stage folder made with other settings to `<name>.old-<UTC time>` beside it (kept,
+    not deleted: it may hold hours of training); returns the new path."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    dest = folder.with_name(f"{folder.name}.old-{stamp}")
+    n = 1
+    while dest.exists():
+        dest, n = folder.with_name(f"{folder.name}.old-{stamp}-{n}"), n + 1
+    folder.rename(dest)
+    return dest
+
+
+def _run_stages(
+    out: Path, stages: Sequence[Stage], shared: dict[str, Any] | None, force: Sequence[str]
+) -> dict[str, dict]:
     shared = shared or {}
     records: dict[str, dict] = {}
     manifests: dict[str, dict] = {}
@@ -170,11 +199,23 @@ def run_stages(
             continue
         started = _read_json(folder / STARTED)
         if folder.exists() and (started is None or started.get("key") != key or st.name in force):
-            why = "forced" if st.name in force else "settings or inputs changed"
-            log.info("[%s] clearing %s (%s)", st.name, folder, why)
-            shutil.rmtree(folder)
+            if st.name in force:
+                log.info("[%s] clearing %s (forced)", st.name, folder)
+                shutil.rmtree(folder)
+            else:
+                kept = move_aside(folder)
+                log.warning(
+                    "[%s] settings or inputs changed: the old %s is kept as %s (delete it, or "
+                    "use --force %s next time, to discard it)",
+                    st.name,
+                    folder.name,
+                    kept,
+                    st.name,
+                )
         elif folder.exists():
             log.info("[%s] resuming an interrupted run in %s", st.name, folder)
+            for tmp in folder.rglob(".tmp-*"):  # what a kill left of an atomic write (coin_cl.atomic)
+                tmp.unlink()
         folder.mkdir(parents=True, exist_ok=True)
         (folder / MANIFEST).unlink(missing_ok=True)
         _write_json(folder / STARTED, {"key": key, "settings": st.settings})

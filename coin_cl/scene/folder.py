@@ -85,6 +85,17 @@ def read_views_txt(path: Path) -> dict[str, tuple[int, str]]:
 def open_folder(root: Path, imgdir: Path, files: list[Path]) -> ImageFolder:
     """The `ImageFolder` of `root` (views.txt checked against the images)."""
     names = [f.name for f in files]
+    by_stem: dict[str, list[str]] = {}
+    for n in names:
+        by_stem.setdefault(Path(n).stem, []).append(n)
+    dup = [v for v in by_stem.values() if len(v) > 1]
+    if dup:
+        # masks, priors, views.txt and the outputs are matched by stem: two files would share them
+        raise ValueError(
+            f"{imgdir} holds images with the same name but different extensions: {dup[0]}"
+            f"{f' and {len(dup) - 1} more' if len(dup) > 1 else ''}; keep one of each (rename or "
+            "remove the other)"
+        )
     views = read_views_txt(root / "views.txt") if (root / "views.txt").is_file() else None
     if views is not None:
         unknown = [n for n in names if Path(n).stem not in views]
@@ -426,6 +437,26 @@ def near_far(
     return None, None
 
 
+def check_poses(folder: ImageFolder, poses: Poses) -> None:
+    """Refuse NaN/Inf in a pose or in the LLFF bounds, and bounds that are not 0 < near < far: a
+    ValueError naming the file and the view (a NaN pose would train to NaN, far later)."""
+    for n, V in zip(folder.names, poses.viewmats, strict=True):
+        if not np.isfinite(V).all():
+            raise ValueError(
+                f"the pose of image {n} in {poses.source} holds NaN or Inf; re-run COLMAP (or fix that "
+                "row) or remove the image"
+            )
+    if poses.bounds is not None:
+        b = np.asarray(poses.bounds, np.float64)
+        bad = ~(np.isfinite(b).all(axis=1) & (b[:, 0] > 0) & (b[:, 1] > b[:, 0]))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"{poses.source}: the near/far bounds of image {folder.names[k]} are {b[k].tolist()}, not "
+                "finite with 0 < near < far; fix that row (LLFF's last two columns) or remove the image"
+            )
+
+
 # ---------------------------------------------------------------------------------------------- layouts
 
 
@@ -441,6 +472,7 @@ def _load_image_folder(
 ) -> Scene:
     """The steps every image-folder layout shares, at the images' resolution."""
     poses = read_poses(folder, undistort)
+    check_poses(folder, poses)
     pts, colors = sparse_points(folder, poses)
     is_test, split_source = split_views(folder, n_test, default_split)
     log.info(

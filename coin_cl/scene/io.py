@@ -1,29 +1,55 @@
-"""Image reading and atomic file writing shared by the scene modules."""
+"""Image reading and writing shared by the scene modules (writes are atomic: `coin_cl.atomic`)."""
 
 from __future__ import annotations
 
-import os
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 
+from coin_cl.atomic import atomic_write, write_text  # noqa: F401  (re-exported: the scene modules' writers)
+
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an 8/16-bit RGB(A) or grey image -> (H, W, 3) float32 in [0, 1]."""
+def imread_checked(path: str | Path, what: str = "image") -> np.ndarray:
+    """`imageio.imread` with one clear error for a missing, truncated or unreadable file: a
+    FileNotFoundError / ValueError naming it and what to do (never a decoder traceback)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"image {path} not found")
-    a = iio.imread(path)
-    scale = 65535.0 if a.dtype == np.uint16 else 255.0
+        raise FileNotFoundError(f"{what} {path} not found")
+    try:
+        a = np.asarray(iio.imread(path))
+    except Exception as exc:  # every decoder raises its own kind (OSError, ValueError, SyntaxError...)
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(
+            f"{what} {path} cannot be read ({msg}): it is truncated or not an image; "
+            "replace it (re-export or re-copy it) or remove it from the folder"
+        ) from None
+    if a.ndim not in (2, 3) or a.size == 0 or a.dtype.kind not in "uif" or (a.ndim == 3 and a.shape[2] > 4):
+        raise ValueError(
+            f"{what} {path} is not a single 2D picture (array {a.shape} {a.dtype}); "
+            "save it as an 8- or 16-bit PNG or JPEG"
+        )
+    return a
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image -> (H, W, 3) float32 in [0, 1]. Documented handling: grey images are repeated
+    into RGB; an alpha channel is dropped (the colour is used as stored, not composited); 16-bit
+    images are scaled by 65535, 8-bit by 255 (float images are taken as [0, 1] and clipped).
+    A truncated or unreadable file raises ValueError naming it."""
+    a = imread_checked(path)
+    scale = {np.dtype(np.uint16): 65535.0, np.dtype(np.uint8): 255.0}.get(a.dtype, 1.0)
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=2)
+    elif a.shape[2] < 3:  # grey + alpha
+        a = np.repeat(a[..., :1], 3, axis=2)
     a = a[..., :3]
-    return (a.astype(np.float32) / np.float32(scale)).clip(0, 1)
+    out = a.astype(np.float32) / np.float32(scale)
+    if not np.isfinite(out).all():
+        raise ValueError(f"image {path} holds NaN or Inf values; save it as an 8- or 16-bit PNG or JPEG")
+    return out.clip(0, 1)
 
 
 def to_uint8(img: np.ndarray) -> np.ndarray:
@@ -31,21 +57,6 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
     if img.dtype == np.uint8:
         return img
     return (np.clip(img, 0, 1) * 255.0 + 0.5).astype(np.uint8)
-
-
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
-    """Call write(tmp) on a temporary name in the same folder, then os.replace onto `path`,
-    so a crash never leaves a half-written file under the final name."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_png(path: str | Path, img: np.ndarray) -> None:
@@ -62,11 +73,6 @@ def write_npy(path: str | Path, arr: np.ndarray) -> None:
             np.save(f, arr)
 
     atomic_write(path, _w)
-
-
-def write_text(path: str | Path, text: str) -> None:
-    """Write a text file atomically."""
-    atomic_write(path, lambda p: p.write_text(text))
 
 
 def list_images(folder: Path) -> list[Path]:

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import imageio.v3 as iio
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -18,21 +17,39 @@ log = logging.getLogger(__name__)
 MASK_KINDS = ("seg", "bbox", "scribble")
 
 
+def mask_from_array(a: np.ndarray) -> np.ndarray:
+    """A mask image (grey or RGB[A], 8 or 16 bit) -> (H, W) bool.
+
+    Rule: masks of 0/1 values (SPIn-NeRF's labels) are True where non-zero; any other mask is
+    thresholded at half range (>= 128 of 255, >= 32768 of 65535). Lossy (JPEG) masks hold values
+    near 0 and near 255 (ringing at the edges, noise in flat areas), which `> 0` would turn into
+    speckles all over the image; half range reads them as the mask that was saved.
+    Colour masks use their largest colour channel; alpha is ignored.
+    """
+    if a.ndim == 3:
+        a = a[..., :3].max(axis=2) if a.shape[2] >= 3 else a[..., 0]
+    if a.dtype == bool:
+        return a
+    top = 65535 if a.dtype == np.uint16 else 255 if a.dtype.kind in "ui" else 1.0
+    if a.max() <= 1:
+        return a > 0
+    return a >= (top + 1) / 2 if a.dtype.kind in "ui" else a >= 0.5
+
+
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a mask PNG (0/1 or 0/255, grey or RGB[A]) -> (H, W) bool, True where non-zero.
+    """Read a mask image -> (H, W) bool (the threshold rule of `mask_from_array`: 0/1 masks
+    non-zero, others at half range, so JPEG masks read right).
 
     shape: the (H, W) of the image it belongs to. A mask taller than the image by a few rows with
     the same width (SPIn-NeRF's 1008x576 test labels for 1008x567 images) is cropped to the top
     rows with a log line; any other mismatch raises ValueError naming the file.
     """
+    from .io import imread_checked
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mask file {path} not found; add it or remove the view")
-    a = iio.imread(path)
-    if a.ndim == 3:
-        # RGBA masks with the object in alpha are rare; use colour channels and ignore alpha.
-        a = a[..., :3].max(axis=2) if a.shape[2] >= 3 else a[..., 0]
-    m = a > 0
+    m = mask_from_array(imread_checked(path, "mask"))
     if shape is not None and m.shape != tuple(shape):
         h, w = shape
         if m.shape[1] == w and h < m.shape[0] <= h + 16:

@@ -1,0 +1,711 @@
+"""Benchmark: nothing lost (issue 25). Kill a CoIn run at any moment, hand it bad input of every kind,
+run two on one folder; count what survives.
+
+On a tiny synthetic scene (`coin_cl.scene.write_synthetic`, 6 views of 64x48 px, step counts
+fixed so that runs are deterministic):
+
+1. an uninterrupted run (the reference);
+2. one run folder killed with SIGKILL again and again, each time at a seeded random moment inside
+   a chosen stage (`--kills-per-stage` kills for every stage, the stage found by polling its
+   `started.json`), resumed after every kill, then run to the end; after every kill every file
+   under the folder must read back whole (a PNG decodes, a .pt loads, a JSON parses); at the end
+   every output (images, PLY, GIF, arrays, model and prior tensors, JSON without timings) is
+   compared with the reference;
+3. while a run works in a folder, a second `coin-cl run` on the same folder: it must be refused
+   with one line naming the holder (`lock_conflicts_caught`);
+4. the bad-input corpus, built from the synthetic scene, each case through `coin-cl run` and
+   through `coin_cl.inpaint`: an error case passes when it gives one line naming the culprit
+   (CLI: exit code 2, no traceback), a handled case when the run completes.
+
+The step counts, the checkpoint interval ($COIN_CKPT_SECONDS = 0.25, so kills land between
+checkpoints) and the kill moments come from the command line and --seed. The last line is JSON:
+kills, resumed_identical, bad_inputs, clear_errors, tracebacks, half_written_files,
+lock_conflicts_caught and more.
+
+    nice -n 15 python benchmarks/faults.py --out /tmp/faults     (about 10 minutes on 2 cores)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import cpu_model, git_commit  # noqa: E402
+
+STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
+CHILD_ENV = {"COIN_CKPT_SECONDS": "0.25", "OMP_WAIT_POLICY": "PASSIVE", "PYTHONUNBUFFERED": "1"}
+
+
+# ------------------------------------------------------------------------------------------ the run
+
+
+def tiny_config(iters: int, prior_steps: int):
+    """The harness's CoIn settings: fixed step counts at every stage (deterministic runs)."""
+    from coin_cl.diffusion.inpaint2d import InpaintConfig
+    from coin_cl.diffusion.sampling import SamplerConfig
+    from coin_cl.diffusion.scene_prior import ScenePriorConfig
+
+    from coin_cl.gs.refgs import RefGSConfig
+    from coin_cl.pipeline.clg import CLGConfig
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+    from coin_cl.pipeline.ted import TEDConfig
+
+    sampler = SamplerConfig(num_steps=8, discretization="uniform", eta=0.0)
+    return CoInConfig(
+        iters_refgs=iters,
+        iters_ted_finetune=iters // 2,
+        iters_ted_adversarial=iters // 2,
+        prior_seconds=10,
+        inpaint2d=Inpaint2DConfig(
+            prior=ScenePriorConfig(patch=32, base=8, batch=4, train_steps=prior_steps),
+            inpaint=InpaintConfig(sampler_prior=sampler),
+        ),
+        clg=CLGConfig(steps=4),
+        ted=TEDConfig(n_patches=2),
+        refgs=RefGSConfig(depth_prior_iters=10),
+    )
+
+
+def child_main(args: argparse.Namespace) -> int:
+    """One CoIn run (`--child SCENE OUT`): what the harness starts and kills."""
+    from coin_cl.pipeline.coin import inpaint
+
+    inpaint(args.child[0], args.child[1], config=tiny_config(args.iters, args.prior_steps))
+    return 0
+
+
+def api_main(args: argparse.Namespace) -> int:
+    """The bad-input corpus through `coin_cl.inpaint` (`--api CASES.json`), one JSON line per case."""
+    import traceback
+
+    from coin_cl.pipeline.coin import inpaint
+
+    cases = json.loads(Path(args.api).read_text())
+    for c in cases:
+        env_old = {k: os.environ.get(k) for k in c.get("env", {})}
+        os.environ.update(c.get("env", {}))
+        rec = {"name": c["name"]}
+        try:
+            inpaint(c["scene"], c["out_api"], config=tiny_config(args.iters, args.prior_steps))
+            rec["outcome"] = "completed"
+        except (ValueError, OSError, RuntimeError) as exc:
+            rec.update(outcome="error", type=type(exc).__name__, message=str(exc))
+        except Exception as exc:  # noqa: BLE001 - an unexpected kind is what this counts
+            rec.update(outcome="crash", type=type(exc).__name__, message=traceback.format_exc())
+        for k, v in env_old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        print("CASE " + json.dumps(rec), flush=True)
+    return 0
+
+
+def spawn(args, scene: Path, out: Path, log_path: Path) -> subprocess.Popen:
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        str(scene),
+        str(out),
+        "--iters",
+        str(args.iters),
+        "--prior-steps",
+        str(args.prior_steps),
+    ]
+    return subprocess.Popen(
+        cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT, env={**os.environ, **CHILD_ENV}
+    )
+
+
+def stage_started_after(out: Path, stage: str, t0: float) -> bool:
+    p = out / stage / "started.json"
+    try:
+        return p.stat().st_mtime >= t0 - 1e-3
+    except FileNotFoundError:
+        return False
+
+
+def stage_done(out: Path, stage: str) -> bool:
+    return (out / stage / "manifest.json").is_file()
+
+
+# ------------------------------------------------------------------------------------------ checks
+
+
+def unreadable_files(root: Path) -> list[str]:
+    """Files under final names that do not read back whole (PNG/GIF decode, .pt loads, JSON parses,
+    PLY parses, .npy loads): what a kill must never leave."""
+    import imageio.v3 as iio
+    import torch
+
+    bad = []
+    for p in sorted(root.rglob("*")):
+        if not p.is_file() or p.name.startswith(".tmp") or p.name == ".coin-cl.lock":
+            continue
+        try:
+            if p.suffix in (".png", ".jpg", ".gif"):
+                iio.imread(p, index=None) if p.suffix == ".gif" else iio.imread(p)
+            elif p.suffix == ".pt":
+                torch.load(p, map_location="cpu", weights_only=False)
+            elif p.suffix == ".json":
+                json.loads(p.read_text())
+            elif p.suffix == ".npy":
+                np.load(p)
+            elif p.suffix == ".ply":
+                from plyfile import PlyData
+
+                PlyData.read(str(p))
+        except Exception as exc:  # noqa: BLE001
+            bad.append(f"{p.relative_to(root)} ({type(exc).__name__})")
+    return bad
+
+
+VOLATILE = (
+    "second",
+    "time",
+    "train_s",
+    "peak_rss",
+    "t_fwd",
+    "t_bwd",
+    "t_opt",
+    "t_refine",
+    "command",
+    "started",
+    "eval_s",
+    "minutes",
+    "per_s",
+    "resumed",  # a stage's record of whether it resumed: true only in the killed run
+)
+
+
+def _strip(obj, root: str):
+    """A JSON or checkpoint tree without timings, with the run folder's path as <OUT> (both differ
+    between any two runs)."""
+    if isinstance(obj, dict):
+        return {k: _strip(v, root) for k, v in obj.items() if not any(w in str(k).lower() for w in VOLATILE)}
+    if isinstance(obj, list | tuple):
+        return [_strip(v, root) for v in obj]
+    return obj.replace(root, "<OUT>") if isinstance(obj, str) else obj
+
+
+def _equal(a, b) -> bool:
+    import torch
+
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return (
+            isinstance(a, torch.Tensor)
+            and isinstance(b, torch.Tensor)
+            and a.shape == b.shape
+            and bool(torch.equal(a, b))
+        )
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return np.array_equal(np.asarray(a), np.asarray(b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_equal(x, y) for x, y in zip(a, b))
+    return a == b or (isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b))
+
+
+def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
+    """(files compared, those that differ): every file of every stage folder, bytes for images,
+    PLY and arrays; tensors for .pt; JSON without timings; trainer logs without timings."""
+    import torch
+
+    n, diff = 0, []
+    for st in [s for s in STAGES if (ref / s).is_dir() or (run / s).is_dir()]:
+        a_files = {p.relative_to(ref / st) for p in (ref / st).rglob("*") if p.is_file()}
+        b_files = {p.relative_to(run / st) for p in (run / st).rglob("*") if p.is_file()}
+        skip = {"started.json", "manifest.json"}
+        a_files = {f for f in a_files if f.name not in skip and not f.name.startswith(".tmp")}
+        b_files = {f for f in b_files if f.name not in skip and not f.name.startswith(".tmp")}
+        for f in sorted(a_files ^ b_files):
+            diff.append(f"{st}/{f} (only in {'reference' if f in a_files else 'resumed run'})")
+        for f in sorted(a_files & b_files):
+            n += 1
+            pa, pb = ref / st / f, run / st / f
+            if f.suffix in (".pt", ".json"):
+                load = (
+                    (lambda p: torch.load(p, weights_only=False))
+                    if f.suffix == ".pt"
+                    else (lambda p: json.loads(p.read_text()))
+                )
+                same = _equal(_strip(load(pa), str(ref)), _strip(load(pb), str(run)))
+            else:
+                same = pa.read_bytes() == pb.read_bytes()
+            if not same:
+                diff.append(f"{st}/{f}")
+    return n, diff
+
+
+# ------------------------------------------------------------------------------------------ kills
+
+
+def wrote_progress(folder: Path, since: float) -> bool:
+    """Whether a checkpoint or a per-view image under `folder` was written after `since`."""
+    for p in folder.rglob("*"):
+        keep = p.name == "ckpt.pt" or p.name.endswith(".ckpt.pt") or p.suffix == ".png"
+        try:
+            if keep and p.stat().st_mtime > since:
+                return True
+        except FileNotFoundError:
+            continue
+    return False
+
+
+def progress_kept(folder: Path) -> int:
+    """Work a killed stage keeps for its resumption: training steps in its checkpoints (GS trainer,
+    scene prior) plus per-view images already written."""
+    import torch
+
+    n = 0
+    for p in folder.rglob("*.pt"):
+        if p.name == "ckpt.pt" or p.name.endswith(".ckpt.pt"):
+            try:
+                st = torch.load(p, map_location="cpu", weights_only=False)
+            except Exception:  # noqa: BLE001 - counted as unreadable elsewhere
+                continue
+            n += int(st["trainer"]["step"]) if "trainer" in st else int(st.get("steps", 0))
+    return n + sum(1 for _ in folder.glob("images/*.png"))
+
+
+def lock_conflict(args, scene: Path, out: Path) -> tuple[int, int]:
+    """One run at a time: while a run works in `out`, `coin-cl run` on the same folder must be
+    refused with one line naming it. Returns (caught, tried)."""
+    t0 = time.time()
+    proc = spawn(args, scene, out, out.parent / "conflict.log")
+    try:
+        while proc.poll() is None and not stage_started_after(out, "0_scene", t0):
+            time.sleep(0.02)
+        if proc.poll() is not None:
+            return 0, 0
+        cli = subprocess.run(
+            [sys.executable, "-m", "coin_cl.cli", "run", str(scene), "--out", str(out), "--iters", "3"],
+            capture_output=True, text=True, env={**os.environ, **CHILD_ENV}, timeout=300,
+        )  # fmt: skip
+        last = (cli.stderr.strip().splitlines() or [""])[-1]
+        ok = cli.returncode == 2 and "in use by another coin-cl run" in last and f"process {proc.pid}" in last
+        ok = ok and "Traceback" not in cli.stderr and proc.poll() is None  # and the first run goes on
+        print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
+        return int(ok), 1
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, float]) -> dict:
+    """Kill the run in `out` `kills_per_stage` times in every stage (seeded moments), resuming after
+    each; then run it to the end. Also the lock conflict: a second run while one is alive."""
+    rng = random.Random(args.seed)
+    log_path = out.parent / "kill_chain.log"
+    kills, per_stage, half, mid = 0, {}, [], 0
+    proc, t_spawn = None, 0.0
+    for st in [s for s in STAGES if (ref / s).is_dir() for _ in range(args.kills_per_stage)]:
+        if stage_done(out, st):
+            continue  # finished before its kill moment came: the next stage's turn
+        if proc is None or proc.poll() is not None:
+            t_spawn, proc = time.time(), spawn(args, scene, out, log_path)
+        while proc.poll() is None and not stage_started_after(out, st, t_spawn):
+            time.sleep(0.02)
+        if proc.poll() is not None:
+            continue
+        # The moment: shortly (0-0.3 s) after the stage wrote new progress in this life (a checkpoint,
+        # a finished view), so that every resumption has work to keep and the stage is still
+        # running; stages that write no progress (0_scene, eval) at 30-90 % of their length.
+        t_st, rand_after, delay = time.time(), rng.uniform(0.0, 0.3), None
+        fallback = rng.uniform(0.3, 0.9) * max(0.2, ref_seconds.get(st, 1.0))
+        while proc.poll() is None and not stage_done(out, st):
+            now = time.time()
+            if delay is None and wrote_progress(out / st, t_st):
+                delay = now - t_st + rand_after
+            if (delay is not None and now - t_st >= delay) or (delay is None and now - t_st >= fallback):
+                delay = now - t_st
+                break
+            time.sleep(0.01)
+        if proc.poll() is not None or stage_done(out, st):
+            continue
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc = None
+        kills += 1
+        per_stage[st] = per_stage.get(st, 0) + 1
+        bad = unreadable_files(out)
+        half += bad
+        kept = progress_kept(out / st)
+        mid += kept > 0
+        print(
+            f"  kill {kills}: {st} after {delay:.2f} s; kept for resumption: {kept} steps + views; "
+            f"unreadable files: {len(bad)}",
+            flush=True,
+        )
+    if proc is not None:
+        proc.wait()
+    conflicts, conflict_tries = lock_conflict(args, scene, out.parent / "conflict")
+    t0 = time.time()
+    rc = spawn(args, scene, out, log_path).wait()  # resumes what is left (skips what is done)
+    n_cmp, diff = compare_outputs(ref, out)
+    return {
+        "kills": kills,
+        "kills_per_stage": per_stage,
+        "final_rc": rc,
+        "final_s": time.time() - t0,
+        "compared_files": n_cmp,
+        "differing": diff,
+        "half_written": half,
+        "lock_conflicts_caught": conflicts,
+        "lock_conflict_tries": conflict_tries,
+        "kills_resumed_mid_stage": mid,
+    }
+
+
+# ------------------------------------------------------------------------------------------ bad input
+
+
+def _copy(base: Path, dst: Path) -> Path:
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(base, dst)
+    return dst
+
+
+def _train_names(root: Path) -> list[str]:
+    names = []
+    for line in (root / "views.txt").read_text().splitlines():
+        t = line.split()
+        if t and not line.startswith("#") and t[2] == "train":
+            names.append(t[1])
+    return names
+
+
+def build_corpus(base: Path, root: Path) -> list[dict]:
+    """The bad-input cases: {name, scene, expect ("error" | "handled"), culprit (what the error must
+    name), env, out}. Built from the synthetic scene `base` (SPIn-NeRF layout)."""
+    import cv2
+    import imageio.v3 as iio
+
+    cases = []
+    train = _train_names(base)
+    t0, t1 = train[0], train[1]
+
+    def case(name, expect, culprit="", env=None, out=None):
+        d = root / "scenes" / name
+        cases.append(
+            {
+                "name": name,
+                "scene": str(d),
+                "expect": expect,
+                "culprit": culprit,
+                "env": env or {},
+                "out": out,
+            }
+        )
+        return d
+
+    d = _copy(base, case("truncated_image", "error", t0))
+    p = d / "images_4" / t0
+    p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 3])
+    d = _copy(base, case("unreadable_image", "error", t0))
+    (d / "images_4" / t0).write_bytes(b"not an image " * 40)
+    d = _copy(base, case("grey_image", "handled"))
+    p = d / "images_4" / t0
+    iio.imwrite(p, iio.imread(p)[..., :3].mean(axis=2).astype(np.uint8))
+    d = _copy(base, case("rgba_image", "handled"))
+    p = d / "images_4" / t0
+    a = iio.imread(p)[..., :3]
+    iio.imwrite(p, np.concatenate([a, np.full(a.shape[:2] + (1,), 255, np.uint8)], 2))
+    d = _copy(base, case("image_16bit", "handled"))
+    p = d / "images_4" / t0
+    cv2.imwrite(str(p), iio.imread(p)[..., 2::-1].astype(np.uint16) * 257)
+    d = _copy(base, case("mask_size_differs", "error", f"label/{t0}"))
+    m = iio.imread(d / "images_4" / "label" / t0)
+    iio.imwrite(d / "images_4" / "label" / t0, cv2.resize(m, (m.shape[1] // 2, m.shape[0] // 2)))
+    d = _copy(base, case("jpeg_masks", "handled"))
+    for p in sorted((d / "images_4" / "label").glob("*.png")):
+        iio.imwrite(
+            p.with_suffix(".jpg"), (iio.imread(p) > 0).astype(np.uint8) * 255, extension=".jpg", quality=70
+        )
+        p.unlink()
+    d = _copy(base, case("masks_empty_everywhere", "error", "no training view with a mask"))
+    for p in (d / "images_4" / "label").glob("*.png"):
+        iio.imwrite(p, np.zeros_like(iio.imread(p)))
+    d = _copy(base, case("mask_full_in_a_view", "error", f"label/{t1}"))
+    p = d / "images_4" / "label" / t1
+    iio.imwrite(p, np.ones_like(iio.imread(p)))
+    d = _copy(base, case("mask_in_one_view_only", "handled"))
+    for n in train[1:]:
+        p = d / "images_4" / "label" / n
+        iio.imwrite(p, np.zeros_like(iio.imread(p)))
+    d = _copy(base, case("one_view", "handled"))
+    keep = [ln for ln in (d / "views.txt").read_text().splitlines() if ln.startswith("#") or t0 in ln]
+    (d / "views.txt").write_text("\n".join(keep) + "\n")
+    for p in (d / "images_4").glob("*.png"):
+        if p.name != t0:
+            p.unlink()
+    d = _copy(base, case("duplicate_names", "error", Path(t0).stem))
+    iio.imwrite((d / "images_4" / t0).with_suffix(".jpg"), iio.imread(d / "images_4" / t0))
+    d = _copy(base, case("nan_pose", "error", "poses_bounds.npy"))
+    (d / "sparse" / "0" / "images.bin").unlink()
+    pb = np.load(d / "poses_bounds.npy")
+    pb[1, 3] = np.nan
+    np.save(d / "poses_bounds.npy", pb)
+    d = _copy(base, case("inf_bounds", "error", "poses_bounds.npy"))
+    (d / "sparse" / "0" / "images.bin").unlink()
+    pb = np.load(d / "poses_bounds.npy")
+    pb[2, -1] = np.inf
+    np.save(d / "poses_bounds.npy", pb)
+    d = _copy(base, case("colmap_names_missing_images", "handled"))
+    gone = train[-1]
+    (d / "images_4" / gone).unlink()
+    (d / "images_4" / "label" / gone).unlink()
+    _copy(base, case("spaces and non-ASCII ünïcødé 場景", "handled"))
+    case("memory_too_large", "error", "--resolution", env={"COIN_MEMORY_LIMIT_GB": "0.3"})
+    cases[-1]["scene"] = str(base)
+    case("read_only_output", "error", "read-only", out="ro")
+    cases[-1]["scene"] = str(base)
+    case("full_output_disk", "error", "disk is full", out="full")
+    cases[-1]["scene"] = str(base)
+    return cases
+
+
+def _mount(path: Path, opts: str) -> bool:
+    path.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)], capture_output=True)
+    return r.returncode == 0
+
+
+def _umount(path: Path) -> None:
+    subprocess.run(["umount", str(path)], capture_output=True)
+
+
+def run_corpus(args, base: Path, root: Path) -> list[dict]:
+    cases = build_corpus(base, root)
+    mounts = []
+    for c in cases:
+        c["out_cli"] = str(root / "out_cli" / c["name"])
+        c["out_api"] = str(root / "out_api" / c["name"])
+        if c["out"] == "ro":  # a read-only file system: an empty tmpfs remounted read-only
+            mnt = root / "mnt_ro"
+            if (
+                _mount(mnt, "size=4m")
+                and subprocess.run(["mount", "-o", "remount,ro", str(mnt)]).returncode == 0
+            ):
+                mounts.append(mnt)
+                c["out_cli"], c["out_api"] = str(mnt / "cli"), str(mnt / "api")
+            else:
+                c["skipped"] = "cannot mount a tmpfs here (needs root)"
+        elif c["out"] == "full":  # a full disk: a tmpfs too small for the run's outputs
+            mnt = root / "mnt_full"
+            if _mount(mnt, "size=160k"):
+                mounts.append(mnt)
+                c["out_cli"], c["out_api"] = str(mnt / "cli"), str(mnt / "api")
+            else:
+                c["skipped"] = "cannot mount a tmpfs here (needs root)"
+    todo = [c for c in cases if "skipped" not in c]
+    try:
+        # the API: every case in one process (coin_cl.inpaint), one JSON line per case
+        (root / "cases.json").write_text(json.dumps(todo))
+        api = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--api",
+                str(root / "cases.json"),
+                "--iters",
+                str(args.corpus_iters),
+                "--prior-steps",
+                str(args.corpus_iters),
+            ],
+            capture_output=True,
+            text=True,
+            env={**os.environ, **CHILD_ENV},
+            timeout=1800,
+        )
+        got = {}
+        for line in api.stdout.splitlines():
+            if line.startswith("CASE "):
+                r = json.loads(line[5:])
+                got[r["name"]] = r
+        for c in todo:
+            c["api"] = got.get(c["name"], {"outcome": "crash", "message": api.stderr[-2000:]})
+            # the CLI: `coin-cl run`, a process per case
+            if c["out"] == "full":
+                shutil.rmtree(c["out_api"], ignore_errors=True)  # room for the CLI's attempt
+            cmd = [
+                sys.executable,
+                "-m",
+                "coin_cl.cli",
+                "run",
+                c["scene"],
+                "--out",
+                c["out_cli"],
+                "--iters",
+                str(args.corpus_iters),
+                "--prior-seconds",
+                "2",
+            ]
+            t = time.time()
+            cli = subprocess.run(
+                cmd, capture_output=True, text=True, env={**os.environ, **CHILD_ENV, **c["env"]}, timeout=900
+            )
+            c["cli"] = {
+                "rc": cli.returncode,
+                "stderr_tail": cli.stderr.strip().splitlines()[-1:],
+                "traceback": "Traceback" in cli.stderr,
+                "seconds": time.time() - t,
+            }
+            for key in ("out_cli", "out_api"):
+                if Path(c[key]).exists():
+                    c.setdefault("half_written", []).extend(unreadable_files(Path(c[key])))
+    finally:
+        for m in mounts:
+            _umount(m)
+    return cases
+
+
+def judge(c: dict) -> dict:
+    """Per case: clear (the expected outcome, as one line naming the culprit), traceback."""
+    out = {"name": c["name"], "expect": c["expect"]}
+    if "skipped" in c:
+        return {**out, "skipped": c["skipped"]}
+    api, cli = c["api"], c["cli"]
+    if c["expect"] == "handled":
+        api_ok = api["outcome"] == "completed"
+        cli_ok = cli["rc"] == 0
+    else:
+        msg = api.get("message", "")
+        api_ok = api["outcome"] == "error" and "\n" not in msg and c["culprit"] in msg
+        last = cli["stderr_tail"][0] if cli["stderr_tail"] else ""
+        cli_ok = cli["rc"] == 2 and last.startswith("coin-cl run: error:") and c["culprit"] in last
+    return {
+        **out,
+        "api_ok": api_ok,
+        "cli_ok": cli_ok,
+        "tracebacks": int(api["outcome"] == "crash") + int(cli["traceback"]),
+        "api": api.get("message", api["outcome"])[:300],
+        "cli": "" if c["expect"] == "handled" and cli["rc"] == 0 else (cli["stderr_tail"] or [""])[0][:300],
+        "half_written": c.get("half_written", []),
+    }
+
+
+# ------------------------------------------------------------------------------------------ main
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("/tmp/coin_faults"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--views", type=int, default=6)
+    ap.add_argument("--iters", type=int, default=40, help="Ref-GS steps (TE-D: half each phase)")
+    ap.add_argument("--prior-steps", type=int, default=30)
+    ap.add_argument("--kills-per-stage", type=int, default=5)
+    ap.add_argument("--corpus-iters", type=int, default=10, help="GS and prior steps of the bad-input runs")
+    ap.add_argument("--skip-corpus", action="store_true")
+    ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--api", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child_main(args)
+    if args.api:
+        return api_main(args)
+    os.environ.update(CHILD_ENV)
+    from coin_cl.scene import write_synthetic
+
+    t_start = time.time()
+    if args.out.exists():
+        shutil.rmtree(args.out)
+    args.out.mkdir(parents=True)
+    scene = write_synthetic(args.out / "scene", n_views=args.views, width=64, height=48, seed=args.seed)
+    from coin_cl.engine.runtime import get_runtime
+
+    print(
+        f"# faults: CPU {cpu_model()}, {os.cpu_count()} cores, OpenCL {get_runtime().name}, commit "
+        f"{git_commit()}, {args.views} views 64x48, Ref-GS {args.iters} "
+        f"steps, TE-D {args.iters // 2} + {args.iters // 2}, prior {args.prior_steps} steps, "
+        f"checkpoints every 0.25 s ($COIN_CKPT_SECONDS), seed {args.seed}",
+        flush=True,
+    )
+    ref = args.out / "ref"
+    t0 = time.time()
+    rc = spawn(args, scene, ref, args.out / "ref.log").wait()
+    if rc != 0:
+        print((args.out / "ref.log").read_text()[-3000:])
+        raise SystemExit(f"the reference run failed (rc {rc}); see {args.out / 'ref.log'}")
+    ref_s = time.time() - t0
+    logd = json.loads((ref / "log.json").read_text())["stages"]
+    ref_seconds = {k: float(v.get("seconds", 0.0)) for k, v in logd.items()}
+    print(
+        f"reference run: {ref_s:.0f} s; stages " + ", ".join(f"{k} {v:.1f} s" for k, v in ref_seconds.items())
+    )
+    print("kill chain:", flush=True)
+    chain = kill_chain(args, scene, ref, args.out / "killed", ref_seconds)
+    identical = chain["final_rc"] == 0 and not chain["differing"]
+    print(
+        "\n| kills | per stage | compared files | differing | unreadable after a kill "
+        "| lock conflicts caught |"
+    )
+    print("|---|---|---|---|---|---|")
+    c = chain
+    print(
+        f"| {c['kills']} | {c['kills_per_stage']} | {c['compared_files']} | {len(c['differing'])} "
+        f"| {len(c['half_written'])} | {c['lock_conflicts_caught']} / {c['lock_conflict_tries']} |"
+    )
+    for d in chain["differing"][:20]:
+        print(f"  differs: {d}")
+    rows = []
+    if not args.skip_corpus:
+        print("\nbad-input corpus:", flush=True)
+        rows = [judge(c) for c in run_corpus(args, scene, args.out / "bad")]
+        print("\n| case | expected | coin_cl.inpaint | coin-cl run | message (CLI) |")
+        print("|---|---|---|---|---|")
+        for r in rows:
+            if "skipped" in r:
+                print(f"| {r['name']} | {r['expect']} | skipped | skipped | {r['skipped']} |")
+                continue
+            print(
+                f"| {r['name']} | {r['expect']} | {'ok' if r['api_ok'] else 'FAIL'} | "
+                f"{'ok' if r['cli_ok'] else 'FAIL'} | {r['cli'] or '(completed)'} |"
+            )
+        for r in rows:
+            if "skipped" not in r and not (r["api_ok"] and r["cli_ok"]):
+                print(f"  {r['name']}: api: {r['api']!r}\n  {' ' * len(r['name'])}  cli: {r['cli']!r}")
+    judged = [r for r in rows if "skipped" not in r]
+    half = len(chain["half_written"]) + sum(len(r["half_written"]) for r in judged)
+    result = {
+        "kills": chain["kills"],
+        "kills_per_stage": chain["kills_per_stage"],
+        "kills_resumed_mid_stage": chain["kills_resumed_mid_stage"],
+        "resumed_identical": identical,
+        "compared_files": chain["compared_files"],
+        "differing_files": len(chain["differing"]),
+        "bad_inputs": len(judged),
+        "clear_errors": sum(r["api_ok"] and r["cli_ok"] for r in judged),
+        "bad_inputs_skipped": [r["name"] for r in rows if "skipped" in r],
+        "tracebacks": sum(r["tracebacks"] for r in judged),
+        "half_written_files": half,
+        "lock_conflicts_caught": chain["lock_conflicts_caught"],
+        "reference_s": round(ref_s, 1),
+        "total_s": round(time.time() - t_start, 1),
+        "cpu": cpu_model(),
+        "device": get_runtime().name,
+        "commit": git_commit(),
+        "seed": args.seed,
+    }
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""Atomic file writing: a file is either its old self or complete, never half written.
+
+`atomic_write(path, write)` calls `write(tmp)` on a temporary name in the same folder (same file
+system, so the rename is atomic), fsyncs it, renames it over `path` with `os.replace` and fsyncs
+the folder, so that neither a kill (SIGKILL, power loss) nor a full disk leaves a truncated file
+under the final name. The temporary names start with ".tmp-" so that the stage runner's hashes
+(`coin_cl.pipeline.runner.hash_files`) ignore a leftover one.
+
+A write that fails for want of room or permission (full disk, quota, read-only mount, no write
+access) raises `OutputWriteError`: one line naming the folder and what to do. Only pure-stdlib
+imports, so every layer (diffusion/ included) may use it.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+TMP_PREFIX = ".tmp-"
+
+# errno -> what it means for the user; anything else is re-raised as it is.
+_DISK_ERRORS = {
+    errno.ENOSPC: "the disk is full",
+    errno.EDQUOT: "the disk quota is exceeded",
+    errno.EROFS: "the file system is read-only",
+    errno.EACCES: "no write permission",
+    errno.EPERM: "no write permission",
+}
+
+
+class OutputWriteError(OSError):
+    """An output could not be written (full or read-only disk, no permission); nothing was left
+    half written."""
+
+    def __str__(self) -> str:  # the message alone, without OSError's "[Errno N]" prefix
+        return str(self.strerror)
+
+
+def disk_error(exc: OSError, folder: Path) -> OutputWriteError | None:
+    """The one-line `OutputWriteError` for a full / read-only / forbidden `folder`, or None when
+    `exc` is another kind of failure."""
+    why = _DISK_ERRORS.get(exc.errno or -1)
+    if why is None:
+        return None
+    todo = "free some space" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else "make it writable"
+    return OutputWriteError(
+        exc.errno, f"cannot write in {folder}: {why}; {todo} or choose another output folder"
+    )
+
+
+def _full_disk(folder: Path) -> OutputWriteError | None:
+    try:
+        st = os.statvfs(folder)
+    except (OSError, AttributeError):
+        return None
+    if st.f_bavail * st.f_frsize < (1 << 16):
+        return disk_error(OSError(errno.ENOSPC, "no space"), folder)
+    return None
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # not possible everywhere (Windows); the rename itself is still atomic
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Call write(tmp) on a temporary name beside `path`, fsync, then os.replace onto `path`.
+
+    On any failure the temporary file is removed and `path` keeps its previous content (or stays
+    absent); a full or read-only disk raises `OutputWriteError` naming the folder.
+    """
+    path = Path(path)
+    tmp: Path | None = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.stem}.", suffix=path.suffix, dir=path.parent)
+        os.close(fd)
+        tmp = Path(name)
+        write(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        tmp = None
+        _fsync_dir(path.parent)
+    except OSError as exc:
+        # numpy reports a short write without an errno ("3072 requested and 3040 written")
+        err = disk_error(exc, path.parent) or _full_disk(path.parent)
+        if err is not None:
+            raise err from exc
+        raise
+    except Exception as exc:
+        # Some writers wrap the OSError (torch.save raises RuntimeError "file write failed"):
+        # ask the file system whether it is full before passing the error on.
+        err = _full_disk(path.parent)
+        if err is not None:
+            raise err from exc
+        raise
+    finally:
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+
+
+def write_text(path: str | Path, text: str) -> None:
+    """Write a text file atomically (UTF-8)."""
+    atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+
+
+def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write a binary file atomically."""
+    atomic_write(path, lambda p: p.write_bytes(data))

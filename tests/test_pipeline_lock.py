@@ -1,0 +1,89 @@
+"""One run per output folder: the lock names its holder, refuses a second run, takes over a dead one's."""
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from coin_cl.pipeline.lock import LOCK_NAME, FolderLockedError, acquire, folder_lock
+from coin_cl.pipeline.runner import Stage, run_stages
+
+HOLD = """
+import sys, time
+from coin_cl.pipeline.lock import acquire
+lk = acquire(sys.argv[1])
+print("held", flush=True)
+time.sleep(120)
+"""
+
+
+def test_lock_records_holder_and_is_released(tmp_path):
+    with folder_lock(tmp_path / "out") as lk:
+        info = json.loads((tmp_path / "out" / LOCK_NAME).read_text())
+        assert info["pid"] == os.getpid() and info["host"] and info["started"]
+        assert lk.info == info
+    assert not (tmp_path / "out" / LOCK_NAME).exists()
+    acquire(tmp_path / "out").release()  # free again
+
+
+def test_second_holder_is_refused_naming_the_first(tmp_path):
+    with folder_lock(tmp_path):
+        with pytest.raises(FolderLockedError, match=rf"in use by another coin-cl run: process {os.getpid()}"):
+            acquire(tmp_path)
+    assert not (tmp_path / LOCK_NAME).exists()
+
+
+def test_stale_lock_of_a_dead_process_is_taken_over_with_a_log_line(tmp_path, caplog):
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": dead.pid, "host": "h", "started": "then"}))
+    with caplog.at_level(logging.WARNING, "coin_cl.pipeline.lock"):
+        lk = acquire(tmp_path)
+    assert f"process {dead.pid} on host h" in caplog.text and "stale" in caplog.text
+    assert json.loads((tmp_path / LOCK_NAME).read_text())["pid"] == os.getpid()
+    lk.release()
+
+
+def test_two_real_processes_then_sigkill_frees_the_folder(tmp_path, caplog):
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+    child = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(tmp_path)], stdout=subprocess.PIPE, env=env, text=True
+    )
+    try:
+        assert child.stdout.readline().strip() == "held"
+        with pytest.raises(FolderLockedError, match=rf"process {child.pid} on host"):
+            acquire(tmp_path)
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        assert (tmp_path / LOCK_NAME).exists()  # a killed run leaves its lock file behind...
+        with caplog.at_level(logging.WARNING, "coin_cl.pipeline.lock"):
+            lk = acquire(tmp_path)  # ...which the next run takes over
+        assert f"process {child.pid}" in caplog.text
+        lk.release()
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_run_stages_holds_the_lock_and_releases_it_on_an_exception(tmp_path):
+    seen = []
+
+    def check(ctx):
+        seen.append((tmp_path / LOCK_NAME).is_file())
+        with pytest.raises(FolderLockedError):
+            run_stages(tmp_path, [Stage("1_x", lambda c: {})])  # a second run on the same folder
+        return {}
+
+    def boom(ctx):
+        raise RuntimeError("stage failed")
+
+    run_stages(tmp_path, [Stage("1_a", check)])
+    assert seen == [True] and not (tmp_path / LOCK_NAME).exists()
+    with pytest.raises(RuntimeError, match="stage failed"):
+        run_stages(tmp_path, [Stage("1_b", boom)])
+    assert not (tmp_path / LOCK_NAME).exists()
+    assert run_stages(tmp_path, [Stage("1_c", lambda c: {})])["1_c"]["status"] == "ran"
