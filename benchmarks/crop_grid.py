@@ -1,0 +1,59 @@
+"""A crop grid of the masked region of every ground-truth test view: one column per run folder (its
+eval render), then the truth; rows are test views. Scores hide what an eye sees at once (the HF ratio
+counts noise as texture), so every results table has one of these beside it.
+
+    python benchmarks/crop_grid.py RUN_DIR [RUN_DIR ...] --out docs/img/NAME.png [--cell 160]
+
+The crop is the mask's bounding box plus 8 px (`coin_cl.metrics.bbox_crop`); the scene (masks, truth)
+comes from the first run's `0_scene/scene`. Prints the column order.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from coin_cl import metrics
+from coin_cl.scene import load_scene
+from coin_cl.scene.io import read_image, to_uint8, view_stem, write_png
+
+
+def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
+    """[rows * (cell + 4), (len(runs) + 1) * (cell + 4), 3] uint8."""
+    scene = load_scene(runs[0] / "0_scene" / "scene")
+    rows = []
+    for i in scene.test_idx:
+        mask = np.asarray(scene.masks[i], bool)
+        if not mask.any():
+            continue
+        crop = metrics.bbox_crop(mask, pad=8)
+        stem = view_stem(scene.cameras[i].name, i)
+        tiles = [read_image(r / "eval" / "renders" / f"{stem}.png")[crop] for r in runs]
+        tiles.append(np.asarray(scene.images[i], np.float32)[crop])
+        h, w = tiles[0].shape[:2]
+        sc = cell / max(h, w)
+        size = (max(1, round(w * sc)), max(1, round(h * sc)))
+        tiles = [cv2.resize(t, size, interpolation=cv2.INTER_AREA) for t in tiles]
+        pad = [((0, cell + 4 - t.shape[0]), (0, cell + 4 - t.shape[1]), (0, 0)) for t in tiles]
+        tiles = [np.pad(t, p, constant_values=1) for t, p in zip(tiles, pad)]
+        rows.append(np.concatenate(tiles, axis=1))
+    if not rows:
+        raise ValueError(f"{runs[0]} has no ground-truth test view with a mask")
+    return to_uint8(np.concatenate(rows, axis=0))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--cell", type=int, default=160)
+    args = ap.parse_args()
+    write_png(args.out, grid(args.runs, args.cell))
+    print("columns:", " | ".join(r.name for r in args.runs), "| truth;", f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
