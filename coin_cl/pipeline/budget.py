@@ -42,11 +42,12 @@ BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversa
 # Mean seconds per step of each GS stage over a whole run, relative to the probe's plain Scaffold-GS
 # step at the start of training (Ref-GS adds its terms and the model grows by densification; TE-D's
 # adversarial phase renders patches for the discriminator). Ref-GS measured on SPIn-NeRF at 504x284
-# (Zen 5, quiet machine): probe 0.267 s/step; Ref-GS 0.24 s/step at the start (585k primitives),
-# 0.44 s/step at step 665 (1.6M primitives), 0.34 s/step on average over those 665 steps and still
-# slowing: 1.6x the probe over a whole run. TE-D follows from it by TED_PER_REFGS_STEP and is planned
-# again from Ref-GS's measured rate.
-STEP_COST = {"refgs": 1.6, "ted_finetune": 1.6 * 69 / 84, "ted_adversarial": 1.6 * 69 / 68}
+# (Zen 5, quiet machine; the default run of docs/RESULTS.md at 638718a): probe 0.236 s/step; Ref-GS
+# 0.19-0.24 s/step over its first 100 steps (585k primitives), 0.7 s/step from step ~1000 (1.7M
+# primitives, anchor attention on), 0.513 s/step on average over the 1535 steps its cap allowed of
+# the 1668 planned at 1.6x: 2.2x the probe over a whole run. TE-D follows from it by
+# TED_PER_REFGS_STEP and is planned again from Ref-GS's measured rate.
+STEP_COST = {"refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
 # A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
 # Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md, issue 12). TE-D's
 # counts are planned again from Ref-GS's measured rate once it has run (`replan_ted`).
