@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None):
     ap.add_argument("--data", type=Path, default=default_data())
     ap.add_argument("--out", type=Path, default=Path("runs/spinnerf"))
     ap.add_argument("--budget", type=float, default=30.0, help="training minutes to aim at")
-    ap.add_argument("--resolution", type=float, default=0.5)
+    ap.add_argument("--resolution", type=float, default=None, help="default: from the image size (0.5 here)")
     ap.add_argument("--sd-path", default=None)
     ap.add_argument("--dino-path", default=None)
     args = ap.parse_args(argv)
