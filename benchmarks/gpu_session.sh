@@ -16,7 +16,7 @@ OUT=${OUT:-/tmp/coin-cl-gpu-out}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
 
-# The wheels the GPU machine lacks (its package list: /work/.library/device/KINDS.md), pinned to the
+# The wheels the GPU machine lacks (its package list: the device tool's KINDS.md), pinned to the
 # versions this project's CPU environment runs (pyopencl's needs included).
 WHEELS="pyopencl==2026.1.4 pytools==2026.1.1 platformdirs==4.14.7 siphash24==1.9 plyfile==1.1.5 gsplat==1.5.3"
 PLATFORMS="--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64

@@ -71,6 +71,26 @@ class CarveVolume:
         self.masks, self.depths, self.cfg = masks.bool(), depths.float(), cfg
         self.lo, self.hi = self._bounds()
 
+    def lookup(self, v: int, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """World points [N, 3] seen from view `v`: (in frame and in front [N] bool, camera z [N],
+        the view's mask [N] bool and D_bg [N] at their pixel; the last two are meaningless where
+        not in frame)."""
+        pc = points @ self.viewmats[v, :3, :3].T + self.viewmats[v, :3, 3]
+        z = pc[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = pc[:, 0] / zs * self.Ks[v, 0, 0] + self.Ks[v, 0, 2]
+        w = pc[:, 1] / zs * self.Ks[v, 1, 1] + self.Ks[v, 1, 2]
+        W, H = int(self.sizes[v, 0]), int(self.sizes[v, 1])
+        ok = (z > 1e-6) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+        iu, iv = u.clamp(0, W - 1).long(), w.clamp(0, H - 1).long()
+        return ok, z, self.masks[v, iv, iu], self.depths[v, iv, iu]
+
+    def unproject(self, v: int, ys: Tensor, xs: Tensor, z: Tensor) -> Tensor:
+        """Stored pixels (ys, xs) of view `v` at camera z -> world points [N, 3] (pixel centres)."""
+        K, c2w = self.Ks[v], torch.linalg.inv(self.viewmats[v])
+        pc = torch.stack([(xs + 0.5 - K[0, 2]) / K[0, 0] * z, (ys + 0.5 - K[1, 2]) / K[1, 1] * z, z], -1)
+        return pc @ c2w[:3, :3].T + c2w[:3, 3]
+
     def _bounds(self) -> tuple[Tensor, Tensor]:
         """An axis-aligned box around the volume: the mask pixels of the first views unprojected
         between the nearest camera and D_bg; points outside it skip the per-view test."""
@@ -80,13 +100,8 @@ class CarveVolume:
             if len(ys) == 0:
                 continue
             d = self.depths[v, ys, xs]
-            K, c2w = self.Ks[v], torch.linalg.inv(self.viewmats[v])
             for t in (0.02, 1.0):  # from near the camera to the background
-                z = d * t
-                pc = torch.stack(
-                    [(xs + 0.5 - K[0, 2]) / K[0, 0] * z, (ys + 0.5 - K[1, 2]) / K[1, 1] * z, z], -1
-                )
-                pts.append(pc @ c2w[:3, :3].T + c2w[:3, 3])
+                pts.append(self.unproject(v, ys, xs, d * t))
         if not pts:
             return torch.zeros(3), torch.zeros(3) - 1  # empty box: nothing is carved
         p = torch.cat(pts)
@@ -107,18 +122,7 @@ class CarveVolume:
         seen = torch.zeros(len(xc), dtype=torch.int32)
         inside = torch.zeros(len(xc), dtype=torch.int32)
         for v in range(len(self.masks)):
-            pc = xc @ self.viewmats[v, :3, :3].T + self.viewmats[v, :3, 3]
-            z = pc[:, 2]
-            front = z > 1e-6
-            zs = z.clamp_min(1e-6)
-            u = pc[:, 0] / zs * self.Ks[v, 0, 0] + self.Ks[v, 0, 2]
-            w = pc[:, 1] / zs * self.Ks[v, 1, 1] + self.Ks[v, 1, 2]
-            W, H = int(self.sizes[v, 0]), int(self.sizes[v, 1])
-            ok = front & (u >= 0) & (u < W) & (w >= 0) & (w < H)
-            iu = u.clamp(0, W - 1).long()
-            iv = w.clamp(0, H - 1).long()
-            m = self.masks[v, iv, iu]
-            d = self.depths[v, iv, iu]
+            ok, z, m, d = self.lookup(v, xc)
             seen += ok.int()
             inside += (ok & m & (z < d * (1.0 - self.cfg.margin))).int()
         need = torch.maximum(torch.full_like(seen, self.cfg.min_views),
@@ -203,10 +207,7 @@ def background_points(vol: CarveVolume, view: int, stride: int = 2) -> np.ndarra
     where anchors can grow the background behind the removed object."""
     ys, xs = torch.nonzero(vol.masks[view, ::stride, ::stride], as_tuple=True)
     ys, xs = ys * stride, xs * stride
-    z = vol.depths[view, ys, xs]
-    K, c2w = vol.Ks[view], torch.linalg.inv(vol.viewmats[view])
-    pc = torch.stack([(xs + 0.5 - K[0, 2]) / K[0, 0] * z, (ys + 0.5 - K[1, 2]) / K[1, 1] * z, z], -1)
-    return (pc @ c2w[:3, :3].T + c2w[:3, 3]).numpy().astype(np.float32)
+    return vol.unproject(view, ys, xs, vol.depths[view, ys, xs]).numpy().astype(np.float32)
 
 
 @torch.no_grad()
@@ -228,15 +229,8 @@ def observed_share(vol: CarveVolume, stride: int = 4, tol: float = 0.1) -> tuple
         for m in range(len(vol)):
             if m == n:
                 continue
-            pc = pts @ vol.viewmats[m, :3, :3].T + vol.viewmats[m, :3, 3]
-            z = pc[:, 2]
-            zs = z.clamp_min(1e-6)
-            u = pc[:, 0] / zs * vol.Ks[m, 0, 0] + vol.Ks[m, 0, 2]
-            v = pc[:, 1] / zs * vol.Ks[m, 1, 1] + vol.Ks[m, 1, 2]
-            W, H = int(vol.sizes[m, 0]), int(vol.sizes[m, 1])
-            ok = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-            iu, iv = u.clamp(0, W - 1).long(), v.clamp(0, H - 1).long()
-            seen |= ok & ~vol.masks[m, iv, iu] & (z <= vol.depths[m, iv, iu] * (1.0 + tol))
+            ok, z, mask, d_bg = vol.lookup(m, pts)
+            seen |= ok & ~mask & (z <= d_bg * (1.0 + tol))
         per_view.append(float(seen.float().mean()))
         hits += int(seen.sum())
         total += len(pts)
