@@ -26,6 +26,7 @@ mask_iou_min, prepare_minutes, prepared_mpsnr, dataset_mpsnr, ...}.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -47,8 +48,8 @@ RUN_SETTINGS = {"inpaint_region": "input", "seed": 0}
 def coin_run(scene, out: Path, ref: str, budget: float, resolution: float, steps: dict | None = None) -> dict:
     """One `coin_cl.inpaint` run (what `coin-cl run` calls) on `scene` (a folder or a Scene) into
     `out`: the budget's plan, or explicit `steps` {refgs, ted_finetune, ted_adversarial,
-    prior_seconds}. Returns {metrics (mean over the test views), steps actually planned, minutes}."""
-
+    prior_seconds}. Returns {metrics (mean over the test views), per_view, steps trained, minutes
+    (the stages' own seconds, so a resumed run reports the run that made it)}."""
     from coin_cl.pipeline.coin import CoInConfig, inpaint
 
     cfg = CoInConfig(resolution=resolution, **RUN_SETTINGS)
@@ -58,34 +59,33 @@ def coin_run(scene, out: Path, ref: str, budget: float, resolution: float, steps
             iters_ted_adversarial=steps["ted_adversarial"], prior_seconds=steps["prior_seconds"],
             **RUN_SETTINGS,
         )  # fmt: skip
-    t = time.perf_counter()
-    res = inpaint(scene, out, reference=ref, budget=budget, config=cfg)
-    minutes = (time.perf_counter() - t) / 60
-    return {"metrics": res.metrics["mean"], "steps": run_steps(out), "minutes": round(minutes, 2),
-            "per_view": res.metrics.get("views", res.metrics.get("per_view"))}  # fmt: skip
+    inpaint(scene, out, reference=ref, budget=budget, config=cfg)
+    minutes = sum(json.loads(m.read_text()).get("seconds", 0.0) for m in out.glob("*/manifest.json")) / 60
+    doc = json.loads((out / "eval" / "metrics" / "metrics.json").read_text())
+    return {"metrics": doc["mean"], "per_view": doc["per_view"], "steps": run_steps(out),
+            "minutes": round(minutes, 2)}  # fmt: skip
 
 
 def run_steps(out: Path) -> dict:
-    """The step counts a finished run trained: Ref-GS's from its manifest, TE-D's from plan.json
-    (planned again from Ref-GS's rate), the scene prior's seconds."""
-    import json
-
-    plan = json.loads((out / "plan.json").read_text())
+    """The steps a finished run trained (a GS stage's time cap can stop it before its plan): Ref-GS's
+    from its manifest, TE-D's two phases from theirs, and the scene prior's planned seconds."""
     refgs = json.loads((out / "2_refgs" / "manifest.json").read_text())["result"]
-    return {"refgs": int(refgs["steps"]), **{k: int(v) for k, v in plan.get("ted", plan["steps"]).items()
-            if k.startswith("ted")}, "prior_seconds": float(plan["prior_seconds"])}  # fmt: skip
+    ted = json.loads((out / "4_ted" / "manifest.json").read_text())["result"]
+    plan = json.loads((out / "plan.json").read_text())
+    return {"refgs": int(refgs["steps"]), "ted_finetune": int(ted["finetune"]["step"]),
+            "ted_adversarial": int(ted["adversarial"]["step"]),
+            "prior_seconds": float(plan["prior_seconds"])}  # fmt: skip
 
 
 def holdout_masks(dataset, out: Path) -> tuple[list[str], Path]:
     """The dataset's test views (names) and their region masks (test_label, cropped to the photo
-    height) written as out/<stem>.png, as a user would give them with --holdout-masks."""
+    height by the loader) written as out/<stem>.png, as a user gives them with --holdout-masks."""
     from coin_cl.scene.io import write_png
 
     out.mkdir(parents=True, exist_ok=True)
-    names = [dataset.names[i] for i in dataset.test_idx]
     for i in dataset.test_idx:
         write_png(out / f"{Path(dataset.names[i]).stem}.png", dataset.masks[i].astype("uint8") * 255)
-    return names, out
+    return [dataset.names[i] for i in dataset.test_idx], out
 
 
 def main(argv: list[str] | None = None) -> dict:
