@@ -125,3 +125,19 @@ def test_missing_or_misshapen_holdout_mask(prepared, tmp_path):
     write_png(tmp_path / "view_003.png", np.zeros((100, 100), np.uint8))
     with pytest.raises(ValueError, match="not the photos' aspect ratio"):
         write_holdout_masks(tmp_path, ["view_003.png"], tmp_path, cam)
+
+
+def test_cli_bad_holdout(tmp_path, capsys):
+    """`coin-cl prepare --holdout`: an unknown photo or masks without held-out photos end in one line,
+    exit 2, before anything is written."""
+    from coin_cl.cli import main
+
+    for i in range(4):
+        write_png(tmp_path / f"p{i}.png", np.zeros((48, 64, 3), np.float32))
+    out = tmp_path / "s"
+    assert main(["prepare", str(tmp_path), "--out", str(out), "--holdout", "p9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--holdout p9: no photo" in err[0] and not out.exists()
+    assert main(["prepare", str(tmp_path), "--out", str(out), "--holdout-masks", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs --holdout" in err[0] and not out.exists()
