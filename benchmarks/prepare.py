@@ -111,6 +111,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--run-budget", type=float, default=4.0,
                     help="minutes of the dataset-folder CoIn run (the prepared run trains as many steps); "
                          "0: no runs")  # fmt: skip
+    ap.add_argument("--thin-control", action="store_true",
+                    help="a third run: the dataset's folder, its sparse points thinned at random to the "
+                         "prepared model's count (same steps): the points' share of a gap")  # fmt: skip
     args = ap.parse_args(argv)
     photos = args.data / "images_4"
     scene_dir = args.out / "scene"
@@ -232,6 +235,8 @@ def compare_runs(args, dataset, scene_dir: Path, ref_name: str, rows: dict) -> d
     """CoIn on the dataset's folder (without its priors) at the budget, then on the prepared folder
     with the same step counts; both scored on the held-out views. Prints the table; returns the
     summary's run entries."""
+    import numpy as np
+
     import coin_cl
 
     scale = args.width / dataset.cameras[0].width  # the prepared images are already at the working width
@@ -243,6 +248,16 @@ def compare_runs(args, dataset, scene_dir: Path, ref_name: str, rows: dict) -> d
     runs["dataset"] = coin_run(data_scene, args.out / "run_dataset", ref_name, args.run_budget, scale)
     steps = runs["dataset"]["steps"]
     runs["prepared"] = coin_run(scene_dir, args.out / "run_prepared", ref_name, args.run_budget, 1.0, steps)
+    if args.thin_control:
+        from dataclasses import replace
+
+        n = len(coin_cl.load_scene(scene_dir).points)
+        keep = np.sort(np.random.default_rng(0).choice(len(data_scene.points), n, replace=False))
+        cols = None if data_scene.colors is None else data_scene.colors[keep]
+        thin = replace(data_scene, points=data_scene.points[keep], colors=cols)
+        print(f"(dataset_thin: the dataset's folder with {n} of its {len(data_scene.points)} points)")
+        runs["dataset_thin"] = coin_run(thin, args.out / "run_dataset_thin", ref_name, args.run_budget,
+                                        scale, steps)  # fmt: skip
     print("| folder | m-PSNR | HF ratio | GMSD (bbox) | PSNR | minutes | steps (Ref-GS, TE-D ft, TE-D adv) |")
     print("|---|---|---|---|---|---|---|")
     for k, r in runs.items():
@@ -252,9 +267,9 @@ def compare_runs(args, dataset, scene_dir: Path, ref_name: str, rows: dict) -> d
               f"{r['minutes']:.1f} | {st['refgs']}, {ted} |")  # fmt: skip
         rows[f"run_{k}"] = r
     gap = runs["prepared"]["metrics"]["m_psnr"] - runs["dataset"]["metrics"]["m_psnr"]
-    print(f"| prepared - dataset m-PSNR | {gap:+.2f} dB | floor: within 1 dB |")
+    print(f"| prepared - dataset m-PSNR | {gap:+.2f} dB | floor: at least -1 dB |")
     out = {"run_budget_minutes": args.run_budget, "run_steps": steps, "mpsnr_gap": round(gap, 3),
-           "floor_mpsnr_within_1db": bool(abs(gap) <= 1.0)}  # fmt: skip
+           "floor_mpsnr_within_1db": bool(gap >= -1.0)}  # fmt: skip
     for k, r in runs.items():
         out[f"{k}_mpsnr"] = round(r["metrics"]["m_psnr"], 4)
         out[f"{k}_hf_ratio"] = round(r["metrics"]["hf_ratio"], 4)
