@@ -4,7 +4,6 @@ import importlib.util
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,16 +25,18 @@ def room(tmp_path_factory):
 
 
 def test_render_ply(tmp_path):
-    from coin_cl.scene.ply import GaussianPly, write_gaussians_ply
+    import torch
 
-    rng = np.random.default_rng(0)
+    from coin_cl.gs.splats import Splats
+
+    g = torch.Generator().manual_seed(0)
     n = 200
     ply = tmp_path / "g.ply"
-    write_gaussians_ply(ply, GaussianPly(
-        means=rng.normal(0, 1, (n, 3)).astype(np.float32), sh_dc=rng.normal(0, 1, (n, 3)).astype(np.float32),
-        sh_rest=np.zeros((n, 3, 3), np.float32), opacities=np.full(n, 2.0, np.float32),
-        log_scales=np.full((n, 3), -2.5, np.float32), quats=np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
-    ))  # fmt: skip
+    Splats(
+        means=torch.randn(n, 3, generator=g), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        log_scales=torch.full((n, 3), -2.5), opacity_logits=torch.full((n,), 2.0),
+        sh_dc=torch.randn(n, 3, generator=g), sh_rest=torch.zeros(n, 3, 3),
+    ).to_ply(ply)  # fmt: skip
     paths = load("render_ply").main(
         [str(ply), "--out", str(tmp_path / "r"), "--size", "48", "32", "--frames", "2"]
     )

@@ -221,4 +221,4 @@ def test_carve_keeps_the_object_volume_empty_in_the_final_model(room, first_run,
     vol = res.model.carve
     assert vol is not None and len(vol) > 0
     g = res.model.export_gaussians()
-    assert not vol.contains(g["means"]).any()
+    assert not vol.contains(g.means).any()
