@@ -117,3 +117,26 @@ def test_ted_is_planned_again_from_refgs_measured_rate():
     )
     assert B.replan_ted(explicit, steps["refgs"], planned_refgs, 30)["ted_finetune"] == 5
     assert B.replan_ted(plan, 0, 0.0, 30) == {k: steps[k] for k in on_plan}  # nothing measured: as planned
+
+
+def test_standalone_steps_use_the_pipelines_rule():
+    """One minute->steps rule: a stage run on its own (`run_refgs(budget_minutes=...)`) gets the
+    steps `steps_from_rate` gives that stage for the same minutes at the same probe rate."""
+    from coin_cl.gs.trainer import REFERENCE_ITERS
+
+    def probe():
+        raise AssertionError("no probe needed")
+
+    assert B.standalone_steps("refgs", None, None, probe) == REFERENCE_ITERS
+    assert B.standalone_steps("refgs", 10.0, 123, probe) == 123
+    steps, minutes = B.steps_from_rate(8.0, 0.3)
+    for k in steps:
+        assert B.standalone_steps(k, minutes[k], None, lambda: 0.3) == steps[k] > 0
+    assert B.standalone_steps("refgs", 2.0, None, lambda: 0.5) == int(120 / (0.5 * B.STEP_COST["refgs"]))
+    assert B.standalone_steps("refgs", 1e-4, None, lambda: 0.5) == 1  # at least one step
+    with pytest.raises(ValueError, match="budget_minutes"):
+        B.standalone_steps("refgs", 0.0, None, probe)
+    with pytest.raises(ValueError, match="iters"):
+        B.standalone_steps("refgs", None, 0, probe)
+    with pytest.raises(ValueError, match="probe"):
+        B.standalone_steps("refgs", 1.0, None, lambda: float("nan"))

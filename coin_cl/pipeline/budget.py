@@ -113,9 +113,39 @@ def steps_from_rate(
     steps, minutes = {}, {}
     for k in ("refgs", "ted_finetune", "ted_adversarial"):
         minutes[k] = BUDGET_SHARES[k] * budget_minutes
-        steps[k] = int(minutes[k] * 60.0 / (seconds_per_step * STEP_COST[k]))
+        steps[k] = stage_steps(k, minutes[k], seconds_per_step)
     steps["refgs"] = max(1, steps["refgs"])
     return steps, minutes
+
+
+def stage_steps(stage: str, minutes: float, seconds_per_step: float) -> int:
+    """Steps of GS stage `stage` ("refgs", "ted_finetune", "ted_adversarial") in `minutes` at the
+    probe's `seconds_per_step`: the stage's step costs STEP_COST[stage] probe steps."""
+    return int(minutes * 60.0 / (seconds_per_step * STEP_COST[stage]))
+
+
+def standalone_steps(stage: str, minutes: float | None, iters: int | None, probe: Any) -> int:
+    """The schedule of one GS stage run on its own (e.g. `pipeline.refgs.run_refgs`): `iters` when
+    given; else `minutes` of that stage at the rate `probe()` measures (seconds per probe step, see
+    `probe_seconds_per_step`), by `stage_steps`, the pipeline's rule (at least 1); else the
+    published schedule (`REFERENCE_ITERS`, 30k)."""
+    from coin_cl.gs.trainer import REFERENCE_ITERS
+
+    if iters is not None:
+        if iters < 1:
+            raise ValueError(f"iters must be >= 1, got {iters}")
+        return int(iters)
+    if minutes is None:
+        return REFERENCE_ITERS
+    if not math.isfinite(minutes) or minutes <= 0:
+        raise ValueError(f"budget_minutes must be > 0, got {minutes}")
+    spp = float(probe())
+    if not math.isfinite(spp) or spp <= 0:
+        raise ValueError(f"probe seconds per step must be a positive number, got {spp}")
+    n = max(1, stage_steps(stage, minutes, spp))
+    log.info("%s: %.1f min at the probe's %.3f s/step x %.2f -> %d steps", stage, minutes, spp,
+             STEP_COST[stage], n)  # fmt: skip
+    return n
 
 
 def prior_seconds(budget_minutes: float) -> float:
