@@ -273,14 +273,26 @@ def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
     """The plan of a CoIn run (`cfg` a `CoInConfig`, `train` its training views): `plan_run` keyed by
     the settings the step counts depend on, probing `scene` at its working size."""
     cam = scene.cameras[train[0]]
+    explicit = explicit_steps(cfg)
     key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
-           "explicit": [cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial,
-                        cfg.prior_seconds]}  # fmt: skip
-    explicit = {"refgs": cfg.iters_refgs, "ted_finetune": cfg.iters_ted_finetune,
-                "ted_adversarial": cfg.iters_ted_adversarial}  # fmt: skip
+           "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
                     lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
+
+
+def explicit_steps(cfg: Any) -> dict[str, int | None]:
+    """{"refgs", "ted_finetune", "ted_adversarial": the step count `cfg` (a `CoInConfig`) gives, or
+    None for the plan's}. TE-D's may come from `CoInConfig.iters_ted_*` or `cfg.ted.iters_*`; set in
+    both, they must agree (ValueError naming both)."""
+    out = {"refgs": cfg.iters_refgs}
+    for phase in ("finetune", "adversarial"):
+        top, nested = getattr(cfg, f"iters_ted_{phase}"), getattr(cfg.ted, f"iters_{phase}")
+        if top is not None and nested is not None and top != nested:
+            raise ValueError(f"CoInConfig.iters_ted_{phase}={top} and CoInConfig.ted.iters_{phase}={nested} "
+                             "disagree: set one of them")  # fmt: skip
+        out[f"ted_{phase}"] = top if top is not None else nested
+    return out
 
 
 def ted_iters(out: Path, shared: dict) -> list[int]:
