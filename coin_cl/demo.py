@@ -82,7 +82,8 @@ def turntable(out: Path, frames: int = 12, size: tuple[int, int] = (480, 320), d
         return RenderOutput(img, alpha, depth, meta)
 
     cams = [Camera(K, turntable_viewmat(2 * math.pi * i / frames), W, H, "") for i in range(frames)]
-    render_views(render, cams, out, out / "turntable.gif", desc="rendering turntable")
+    names = [f"frame_{i:03d}" for i in range(frames)]
+    render_views(render, cams, out, out / "turntable.gif", desc="rendering turntable", names=names)
     return {
         "gaussians": len(gs.means),
         "size": [W, H],

@@ -92,14 +92,16 @@ def render_views(
     gif: Path | None = None,
     depth: bool = False,
     desc: str = "render",
+    names: Sequence[str] | None = None,
 ) -> list[np.ndarray]:
     """Render each camera and return the frames ([H, W, 3] uint8, or [H, 2W, 3] with the
     colour-mapped depth beside the image when `depth`).
 
     render: camera -> an object with image [H, W, 3] in [0, 1], alpha [H, W] and (with `depth`)
         depth [H, W] (a `RenderOutput`); called under torch.no_grad().
-    dest: a folder for one PNG per view (`<i:03d>_<name stem>.png`, or `<i:03d>.png` for an
-        unnamed camera; `..._depth.png` beside it with `depth`). gif: a looping GIF of the frames."""
+    dest: a folder for one PNG per view (`<names[i]>.png`; by default `<i:03d>_<name stem>.png`, or
+        `<i:03d>.png` for an unnamed camera; `..._depth.png` beside it with `depth`).
+    gif: a looping GIF of the frames."""
     from tqdm import tqdm
 
     from coin_cl.scene.io import to_uint8, write_png
@@ -113,7 +115,7 @@ def render_views(
         img = to_uint8(r.image.clamp(0, 1).numpy())
         dep = colorize_depth(r.depth.numpy(), r.alpha.numpy()) if depth else None
         if dest is not None:
-            stem = f"{i:03d}_{Path(cam.name).stem}" if cam.name else f"{i:03d}"
+            stem = names[i] if names else f"{i:03d}_{Path(cam.name).stem}" if cam.name else f"{i:03d}"
             write_png(Path(dest) / f"{stem}.png", img)
             if dep is not None:
                 write_png(Path(dest) / f"{stem}_depth.png", dep)
