@@ -4,6 +4,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,3 +63,41 @@ def test_prepare_and_run(tmp_path):
     scene = coin_cl.load_scene(out["scene"])
     assert len(scene) == 12 and all(m.any() for m in scene.masks)
     assert (out["scene"] / "masks_contact_sheet.png").is_file()
+
+
+def test_remove_bbox(room, tmp_path):
+    # GS stages 3 steps each, 1 s of scene prior, 2 CLG steps: the whole pipeline at a smoke size
+    args = ["--iters", "3", "--prior-seconds", "1", "--clg-steps", "2"]
+    res = load("remove_bbox").main([str(room), "--out", str(tmp_path / "b"), *args])
+    assert res.ply.is_file() and res.stages["3_clg"]["status"] == "ran"
+    assert res.stages["0_scene"]["result"]["mask"] == "bbox"
+    assert np.isfinite(res.metrics["m_psnr"])  # the room has ground truth
+
+
+@pytest.mark.slow
+@pytest.mark.real_data
+def test_remove_spinnerf(spinnerf_dir, tmp_path):
+    # the shared scene at 1/8 of its size (126x71), 3 steps per GS stage, the dataset's LaMa inpaints.
+    # Slow (90-110 s on 2 loaded cores): its 58k SfM points make 586k Gaussians, and the eval stage
+    # renders 39 views and a 36-frame orbit of them; the image size hardly matters.
+    res = load("remove_spinnerf").main(["--data", str(spinnerf_dir), "--out", str(tmp_path / "s"),
+                                        "--resolution", "0.125", "--iters", "3", "--prior-seconds", "1",
+                                        "--clg-steps", "2"])  # fmt: skip
+    assert res.ply.is_file() and np.isfinite(res.metrics["m_psnr"])
+    assert "dataset" in " ".join(res.stages["1_inpaint"]["result"]["sources"])
+
+
+def test_use_sd2(room, tmp_path):
+    # the tiny random SD2-format pipeline of the SD2 tests stands in for the weights
+    from test_diffusion_sd2 import _tiny_pipeline
+
+    (tmp_path / "sd2").mkdir()
+    sd = _tiny_pipeline(tmp_path / "sd2")
+    with pytest.raises(FileNotFoundError, match="is incomplete: missing"):
+        load("use_sd2").main([str(room), "--sd-path", str(tmp_path), "--out", str(tmp_path / "x")])
+    # SD2 fills the views in stage 1 (64 px crops, 2 steps); CLG is left out: at its 512 px working
+    # size even the tiny pipeline (VAE factor 2) takes minutes per view on 2 cores
+    args = ["--iters", "3", "--sd-steps", "2", "--sd-crop", "64", "--skip-stage", "clg"]
+    res = load("use_sd2").main([str(room), "--sd-path", str(sd), "--out", str(tmp_path / "u"), *args])
+    assert res.ply.is_file() and res.stages["3_clg"]["status"].startswith("skipped: asked")
+    assert res.stages["1_inpaint"]["result"]["sources"] == ["Stable Diffusion 2 inpainting"]
