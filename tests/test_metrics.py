@@ -1,7 +1,7 @@
-"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance, `coin-cl eval`
-(the LPIPS and Inception networks and their weight loading: tests/test_nets.py)."""
+"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance (`coin-cl eval`
+over a folder: tests/test_evaluation.py; the LPIPS and Inception networks and their weight loading:
+tests/test_nets.py)."""
 
-import json
 import math
 
 import cv2
@@ -10,8 +10,6 @@ import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from coin_cl import metrics as M
-from coin_cl.nets.inception import FID_ENV
-from coin_cl.nets.lpips import LPIPS_ENV
 
 
 def _pair(seed, H=40, W=48):
@@ -123,98 +121,6 @@ def test_frechet_distance_by_hand():
     tr = np.sqrt(np.clip(np.linalg.eigvalsh(r1 @ s2 @ r1), 0, None)).sum()
     d = big_x[:, :3].mean(0) - big_y[:, :3].mean(0)
     assert narrow == pytest.approx(d @ d + np.trace(s1) + np.trace(s2) - 2 * tr, rel=1e-6)
-
-
-# ---------------------------------------------------------------- coin-cl eval
-
-
-@pytest.fixture(scope="module")
-def eval_scene(tmp_path_factory):
-    from coin_cl.scene.synthetic import write_synthetic
-
-    return write_synthetic(
-        tmp_path_factory.mktemp("eval") / "scene",
-        coverage=180,
-        seed=2,
-        n_views=8,
-        width=64,
-        height=48,
-        n_points=500,
-    )
-
-
-def test_eval_ground_truth_against_itself(eval_scene, tmp_path, monkeypatch):
-    from coin_cl.cli import main
-    from coin_cl.scene.io import read_image
-
-    for k in (*LPIPS_ENV, FID_ENV):
-        monkeypatch.delenv(k, raising=False)
-    pred = tmp_path / "pred"
-    pred.mkdir()
-    for n in ("view_000.png", "view_001.png"):
-        (pred / n).write_bytes((eval_scene / "images_4" / n).read_bytes())
-    assert main(["eval", str(pred), "--scene", str(eval_scene)]) == 0
-    doc = json.loads((pred / "eval" / "metrics.json").read_text())
-    assert doc["mean"]["psnr"] == "inf" and doc["mean"]["m_psnr"] == "inf"
-    assert doc["mean"]["ssim"] == pytest.approx(1.0) and doc["mean"]["m_ssim"] == pytest.approx(1.0)
-    assert doc["mean"]["swd"] == 0.0 and doc["mean"]["color_dist"] == 0.0
-    assert doc["mean"]["lpips"] is None and "COIN_LPIPS" in doc["lpips"]
-    assert doc["mean"]["fid"] is None and "COIN_FID_WEIGHTS" in doc["fid"]
-    assert set(doc["per_view"]) == {"view_000.png", "view_001.png"}
-    md = (pred / "eval" / "metrics.md").read_text()
-    assert "| **mean** | inf | 1.0000" in md
-    grid = read_image(pred / "eval" / "grids" / "view_001.png")
-    assert grid.shape == (48, 5 * 64 + 8, 3)
-    # error-map tile of a perfect prediction is uniform (zero error)
-    err_tile = grid[:, 4 * 66 :]
-    assert np.ptp(err_tile.reshape(-1, 3), axis=0).max() < 1e-6
-
-
-def test_eval_scores_a_worse_prediction_lower(eval_scene, tmp_path):
-    from coin_cl.evaluation import evaluate_folder
-    from coin_cl.scene.io import read_image, write_png
-
-    pred = tmp_path / "pred"
-    for n in ("view_000.png", "view_001.png"):
-        img = read_image(eval_scene / "images_4" / n)
-        present = read_image(eval_scene / "images_4" / "present" / n)  # object not removed
-        write_png(pred / n, present)
-        assert not np.array_equal(img, present)
-    doc = evaluate_folder(pred, eval_scene, tmp_path / "out")
-    assert 10 < doc["mean"]["psnr"] < 60 and doc["mean"]["m_psnr"] < doc["mean"]["psnr"]
-    assert doc["mean"]["m_ssim"] < doc["mean"]["ssim"] < 1
-    assert doc["mean"]["swd"] > 0 and doc["mean"]["color_dist"] > 0
-
-
-def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
-    from coin_cl.evaluation import evaluate_folder
-
-    pred = tmp_path / "pred"
-    pred.mkdir()
-    (pred / "view_000.png").write_bytes((eval_scene / "images_4" / "view_000.png").read_bytes())
-    with pytest.raises(FileNotFoundError, match="view_001.png"):
-        evaluate_folder(pred, eval_scene)
-
-
-def test_eval_with_weight_files_reports_lpips_and_fid(
-    eval_scene, tmp_path, monkeypatch, inception_file, lpips_files
-):
-    # Wiring only: the weights are random, so the values mean nothing beyond "computed, finite".
-    from coin_cl.evaluation import evaluate_folder
-
-    b, h, _, _ = lpips_files(tmp_path, "alex", seed=2)
-    monkeypatch.setenv("COIN_LPIPS_BACKBONE", str(b))
-    monkeypatch.setenv("COIN_LPIPS_HEADS", str(h))
-    monkeypatch.setenv(FID_ENV, str(inception_file[0]))
-    pred = tmp_path / "pred"
-    pred.mkdir()
-    for n in ("view_000.png", "view_001.png"):
-        (pred / n).write_bytes((eval_scene / "images_4" / "present" / n).read_bytes())
-    doc = evaluate_folder(pred, eval_scene, tmp_path / "out")
-    mean = doc["mean"]
-    assert doc["lpips"] == "available" and doc["fid"] == "available"
-    assert mean["lpips"] > 0 and mean["m_lpips"] > 0
-    assert math.isfinite(mean["fid"]) and math.isfinite(mean["m_fid"])
 
 
 def test_hf_ratio_and_gmsd_see_blur():

@@ -19,11 +19,12 @@ from coin_cl.gs.depth_prior import DATASET_DEPTH_PRIOR, GS_DEPTH_PRIOR
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.gs.scaffold import ScaffoldModel
 from coin_cl.gs.terms import LossTerm
-from coin_cl.gs.trainer import REFERENCE_ITERS, TrainConfig, Trainer
+from coin_cl.gs.trainer import TrainConfig, Trainer
+from coin_cl.pipeline import budget as B
 from coin_cl.pipeline import reference
 from coin_cl.pipeline import refgs as stage
 from coin_cl.pipeline.reference import pk_margin_px
-from coin_cl.pipeline.refgs import plan_iters, run_refgs
+from coin_cl.pipeline.refgs import run_refgs
 from coin_cl.pipeline.reprojection import residual_to_reference
 from coin_cl.scene.ply import read_points_ply
 from coin_cl.scene.synthetic import make_synthetic, write_synthetic
@@ -196,13 +197,19 @@ def test_dataset_prior_wins_and_is_fitted_as_disparity(room, tmp_path):
     assert fit["A"] > 0  # disparity of the render vs the prior's disparity: same direction
 
 
-def test_plan_iters_scales_the_published_schedule():
-    assert plan_iters(None, None) == REFERENCE_ITERS
-    assert plan_iters(10.0, 123) == 123
-    assert plan_iters(2.0, None) == max(200, int(stage.STEPS_PER_SECOND * 120))
-    assert plan_iters(0.01, None) == 200
-    with pytest.raises(ValueError):
-        plan_iters(0.0, None)
+def test_a_minute_budget_follows_the_pipelines_rule(room, tmp_path, monkeypatch):
+    """`budget_minutes` becomes steps by `budget.standalone_steps` at the probe's rate (here a fixed
+    1.0 s/step), and a rerun keeps the first call's plan without probing again."""
+    syn, scene, targets = room
+    calls = []
+    monkeypatch.setattr(stage, "probe_seconds_per_step", lambda *a: calls.append(a) or 1.0)
+    minutes = 6 * B.STEP_COST["refgs"] / 60.0  # 6 Ref-GS steps at 1.0 s per probe step
+    res = run_refgs(scene, targets, tmp_path / "b", _cfg(feature_attention=False, depth_loss=False),
+                    budget_minutes=minutes, iters=None, seed=0)  # fmt: skip
+    assert res["iters"] == B.stage_steps("refgs", minutes, 1.0) == 6 and len(calls) == 1
+    res = run_refgs(scene, targets, tmp_path / "b", _cfg(feature_attention=False, depth_loss=False),
+                    budget_minutes=2 * minutes, iters=None, seed=0)  # fmt: skip
+    assert res["iters"] == 6 and len(calls) == 1
 
 
 def test_render_kwargs_clash_is_an_error():

@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from coin_cl.crop import resize_to
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
-from coin_cl.pipeline.crop import resize_to
 from coin_cl.pipeline.reprojection import consistency_residual, reference_in_view, warp_fill
 from coin_cl.scene.io import to_uint8
 

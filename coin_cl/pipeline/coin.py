@@ -78,7 +78,8 @@ class CoInConfig:
     (`coin_cl.pipeline.budget.working_resolution`, logged). sd_path / dino_path: local weights (else
     the embedded defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
     iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (each
-    replaces the budget plan's figure; see `coin_cl.pipeline.budget`). seed, device: as everywhere.
+    replaces the budget plan's figure; see `coin_cl.pipeline.budget`; TE-D's counts may also be
+    given as `ted.iters_*`, and where both are set they must agree). seed, device: as everywhere.
     edited_ref: path of the reference view edited by the user (insertion without weights,
     `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
     inpaint_region: "input" (inpaint the whole masks), "refined" (3D-first, supplement C.2: stage

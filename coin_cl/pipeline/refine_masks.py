@@ -77,7 +77,6 @@ def refine_masks(
     A view with an empty input mask keeps an empty refined mask."""
     from coin_cl.gs.base import splat
     from coin_cl.gs.prune import in_masks
-    from coin_cl.gs.sh import sh_to_rgb
     from coin_cl.scene.masks import write_mask
 
     out_dir = Path(out_dir)
@@ -89,7 +88,7 @@ def refine_masks(
     centre = torch.stack([v.camera.center_t for v in views]).mean(0)
     with torch.no_grad():
         g = model.export_gaussians(centre)
-    means = g["means"].float()
+    means = g.means.float()
     keep = torch.from_numpy(
         ~in_masks(means.numpy(), [v.camera for v in views], [masks[i] for i in train], cfg.min_fraction)
     )
@@ -100,10 +99,8 @@ def refine_masks(
         raise ValueError(
             "refine masks: every Gaussian lies inside the masks; the masks cover the whole scene?"
         )
-    m, q = means[keep], g["quats"][keep].float()
-    s_own = torch.exp(g["scales"][keep].float())
-    op = torch.sigmoid(g["opacities"][keep].float())
-    rgb = sh_to_rgb(g["sh0"][keep, 0].float()).clamp(0, 1)
+    kept = g.subset(keep).gaussians()  # the renderer's view: activated scales, opacities, colours
+    m, q, s_own, op, rgb = kept.means, kept.quats, kept.scales, kept.opacities, kept.colors.clamp(0, 1)
     areas = {}
     for v, i in zip(views, train, strict=True):
         stem = Path(scene.cameras[i].name).stem

@@ -245,8 +245,11 @@ def stage_ted(ctx: StageContext) -> dict:
         f"{k} {it[k]} steps" + ("" if k not in ctx.shared.get("ted_caps", {})
                                 else f" (~{ctx.shared['ted_caps'][k] / 60 / CAP_FACTOR:.1f} min)")
         for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
+    # The plan's counts (explicit ones included, `budget.explicit_steps`) and the run's seed where
+    # TEDConfig leaves them to the run (None); the user's config is not changed.
+    seed = cfg.seed if cfg.ted.seed is None else cfg.ted.seed
     tcfg = replace(
-        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
+        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=seed
     )
     extra = _ted_bg_depth(ctx, scene, train)
     tc = ctx.shared.get("ted_caps", {})
