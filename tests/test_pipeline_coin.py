@@ -222,3 +222,28 @@ def test_carve_keeps_the_object_volume_empty_in_the_final_model(room, first_run,
     assert vol is not None and len(vol) > 0
     g = res.model.export_gaussians()
     assert not vol.contains(g["means"]).any()
+
+
+def test_coin_lama_path_reruns_stage_1(room, first_run, tmp_path, monkeypatch):
+    """Stage 1's rerun key holds the LaMa file COIN_LAMA_PATH names (issue 22): setting it, or pointing
+    it at another file, reruns 1_inpaint; the same file again is up to date."""
+    import shutil
+
+    import torch
+    from coin_cl.diffusion.lama import LAMA_ENV
+
+    class Grey(torch.nn.Module):
+        def forward(self, image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+            return image * (1 - mask) + 0.5 * mask
+
+    a, b = tmp_path / "a.pt", tmp_path / "b.pt"
+    torch.jit.script(Grey()).save(str(a))
+    shutil.copy(a, b)
+    out = tmp_path / "lama"
+    shutil.copytree(first_run[0], out)
+    cfg = replace(TINY, skip=("clg", "ted"))
+    status = {}
+    for name, env in (("a", a), ("a again", a), ("b", b)):
+        monkeypatch.setenv(LAMA_ENV, str(env))
+        status[name] = inpaint(room, out, config=cfg).stages["1_inpaint"]["status"]
+    assert status == {"a": "ran", "a again": "skipped: up to date", "b": "ran"}

@@ -44,6 +44,7 @@ from coin_cl.pipeline.budget import (
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.insert import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
@@ -368,7 +369,7 @@ def _run(
         *([Stage("0_refine", stage_refine, ["0_scene"],
                  {"cfg": jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
         Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
-              {"cfg": jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
+              {**inpaint_key(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
         Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
               {"cfg": jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,

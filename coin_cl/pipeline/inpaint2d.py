@@ -73,6 +73,23 @@ def resolve_inpainter(cfg: Inpaint2DConfig) -> str:
     return "lama" if (cfg.lama_path or os.environ.get(LAMA_ENV)) else "embedded"
 
 
+def rerun_key(cfg: Inpaint2DConfig) -> dict:
+    """Stage 1's settings as its rerun key: the config, plus the LaMa file the run really reads when
+    the inpainter resolves to LaMa (`lama_path`, else $COIN_LAMA_PATH: pointing the variable at
+    another file must rerun the stage) with its size and modification time (the same path holding a
+    new file reruns it too)."""
+    from coin_cl.pipeline.runner import jsonable
+
+    key = {"cfg": jsonable(cfg)}
+    if resolve_inpainter(cfg) == "lama":
+        src = cfg.lama_path or os.environ.get(LAMA_ENV)
+        p = Path(src).expanduser() if src else None
+        st = p.stat() if p is not None and p.is_file() else None
+        key["lama"] = {"path": str(p.resolve()) if p is not None else None,
+                       "bytes": st.st_size if st else None, "mtime_ns": st.st_mtime_ns if st else None}  # fmt: skip
+    return key
+
+
 def neighbour_views(i: int, views: list[int], k: int) -> list[int]:
     """Up to k views of `views` other than i, nearest in index first (captures are ordered)."""
     return sorted((j for j in views if j != i), key=lambda j: (abs(j - i), j))[:k]
