@@ -85,8 +85,11 @@ def rerun_key(cfg: Inpaint2DConfig) -> dict:
         src = cfg.lama_path or os.environ.get(LAMA_ENV)
         p = Path(src).expanduser() if src else None
         st = p.stat() if p is not None and p.is_file() else None
-        key["lama"] = {"path": str(p.resolve()) if p is not None else None,
-                       "bytes": st.st_size if st else None, "mtime_ns": st.st_mtime_ns if st else None}  # fmt: skip
+        key["lama"] = {
+            "path": str(p.resolve()) if p is not None else None,
+            "bytes": st.st_size if st else None,
+            "mtime_ns": st.st_mtime_ns if st else None,
+        }
     return key
 
 
