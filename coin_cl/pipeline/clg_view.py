@@ -15,8 +15,8 @@ import torch
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
+from coin_cl.pipeline.clg_detail import compose_crop, reference_detail
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
-from coin_cl.pipeline.crop import resize_to
 from coin_cl.pipeline.reprojection import consistency_residual, reference_in_view, warp_fill
 from coin_cl.scene.io import to_uint8
 
@@ -75,10 +75,17 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     else:
         shape = tuple(prob.image.shape)
     g = torch.Generator().manual_seed(cfg.seed + n)
-    z = torch.randn(shape, generator=g)
-    sbar = tqdm(total=n_steps, desc=f"  {stem} steps", leave=False, disable=not cfg.progress)
-    res = DDIMSampler(denoiser, cfg.sampler_config(denoiser)).sample(
-        z, cond, uncond, energy=energy, generator=g, callback=lambda *_, b=sbar: b.update(1)
+    sampler = DDIMSampler(denoiser, cfg.sampler_config(denoiser))
+    # strength < 1 (SDEdit): start from I^_n's crop noised to that share of the trajectory
+    start = min(n_steps - 1, round((1.0 - cfg.strength) * n_steps))
+    if start:
+        with torch.no_grad():
+            z = sampler.noised(denoiser.encode(prob.image).float(), start, g)
+    else:
+        z = torch.randn(shape, generator=g)
+    sbar = tqdm(total=n_steps - start, desc=f"  {stem} steps", leave=False, disable=not cfg.progress)
+    res = sampler.sample(
+        z, cond, uncond, energy=energy, generator=g, callback=lambda *_, b=sbar: b.update(1), start=start
     )
     sbar.close()
     with torch.no_grad():
@@ -87,7 +94,8 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         x = denoiser.decode(res.x0).clamp(0, 1).float()
         e_in, e_out = float(energy(prob.image)), float(energy(x))
     fill = x[0].permute(1, 2, 0).numpy()
-    back = resize_to(fill, prob.side, prob.side)
+    ref_detail = reference_detail(ref, cam, work / prob.side, device) if cfg.detail == "reference" else None
+    back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail)
     full = inp_n.copy()
     H, W = mask.shape
     ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
@@ -101,5 +109,6 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         "residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
         "support_work_px": int(prob.support.sum()), "hole_work_px": int(prob.hole.sum()),
         "n_points": int(len(ref.points)), "crop": [prob.y0, prob.x0, prob.side], "work": work,
+        "detail": cfg.detail, "start_step": start,
     }  # fmt: skip
     return out, rec
