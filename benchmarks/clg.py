@@ -53,9 +53,12 @@ from coin_cl.scene.io import read_image, to_uint8, view_stem, write_png  # noqa:
 
 ROWS = {
     "paper": CLGConfig(detail="none"),
-    "input": CLGConfig(detail="input"),
-    "reference": CLGConfig(detail="reference"),
-    "sdedit": CLGConfig(detail="reference", strength=0.5),
+    "input_w": CLGConfig(detail="input", detail_split=1.0),
+    "reference_w": CLGConfig(detail="reference", detail_split=1.0),
+    "input": CLGConfig(detail="input", detail_split=0.5),
+    "reference": CLGConfig(detail="reference", detail_split=0.5),
+    "input_sdedit": CLGConfig(detail="input", detail_split=0.5, strength=0.5),
+    "sdedit": CLGConfig(detail="reference", detail_split=0.5, strength=0.5),
 }
 DEFAULT_ROW = "reference"
 

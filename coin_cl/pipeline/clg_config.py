@@ -74,6 +74,7 @@ class CLGConfig:
     progress: bool = True
     sample: bool = True
     detail: str = "reference"
+    detail_split: float = 1.0
     strength: float = 1.0
     keep_if_worse: bool = True
     texture_tol: float = 0.1

@@ -59,6 +59,7 @@ def compose_crop(
     side: int,
     detail: str,
     ref_detail: tuple[np.ndarray, np.ndarray] | None = None,
+    split: float = 1.0,
 ) -> np.ndarray:
     """The crop [side, side, 3] CLG pastes: the sample `fill` [work, work, 3] brought back to the
     crop at (y0, x0) of view n plus the high band of the detail source (module docstring).
@@ -66,10 +67,12 @@ def compose_crop(
     if detail not in DETAILS:
         raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {detail!r}")
     work = fill.shape[0]
+    low = max(1, round(work * split))
     back = resize_to(fill, side, side)
     if detail == "none":
         return back
-    hi = high_band(crop_image(inp_n, y0, x0, side, side), work, work)
+    back = back - high_band(back, low, low)  # the sample's own band above the split goes
+    hi = high_band(crop_image(inp_n, y0, x0, side, side), low, low)
     if detail == "reference":
         if ref_detail is None:
             raise ValueError("detail 'reference' needs the reference's warped detail")
