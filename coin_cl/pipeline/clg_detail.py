@@ -3,21 +3,24 @@ working size (64 px for the scene prior, 512 for SD2), while the hole's crop is 
 larger, so a sample brought back to the crop has no detail above the working resolution, and the
 guard (`coin_cl.pipeline.clg.no_worse`) then keeps the blurrier input in most views.
 
-A Laplacian split at the working resolution fixes that: with down = area resize to work x work and
-up = bicubic resize back to the crop (exactly how the sample itself is brought back),
+A Laplacian split fixes that: with down = area resize to a side of `split` x work and up = bicubic
+resize back to the crop (how the sample itself is brought back),
 
     low(I) = up(down(I)),   high(I) = I - low(I),
-    output = up(x) + high(D)
+    output = low(up(x)) + high(D)
 
 where x is the guided sample (the band the energy can steer) and D the detail source, by
 `CLGConfig.detail`:
-- "input": the initial inpaint I^_n everywhere (its texture above the working resolution is kept
-  unchanged; where x equals down(I^_n) the output is I^_n exactly);
+- "input": the initial inpaint I^_n everywhere (its texture above the split is kept unchanged; where
+  the sample's low band equals I^_n's the output is I^_n);
 - "reference" (default): the reference's detail warped through P_k (`reprojection.reference_in_view`
   of high(I^_k), the split made at view n's scale) on the pixels the warp supports, I^_n's elsewhere:
   the guidance pulls the low band toward the reference, and the detail there comes from the same
   reference through the same geometry, so the residual to the reference falls in both bands;
 - "none": up(x) alone (the behaviour before issue 22).
+`CLGConfig.detail_split` (default 0.5) sets the split; at 1 it is the working resolution itself,
+where the 64 px sample still carries its own noise-like texture into the output (measured: the
+shared scene's images were then further from the reference than the inputs).
 """
 
 from __future__ import annotations
@@ -62,16 +65,16 @@ def compose_crop(
     split: float = 1.0,
 ) -> np.ndarray:
     """The crop [side, side, 3] CLG pastes: the sample `fill` [work, work, 3] brought back to the
-    crop at (y0, x0) of view n plus the high band of the detail source (module docstring).
-    ref_detail: `reference_detail`'s pair, required for detail "reference"."""
+    crop at (y0, x0) of view n, its low band below `split` x work plus the high band of the detail
+    source (module docstring). ref_detail: `reference_detail`'s pair (split at the same scale),
+    required for detail "reference"."""
     if detail not in DETAILS:
         raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {detail!r}")
     work = fill.shape[0]
     low = max(1, round(work * split))
-    back = resize_to(fill, side, side)
     if detail == "none":
-        return back
-    back = back - high_band(back, low, low)  # the sample's own band above the split goes
+        return resize_to(fill, side, side)
+    back = resize_to(resize_to(fill, low, low), side, side)  # the sample's band below the split
     hi = high_band(crop_image(inp_n, y0, x0, side, side), low, low)
     if detail == "reference":
         if ref_detail is None:
