@@ -5,18 +5,22 @@ initial inpaints I^_n, 2_refgs: renders, depths, alphas, reference_points.ply, a
 cache from its 1_inpaint or 3_clg folder, copied into each row's folder so nothing retrains) and runs
 `stage_clg` once per row into OUT/<row>/3_clg with the run's seed and plan, the guard on (a view whose
 guided image is worse keeps its input, as in a pipeline run). Rows (`CLGConfig` variants):
-    paper       the sample pasted over the mask (detail "none", strength 1: the behaviour before issue 22)
-    input       + the initial inpaint's band above the sampler's working size (detail "input")
-    reference   + the reference's band warped through P_k where supported, I^_n's elsewhere (default)
-    sdedit      "reference" + strength 0.5 (the sampler starts from I^_n's crop noised half way)
-Per row, over the guided non-reference views: the residual to the reference of the initial inpaints
-(in) and of the images the row writes (out) (`reprojection.residual_to_reference`: each view's mask
-pixels lifted with its Ref-GS depth where alpha > 0.5, projected into the reference and compared with
-the reference's I^_k inside its mask), the texture in the masks (`metrics.mask_texture`, mean over
-views), the Lab colour distance to the mask's surroundings, and how many views kept their input.
+    paper         sampled from noise at the working size, pasted over the mask (detail "none",
+                  strength 1: the behaviour before issue 22)
+    detail        from noise, + the reference's band above half the working size warped through P_k
+                  where supported, the initial inpaint's elsewhere (`pipeline.clg_detail`)
+    input_sdedit  the sampler starts from I^_n's crop noised half way (strength 0.5), + I^_n's band
+    default       CLGConfig(): strength 0.5 + the reference's band where supported, I^_n's elsewhere
+Per row, over the non-reference views with a mask (a view that kept its input counts with it): the
+residual to the reference of the initial inpaints (in) and of the images the row writes (out)
+(`reprojection.residual_to_reference`: each view's mask pixels lifted with its Ref-GS depth where
+alpha > 0.5, projected into the reference and compared with the reference's I^_k inside its mask;
+CLG's guard checks the same per view, so a view worse on it keeps its input), the texture in the
+masks (`metrics.mask_texture`, mean over views), the Lab colour distance to the mask's
+surroundings, and how many views kept their input.
 A crop grid (mask bounding boxes of a few views: initial inpaint, then each row) goes to --grid.
 
-    COIN_DATA=... nice -n 15 python benchmarks/clg.py --run RUN [--rows paper,reference] [--out DIR]
+    COIN_DATA=... nice -n 15 python benchmarks/clg.py --run RUN [--rows paper,default] [--out DIR]
 
 The LAST line is one JSON object: clg_residual_in, clg_residual_out, clg_texture_in, clg_texture_out,
 clg_kept_input, clg_views (the default row's), and every row's figures under "rows".
@@ -52,15 +56,12 @@ from coin_cl.scene import load_scene  # noqa: E402
 from coin_cl.scene.io import read_image, to_uint8, view_stem, write_png  # noqa: E402
 
 ROWS = {
-    "paper": CLGConfig(detail="none"),
-    "input_w": CLGConfig(detail="input", detail_split=1.0),
-    "reference_w": CLGConfig(detail="reference", detail_split=1.0),
-    "input": CLGConfig(detail="input", detail_split=0.5),
-    "reference": CLGConfig(detail="reference", detail_split=0.5),
-    "input_sdedit": CLGConfig(detail="input", detail_split=0.5, strength=0.5),
-    "sdedit": CLGConfig(detail="reference", detail_split=0.5, strength=0.5),
+    "paper": CLGConfig(detail="none", strength=1.0),
+    "detail": CLGConfig(detail="reference", strength=1.0),
+    "input_sdedit": CLGConfig(detail="input"),
+    "default": CLGConfig(),
 }
-DEFAULT_ROW = "reference"
+DEFAULT_ROW = "default"
 
 
 def run_row(run: Path, out: Path, cfg: CLGConfig, scene, masks, ref: int, plan: dict) -> tuple[dict, float]:
@@ -186,8 +187,10 @@ def main() -> int:
 
     print(f"\nCLG on {run} ({cam.width}x{cam.height}, reference {cam.name}); commit {git_commit()}; "
           f"CPU {cpu_model()}, {os.cpu_count()} cores; OpenCL device {get_runtime().name}")  # fmt: skip
-    print("\n| row | residual to ref: in | out | texture: in | out | colour dist: in | out | kept input / views "
-          "| min |")
+    print(
+        "\n| row | residual to ref: in | out | texture: in | out | colour dist: in | out "
+        "| kept input / views | min |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r, f in figs.items():
         print(f"| {r} | {f['residual_in']:.4f} | {f['residual_out']:.4f} | {f['texture_in']:.4f} | "
