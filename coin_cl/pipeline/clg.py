@@ -9,9 +9,12 @@ and its geometry (crop cameras, the intermediate camera phi, the support S) are 
 `coin_cl.pipeline.clg_energy`; the reprojection tools (the reference warped into a view, the
 consistency residual, the sampler-free `warp_fill`) in `coin_cl.pipeline.reprojection`.
 
-Output: the last step's decoded x0 prediction, clamped, resized back to the crop and pasted into
-I^_n inside the mask only (`diffusion.inpaint2d.paste`, feathered inward), so every pixel outside
-the mask is bit-identical to I^_n; written as `images/<stem>.png` with `views/<stem>.json` (figures).
+Output: the last step's decoded x0 prediction, clamped, brought back to the crop with its band
+above half the working size replaced by the reference's detail warped through P_k (where P_k
+reaches) or I^_n's (`coin_cl.pipeline.clg_detail`: the 64 px sample alone is blurrier than I^_n),
+and pasted into I^_n inside the mask only (`diffusion.inpaint2d.paste`, feathered inward), so every
+pixel outside the mask is bit-identical to I^_n; the sampler starts from I^_n's crop noised half way
+(`CLGConfig.strength`); written as `images/<stem>.png` with `views/<stem>.json` (figures).
 A view whose PNG exists is not redone (resume). Randomness: view n samples with seed + n.
 
 Before Ref-GS exists, `coin_cl.pipeline.reference.reference_points` builds P_k from any depth map
