@@ -11,6 +11,7 @@ guided image is worse keeps its input, as in a pipeline run). Rows (`CLGConfig` 
                   where supported, the initial inpaint's elsewhere (`pipeline.clg_detail`)
     input_sdedit  the sampler starts from I^_n's crop noised half way (strength 0.5), + I^_n's band
     default       CLGConfig(): strength 0.5 + the reference's band where supported, I^_n's elsewhere
+    strength_03, strength_07   the default at strength 0.3 / 0.7 (not run unless named in --rows)
 Per row, over the non-reference views with a mask (a view that kept its input counts with it): the
 residual to the reference of the initial inpaints (in) and of the images the row writes (out)
 (`reprojection.residual_to_reference`: each view's mask pixels lifted with its Ref-GS depth where
@@ -60,6 +61,8 @@ ROWS = {
     "detail": CLGConfig(detail="reference", strength=1.0),
     "input_sdedit": CLGConfig(detail="input"),
     "default": CLGConfig(),
+    "strength_03": CLGConfig(strength=0.3),
+    "strength_07": CLGConfig(strength=0.7),
 }
 DEFAULT_ROW = "default"
 
@@ -155,7 +158,7 @@ def grid(
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--run", type=Path, required=True, help="a finished pipeline run folder")
-    ap.add_argument("--rows", default=",".join(ROWS))
+    ap.add_argument("--rows", default="paper,detail,input_sdedit,default", help=f"of {', '.join(ROWS)}")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out" / "clg")
     ap.add_argument("--grid", type=Path, default=None, help="crop grid PNG (default OUT/grid.png)")
     ap.add_argument("--grid-views", type=int, default=6)
