@@ -43,9 +43,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from common import cpu_model, git_commit  # noqa: E402
+from crop_grid import tile_row  # noqa: E402
 
 from coin_cl import metrics  # noqa: E402
 from coin_cl.pipeline.clg import _colour_distance, stage_clg  # noqa: E402
@@ -144,14 +144,7 @@ def grid(
         crop = metrics.bbox_crop(np.asarray(masks[i], bool), pad=8)
         tiles = [read_image(run / "1_inpaint" / "images" / f"{stem}.png")]
         tiles += [read_image(out / r / "3_clg" / "images" / f"{stem}.png") for r in rows]
-        tiles = [t[crop] for t in tiles]
-        h, w = tiles[0].shape[:2]
-        sc = cell / max(h, w)
-        size = (max(1, round(w * sc)), max(1, round(h * sc)))
-        tiles = [cv2.resize(t, size, interpolation=cv2.INTER_AREA) for t in tiles]
-        pads = [((0, cell + 4 - t.shape[0]), (0, cell + 4 - t.shape[1]), (0, 0)) for t in tiles]
-        tiles = [np.pad(t, p, constant_values=1) for t, p in zip(tiles, pads)]
-        lines.append(np.concatenate(tiles, axis=1))
+        lines.append(tile_row([t[crop] for t in tiles], cell))
     return to_uint8(np.concatenate(lines, axis=0))
 
 
