@@ -247,3 +247,17 @@ def test_coin_lama_path_reruns_stage_1(room, first_run, tmp_path, monkeypatch):
         monkeypatch.setenv(LAMA_ENV, str(env))
         status[name] = inpaint(room, out, config=cfg).stages["1_inpaint"]["status"]
     assert status == {"a": "ran", "a again": "skipped: up to date", "b": "ran"}
+
+
+def test_removal_holds_every_mask_to_its_background_depth(first_run):
+    """Issue 21: Ref-GS saves D_bg of every training view with a mask and trains with the term;
+    TE-D keeps the term (both say so in their notes)."""
+    out, res = first_run
+    scene = load_scene(out / "0_scene" / "scene")
+    with_mask = [i for i in scene.train_idx if np.asarray(scene.masks[i]).any()]
+    saved = sorted((out / "2_refgs" / "bg_depths").glob("*.npy"))
+    assert len(saved) == len(with_mask) > 0
+    d = np.load(saved[0])
+    assert d.shape == np.asarray(scene.masks[with_mask[0]]).shape and np.isfinite(d).all() and (d > 0).all()
+    assert any("background depth" in n for n in res.stages["2_refgs"]["notes"])
+    assert any("keeps the background depth term" in n for n in res.stages["4_ted"]["notes"])

@@ -169,7 +169,8 @@ def stage_refgs(ctx: StageContext) -> dict:
         ctx.note(
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
-        rcfg = replace(rcfg, bg_depth=False)  # the masks hold the new object, not the background
+    if lift is not None or cfg.prompt or ctx.shared.get("edited") is not None:
+        rcfg = replace(rcfg, bg_depth=False)  # insertion: the masks hold the new object, not the background
     elif rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
