@@ -251,6 +251,31 @@ def test_the_object_is_removed_not_reconstructed(room, first_run, tmp_path):
     assert res.metrics["m_psnr"] == pytest.approx(np.mean(truth_db), abs=0.05)
 
 
+def test_coin_lama_path_reruns_stage_1(room, first_run, tmp_path, monkeypatch):
+    """Stage 1's rerun key holds the LaMa file COIN_LAMA_PATH names (issue 22): setting it, or pointing
+    it at another file, reruns 1_inpaint; the same file again is up to date."""
+    import shutil
+
+    import torch
+    from coin_cl.diffusion.lama import LAMA_ENV
+
+    class Grey(torch.nn.Module):
+        def forward(self, image: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+            return image * (1 - mask) + 0.5 * mask
+
+    a, b = tmp_path / "a.pt", tmp_path / "b.pt"
+    torch.jit.script(Grey()).save(str(a))
+    shutil.copy(a, b)
+    out = tmp_path / "lama"
+    shutil.copytree(first_run[0], out)
+    cfg = replace(TINY, skip=("clg", "ted"))
+    status = {}
+    for name, env in (("a", a), ("a again", a), ("b", b)):
+        monkeypatch.setenv(LAMA_ENV, str(env))
+        status[name] = inpaint(room, out, config=cfg).stages["1_inpaint"]["status"]
+    assert status == {"a": "ran", "a again": "skipped: up to date", "b": "ran"}
+
+
 def test_removal_holds_every_mask_to_its_background_depth(first_run):
     """Issue 21: Ref-GS saves D_bg of every training view with a mask and trains with the term;
     TE-D keeps the term (both say so in their notes)."""
