@@ -4,8 +4,8 @@ the sampler's working size, its sources, and its exact cases."""
 import numpy as np
 import pytest
 
-from coin_cl.pipeline.clg_detail import compose_crop, high_band
 from coin_cl.crop import resize_to
+from coin_cl.pipeline.clg_detail import compose_crop, high_band
 
 
 def _texture(h=96, w=96, seed=0):

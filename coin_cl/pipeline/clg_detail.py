@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from coin_cl.pipeline.clg_config import DETAILS
 from coin_cl.crop import crop_image, resize_to
+from coin_cl.pipeline.clg_config import DETAILS
 from coin_cl.pipeline.reprojection import reference_in_view
 
 

@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from coin_cl.crop import resize_to
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
