@@ -297,17 +297,21 @@ def _residuals(syn, scene, targets, tmp_path, cfg: RefGSConfig, iters: int = 300
 @pytest.mark.slow
 def test_refgs_pulls_views_towards_the_reference(room, tmp_path):
     """The issue's test: every non-reference view has a different solid colour in its mask, the
-    reference a plausible fill (the true background, as a good inpaint would be). Full Ref-GS
-    (defaults: weights, pruning, depth, attention from mid-run) ends closer to the reference's
-    content in the other views' masks than plain training. Measured at 300 steps: plain 0.1375,
-    Ref-GS 0.1161."""
+    reference a plausible fill (the true background, as a good inpaint would be). The paper's Ref-GS
+    (weights, pruning, reference depth, attention from mid-run; issue 21's background depth term
+    off) ends closer to the reference's content in the other views' masks than plain training.
+    Measured at 300 steps: plain 0.1375, Ref-GS 0.1161. With the background depth term (the
+    default) the pull is weaker but still there (measured 0.1257): holding every mask at its
+    background depth leaves the views' conflicting colours fewer places to go than the reference."""
     syn, scene, targets = room
     k = reference.choose_reference(scene)
     targets = list(targets)
     targets[k] = np.asarray(syn.absent[k], np.float32)
-    e_plain, e_ref = _residuals(syn, scene, targets, tmp_path, RefGSConfig())
-    print(f"masked residual to the reference: plain {e_plain:.4f}, Ref-GS {e_ref:.4f}")
+    e_plain, e_ref = _residuals(syn, scene, targets, tmp_path, RefGSConfig(bg_depth=False))
+    _, e_default = _residuals(syn, scene, targets, tmp_path / "default", RefGSConfig())
+    print(f"residual to the reference: plain {e_plain:.4f}, Ref-GS {e_ref:.4f}, default {e_default:.4f}")
     assert e_ref < 0.9 * e_plain
+    assert e_default < 0.95 * e_plain
 
 
 @pytest.mark.slow
