@@ -34,6 +34,8 @@ def main(argv: list[str] | None = None):
     ap.add_argument("--sd-steps", type=int, default=None, help="DDIM steps of the 2D inpaints (paper: 50)")
     ap.add_argument("--sd-crop", type=int, default=None, help="crop side of the 2D inpaints (paper: 512)")
     ap.add_argument("--clg-steps", type=int, default=None, help="CLG's DDIM steps (paper: 200)")
+    ap.add_argument("--sd2-mode", choices=("auto", "reference_only", "all"), default="auto",
+                    help="SD2 on every view or the reference only (auto: by the CPU estimate)")  # fmt: skip
     ap.add_argument("--skip-stage", action="append", default=[], choices=("refgs", "clg", "ted"),
                     help="leave a stage out (the paper's ablations), repeatable")  # fmt: skip
     args = ap.parse_args(argv)
@@ -48,7 +50,7 @@ def main(argv: list[str] | None = None):
         inp = replace(inp, sampler_sd=replace(inp.sampler_sd, num_steps=args.sd_steps))
     if args.sd_crop is not None:
         inp = replace(inp, sd_crop=args.sd_crop)
-    cfg = replace(cfg, inpaint2d=replace(cfg.inpaint2d, inpaint=inp))
+    cfg = replace(cfg, inpaint2d=replace(cfg.inpaint2d, inpaint=inp, sd2_mode=args.sd2_mode))
     cfg = cfg.with_iters(args.iters)
     result = coin_cl.inpaint(coin_cl.load_scene(args.scene), args.out, mask_kind=args.mask_kind,
                              prompt=args.prompt, budget=args.budget, config=cfg)  # fmt: skip

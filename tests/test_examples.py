@@ -97,7 +97,8 @@ def test_use_sd2(room, tmp_path):
         load("use_sd2").main([str(room), "--sd-path", str(tmp_path), "--out", str(tmp_path / "x")])
     # SD2 fills the views in stage 1 (64 px crops, 2 steps); CLG is left out: at its 512 px working
     # size even the tiny pipeline (VAE factor 2) takes minutes per view on 2 cores
-    args = ["--iters", "3", "--sd-steps", "2", "--sd-crop", "64", "--skip-stage", "clg"]
+    # (--sd2-mode all: on a CPU the default would run the real-size estimate's reference-only mode)
+    args = ["--iters", "3", "--sd-steps", "2", "--sd-crop", "64", "--skip-stage", "clg", "--sd2-mode", "all"]
     res = load("use_sd2").main([str(room), "--sd-path", str(sd), "--out", str(tmp_path / "u"), *args])
     assert res.ply.is_file() and res.stages["3_clg"]["status"].startswith("skipped: asked")
     assert res.stages["1_inpaint"]["result"]["sources"] == ["Stable Diffusion 2 inpainting"]
