@@ -63,9 +63,13 @@ def split_scores(syn, run: Path) -> dict:
         m = syn.masks[n]
         tp, marked, unseen = tp + (r & u).sum(), marked + r.sum(), unseen + u.sum()
         obs, obs_marked, area = obs + (m & ~u).sum(), obs_marked + (m & ~u & r).sum(), area + m.sum()
-    return {"observed_share": float(1 - marked / area), "exact_observed_share": float(obs / area),
-            "precision": float(tp / max(1, marked)), "recall": float(tp / max(1, unseen)),
-            "observed_marked_unseen": float(obs_marked / max(1, obs))}  # fmt: skip
+    return {
+        "observed_share": float(1 - marked / area),
+        "exact_observed_share": float(obs / area),
+        "precision": float(tp / max(1, marked)),
+        "recall": float(tp / max(1, unseen)),
+        "observed_marked_unseen": float(obs_marked / max(1, obs)),
+    }
 
 
 def part_psnr(syn, pred_dir: Path) -> dict:
@@ -90,8 +94,13 @@ def coin_row(syn, scene_dir: Path, out: Path, cfg: CoInConfig) -> dict:
     m = res.metrics or {}
     row = {k: m.get(k) for k in ("psnr", "m_psnr", "hf_ratio", "bbox_gmsd", "ghost")}
     region = "refined" if (out / "0_refine").is_dir() else "input"
-    return {**row, **part_psnr(syn, out / "eval" / "renders"), **split_scores(syn, out), "region": region,
-            "minutes": (time.perf_counter() - t) / 60}  # fmt: skip
+    return {
+        **row,
+        **part_psnr(syn, out / "eval" / "renders"),
+        **split_scores(syn, out),
+        "region": region,
+        "minutes": (time.perf_counter() - t) / 60,
+    }
 
 
 def masked_recon_row(syn, scene_dir: Path, out: Path, steps: int) -> dict:
@@ -114,14 +123,21 @@ def masked_recon_row(syn, scene_dir: Path, out: Path, steps: int) -> dict:
         d = np.where(r.alpha.numpy() > 0.5, r.depth.numpy(), np.nan)
         ghost.append(ghost_fraction(d, syn.depth_absent[n], syn.masks[n]))
     keep = ("psnr", "m_psnr", "hf_ratio", "bbox_gmsd")
-    return {**{k: row.get(k) for k in keep}, "ghost": float(np.nanmean(ghost)),
-            **part_psnr(syn, out / "pred"), "region": "-", "minutes": (time.perf_counter() - t) / 60}  # fmt: skip
+    return {
+        **{k: row.get(k) for k in keep},
+        "ghost": float(np.nanmean(ghost)),
+        **part_psnr(syn, out / "pred"),
+        "region": "-",
+        "minutes": (time.perf_counter() - t) / 60,
+    }
 
 
 def run_scene(name: str, out: Path, args) -> dict:
     from coin_cl.scene.synthetic import make_synthetic, write_synthetic
 
-    syn = make_synthetic(coverage=SCENES[name], n_views=args.views, width=args.size[0], height=args.size[1], seed=0)
+    syn = make_synthetic(
+        coverage=SCENES[name], n_views=args.views, width=args.size[0], height=args.size[1], seed=0
+    )
     scene_dir = out / "scene"
     if not (scene_dir / "views.txt").is_file():
         write_synthetic(scene_dir, syn)
@@ -142,8 +158,9 @@ def run_scene(name: str, out: Path, args) -> dict:
     print(name, "coin_input", json.dumps(rows["coin_input"]), file=sys.stderr, flush=True)
     if args.before and name == "room":
         share_stages(out / "coin", out / "coin_before", ("0_scene",))
-        rows["coin_before"] = coin_row(syn, scene_dir, out / "coin_before",
-                                       replace(cfg, inpaint_region="refined", refine=BEFORE))  # fmt: skip
+        rows["coin_before"] = coin_row(
+            syn, scene_dir, out / "coin_before", replace(cfg, inpaint_region="refined", refine=BEFORE)
+        )
         print(name, "coin_before", json.dumps(rows["coin_before"]), file=sys.stderr, flush=True)
     return rows
 
@@ -158,23 +175,34 @@ def main() -> int:
     ap.add_argument("--before", action="store_true", help="add the earlier split rule's row on the room")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    print(f"# rooms benchmark: CPU {cpu_model()}, commit {git_commit()}, budget {args.budget} min, "
-          f"{args.size[0]}x{args.size[1]}, {args.views} views")  # fmt: skip
+    print(
+        f"# rooms benchmark: CPU {cpu_model()}, commit {git_commit()}, budget {args.budget} min, "
+        f"{args.size[0]}x{args.size[1]}, {args.views} views"
+    )
     all_rows = {name: run_scene(name, args.out / name, args) for name in args.scenes}
 
     def f(v, d=2):
         return "n/a" if v is None or (isinstance(v, float) and np.isnan(v)) else f"{v:.{d}f}"
 
-    print("\n| scene | row | region | PSNR | m-PSNR | m-PSNR obs. | m-PSNR unseen | HF ratio | bbox GMSD | ghost "
-          "| observed share (exact) | unseen core P / R | min |")  # fmt: skip
+    print(
+        "\n| scene | row | region | PSNR | m-PSNR | m-PSNR obs. | m-PSNR unseen | HF ratio | bbox GMSD "
+        "| ghost | observed share (exact) | unseen core P / R | min |"
+    )
     print("|---" * 13 + "|")
     for scene, rows in all_rows.items():
         for name, r in rows.items():
-            share = f"{f(r.get('observed_share'))} ({f(r.get('exact_observed_share'))})" if "precision" in r else "-"
+            share = (
+                f"{f(r.get('observed_share'))} ({f(r.get('exact_observed_share'))})"
+                if "precision" in r
+                else "-"
+            )
             pr = f"{f(r.get('precision'))} / {f(r.get('recall'))}" if "precision" in r else "-"
-            print(f"| {scene} | {name} | {r['region']} | {f(r['psnr'])} | {f(r['m_psnr'])} | {f(r['m_psnr_observed'])} "
-                  f"| {f(r['m_psnr_unseen'])} | {f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)} | {f(r['ghost'], 3)} "
-                  f"| {share} | {pr} | {r['minutes']:.1f} |")  # fmt: skip
+            print(
+                f"| {scene} | {name} | {r['region']} | {f(r['psnr'])} | {f(r['m_psnr'])} "
+                f"| {f(r['m_psnr_observed'])} | {f(r['m_psnr_unseen'])} | {f(r['hf_ratio'], 3)} "
+                f"| {f(r['bbox_gmsd'], 3)} | {f(r['ghost'], 3)} "
+                f"| {share} | {pr} | {r['minutes']:.1f} |"
+            )
     result = {}
     for scene, rows in all_rows.items():
         result[f"{scene}_coin_mpsnr"] = rows["coin"]["m_psnr"]
@@ -182,8 +210,12 @@ def main() -> int:
         result[f"{scene}_coin_input_mpsnr"] = rows["coin_input"]["m_psnr"]
         result[f"{scene}_naive_mpsnr"] = rows["naive"]["m_psnr"]
         if scene == "room":
-            result.update(room_coin_hf_ratio=rows["coin"]["hf_ratio"], room_coin_gmsd=rows["coin"]["bbox_gmsd"],
-                          room_masked_recon_gmsd=rows["masked_recon"]["bbox_gmsd"], room_ghost=rows["coin"]["ghost"])  # fmt: skip
+            result.update(
+                room_coin_hf_ratio=rows["coin"]["hf_ratio"],
+                room_coin_gmsd=rows["coin"]["bbox_gmsd"],
+                room_masked_recon_gmsd=rows["masked_recon"]["bbox_gmsd"],
+                room_ghost=rows["coin"]["ghost"],
+            )
     write_result(args.out, result, all_rows)
     return 0
 

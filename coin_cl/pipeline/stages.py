@@ -180,8 +180,9 @@ def _prune_object_points(ctx: StageContext, scene, rcfg, train: list[int]):
     from coin_cl.gs.prune import prune_points_in_masks
 
     inputs = ctx.shared["masks"]
-    pr = prune_points_in_masks(np.asarray(scene.points), [scene.cameras[i] for i in train],
-                               [inputs[i] for i in train], rcfg.prune_min_fraction, rcfg.prune_min_views)  # fmt: skip
+    cams, masks = [scene.cameras[i] for i in train], [inputs[i] for i in train]
+    frac, views = rcfg.prune_min_fraction, rcfg.prune_min_views
+    pr = prune_points_in_masks(np.asarray(scene.points), cams, masks, frac, views)
     ctx.note(f"refined masks: {pr.n_removed} SfM points inside the input masks pruned before Ref-GS")
     cols = None if scene.colors is None else np.asarray(scene.colors)[pr.keep]
     return replace(scene, points=pr.points, colors=cols)
