@@ -10,7 +10,11 @@ figure (share of mask pixels rendered more than 10 % in front of the exact depth
 `coin_cl.metrics.ghost_fraction`), the split's observed share and its precision / recall of the
 exactly unseen core (training views), minutes.
 
-    nice -n 15 python benchmarks/rooms.py --out /tmp/rooms [--budget 3] [--scenes room room360]
+    nice -n 15 python benchmarks/rooms.py --out /tmp/rooms [--scenes room room360] [--iters 591 411 499]
+
+The default steps are the plan `coin-cl demo` makes at budget 3 on a quiet machine (Ref-GS 591,
+TE-D 411 + 499, scene prior 120 s), given explicitly so that a loaded machine runs the same
+schedule (its timing probe would plan fewer steps).
 
 `--before` adds a row with stage 0_refine's earlier rule (the see-through test on the depth carried
 inward, grown by 1 px) on the demo room. The last line is JSON (room_*, room360_*).
@@ -141,7 +145,10 @@ def run_scene(name: str, out: Path, args) -> dict:
     scene_dir = out / "scene"
     if not (scene_dir / "views.txt").is_file():
         write_synthetic(scene_dir, syn)
-    cfg = CoInConfig(budget_minutes=args.budget)
+    cfg = CoInConfig(budget_minutes=args.budget, prior_seconds=args.prior_seconds)
+    if args.iters:  # explicit steps: the same schedule on a loaded machine as on a quiet one
+        cfg = replace(cfg, iters_refgs=args.iters[0], iters_ted_finetune=args.iters[1],
+                      iters_ted_adversarial=args.iters[2])  # fmt: skip
     rows = {}
     rows["coin"] = coin_row(syn, scene_dir, out / "coin", cfg)
     print(name, "coin", json.dumps(rows["coin"]), file=sys.stderr, flush=True)
@@ -172,12 +179,19 @@ def main() -> int:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--size", type=int, nargs=2, default=(192, 144), help="width height (demo: 192 144)")
     ap.add_argument("--views", type=int, default=24, help="views per room (demo: 24)")
+    steps = ("REFGS", "TED_FT", "TED_ADV")
+    ap.add_argument("--iters", type=int, nargs=3, default=(591, 411, 499), metavar=steps,
+                    help="explicit steps (default: the demo's plan on a quiet machine at budget 3; "
+                    "0 0 0: the budget plan of this machine)")  # fmt: skip
+    ap.add_argument("--prior-seconds", type=float, default=120.0, help="scene prior (demo: 120)")
     ap.add_argument("--before", action="store_true", help="add the earlier split rule's row on the room")
     args = ap.parse_args()
+    if not any(args.iters):
+        args.iters = None
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     print(
         f"# rooms benchmark: CPU {cpu_model()}, commit {git_commit()}, budget {args.budget} min, "
-        f"{args.size[0]}x{args.size[1]}, {args.views} views"
+        f"{args.size[0]}x{args.size[1]}, {args.views} views, steps {args.iters}, prior {args.prior_seconds} s"
     )
     all_rows = {name: run_scene(name, args.out / name, args) for name in args.scenes}
 
