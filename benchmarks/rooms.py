@@ -16,8 +16,8 @@ The default steps are the plan `coin-cl demo` makes at budget 3 on a quiet machi
 TE-D 411 + 499, scene prior 120 s), given explicitly so that a loaded machine runs the same
 schedule (its timing probe would plan fewer steps).
 
-`--before` adds a row with stage 0_refine's earlier rule (the see-through test on the depth carried
-inward, grown by 1 px) on the demo room. The last line is JSON (room_*, room360_*).
+`--rows ... coin_before` adds a row with stage 0_refine's earlier rule (the see-through test on the
+depth carried inward, grown by 1 px) on the demo room. The last line is JSON (room_*, room360_*).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
 
 SCENES = {"room": 90, "room360": 360}
+ROWS = ("coin", "naive", "masked_recon", "coin_input", "coin_before")
 # stage 0_refine before issue 21's split: the see-through rule on the depth carried inward, 1-px growth
 BEFORE = RefineConfig(view_check=0.0, ray_samples=0, see_through=0.15, grow_px=1)
 
@@ -153,21 +154,25 @@ def run_scene(name: str, out: Path, args) -> dict:
     rows["coin"] = coin_row(syn, scene_dir, out / "coin", cfg)
     print(name, "coin", json.dumps(rows["coin"]), file=sys.stderr, flush=True)
     plan = json.loads((out / "coin" / "plan.json").read_text())["steps"]
-    share_stages(out / "coin", out / "naive")
-    naive = replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=plan["refgs"])
-    rows["naive"] = coin_row(syn, scene_dir, out / "naive", naive)
-    print(name, "naive", json.dumps(rows["naive"]), file=sys.stderr, flush=True)
-    steps = plan["refgs"] + plan["ted_finetune"] + plan["ted_adversarial"]
-    rows["masked_recon"] = masked_recon_row(syn, scene_dir, out / "masked_recon", steps)
-    print(name, "masked_recon", json.dumps(rows["masked_recon"]), file=sys.stderr, flush=True)
-    share_stages(out / "coin", out / "coin_input", ("0_scene",))
-    rows["coin_input"] = coin_row(syn, scene_dir, out / "coin_input", replace(cfg, inpaint_region="input"))
-    print(name, "coin_input", json.dumps(rows["coin_input"]), file=sys.stderr, flush=True)
-    if args.before and name == "room":
-        share_stages(out / "coin", out / "coin_before", ("0_scene",))
-        rows["coin_before"] = coin_row(
-            syn, scene_dir, out / "coin_before", replace(cfg, inpaint_region="refined", refine=BEFORE)
+    if "naive" in args.rows:
+        share_stages(out / "coin", out / "naive")
+        naive = replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=plan["refgs"])
+        rows["naive"] = coin_row(syn, scene_dir, out / "naive", naive)
+        print(name, "naive", json.dumps(rows["naive"]), file=sys.stderr, flush=True)
+    if "masked_recon" in args.rows:
+        steps = args.masked_steps or plan["refgs"] + plan["ted_finetune"] + plan["ted_adversarial"]
+        rows["masked_recon"] = masked_recon_row(syn, scene_dir, out / "masked_recon", steps)
+        print(name, "masked_recon", json.dumps(rows["masked_recon"]), file=sys.stderr, flush=True)
+    if "coin_input" in args.rows:
+        share_stages(out / "coin", out / "coin_input", ("0_scene",))
+        rows["coin_input"] = coin_row(
+            syn, scene_dir, out / "coin_input", replace(cfg, inpaint_region="input")
         )
+        print(name, "coin_input", json.dumps(rows["coin_input"]), file=sys.stderr, flush=True)
+    if "coin_before" in args.rows and name == "room":
+        share_stages(out / "coin", out / "coin_before", ("0_scene",))
+        before = replace(cfg, inpaint_region="refined", refine=BEFORE)
+        rows["coin_before"] = coin_row(syn, scene_dir, out / "coin_before", before)
         print(name, "coin_before", json.dumps(rows["coin_before"]), file=sys.stderr, flush=True)
     return rows
 
@@ -184,7 +189,10 @@ def main() -> int:
                     help="explicit steps (default: the demo's plan on a quiet machine at budget 3; "
                     "0 0 0: the budget plan of this machine)")  # fmt: skip
     ap.add_argument("--prior-seconds", type=float, default=120.0, help="scene prior (demo: 120)")
-    ap.add_argument("--before", action="store_true", help="add the earlier split rule's row on the room")
+    ap.add_argument("--rows", nargs="+", default=list(ROWS[:4]), choices=ROWS,
+                    help="rows besides coin (coin_before: the earlier split rule, room only)")  # fmt: skip
+    ap.add_argument("--masked-steps", type=int, default=None,
+                    help="masked reconstruction's 3DGS steps (default: Ref-GS + TE-D's)")  # fmt: skip
     args = ap.parse_args()
     if not any(args.iters):
         args.iters = None
@@ -219,11 +227,9 @@ def main() -> int:
             )
     result = {}
     for scene, rows in all_rows.items():
-        result[f"{scene}_coin_mpsnr"] = rows["coin"]["m_psnr"]
-        result[f"{scene}_masked_recon_mpsnr"] = rows["masked_recon"]["m_psnr"]
-        result[f"{scene}_coin_input_mpsnr"] = rows["coin_input"]["m_psnr"]
-        result[f"{scene}_naive_mpsnr"] = rows["naive"]["m_psnr"]
-        if scene == "room":
+        for row in rows:
+            result[f"{scene}_{row}_mpsnr"] = rows[row]["m_psnr"]
+        if scene == "room" and "masked_recon" in rows:
             result.update(
                 room_coin_hf_ratio=rows["coin"]["hf_ratio"],
                 room_coin_gmsd=rows["coin"]["bbox_gmsd"],
