@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from coin_cl.engine.rendering import rasterize
-from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, voxelize
+from coin_cl.gs.scaffold import GRID_HALF_CELLS, ScaffoldConfig, ScaffoldModel, min_voxel_size, voxelize
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.trainer import TrainConfig, Trainer, scaled_model_config, scaled_strategy
 
@@ -15,6 +15,23 @@ def test_voxelize_merges_points_per_cell():
     v = voxelize(pts, 1.0)
     assert v.shape == (3, 3)
     assert {tuple(r) for r in v.tolist()} == {(0, 0, 0), (1, 0, 0), (5, 5, 5)}
+
+
+def test_duplicated_points_give_a_voxel_the_anchor_grid_can_hold(caplog):
+    """A tiny capture's SfM points can coincide (median nearest-neighbour distance 0, voxel 1e-7 in
+    the wild): the automatic voxel is then the grid's floor, logged; an explicit one below it is a
+    clear error; every anchor coordinate fits the strategy's hash."""
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([np.repeat(rng.uniform(-3, 3, (5, 3)), 40, axis=0), [[0.0, 0.0, 0.0]]])
+    m = ScaffoldModel(pts, None, 3.0)
+    assert np.isfinite(m.voxel_size) and m.voxel_size >= min_voxel_size(pts) > 0
+    assert float((m.p["anchors"].abs() / m.voxel_size).max()) < GRID_HALF_CELLS / 16
+    pts2 = np.repeat(np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0 + 1e-9]]), 10, axis=0)
+    with caplog.at_level("WARNING", logger="coin_cl.gs.scaffold"):
+        m2 = ScaffoldModel(pts2, None, 1.0)
+    assert "floor" in caplog.text and m2.voxel_size == pytest.approx(min_voxel_size(pts2))
+    with pytest.raises(ValueError, match="voxel_size .* too small"):
+        ScaffoldModel(pts, None, 3.0, ScaffoldConfig(voxel_size=1e-9))
 
 
 def test_architecture_matches_scaffold_gs():

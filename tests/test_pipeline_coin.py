@@ -222,3 +222,17 @@ def test_carve_keeps_the_object_volume_empty_in_the_final_model(room, first_run,
     assert vol is not None and len(vol) > 0
     g = res.model.export_gaussians()
     assert not vol.contains(g["means"]).any()
+
+
+def test_removal_holds_every_mask_to_its_background_depth(first_run):
+    """Issue 21: Ref-GS saves D_bg of every training view with a mask and trains with the term;
+    TE-D keeps the term (both say so in their notes)."""
+    out, res = first_run
+    scene = load_scene(out / "0_scene" / "scene")
+    with_mask = [i for i in scene.train_idx if np.asarray(scene.masks[i]).any()]
+    saved = sorted((out / "2_refgs" / "bg_depths").glob("*.npy"))
+    assert len(saved) == len(with_mask) > 0
+    d = np.load(saved[0])
+    assert d.shape == np.asarray(scene.masks[with_mask[0]]).shape and np.isfinite(d).all() and (d > 0).all()
+    assert any("background depth" in n for n in res.stages["2_refgs"]["notes"])
+    assert any("keeps the background depth term" in n for n in res.stages["4_ted"]["notes"])

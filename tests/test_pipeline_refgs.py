@@ -159,7 +159,8 @@ def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
     monkeypatch.setattr(AnchorAttention, "forward", no_attn)
     monkeypatch.setattr("coin_cl.gs.depth_prior.reference_depth_loss", count_depth)
     monkeypatch.setattr(ScaffoldModel, "render", spy_render)
-    cfg = _cfg(adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False)
+    cfg = _cfg(adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False,
+               bg_depth=False)  # fmt: skip
     res = run_refgs(scene, targets, tmp_path / "off", cfg, budget_minutes=None, iters=12, seed=0)
     log = json.loads(Path(res["log"]).read_text())
     assert all(h["weight"] == 1.0 for h in log["view_weights"]["history"])  # reference included
@@ -167,6 +168,7 @@ def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
     assert set(log["terms"]) == {"photometric", "scale_reg"}
     assert res["n_removed"] == 0 and res["depth_prior"] is None
     assert not (tmp_path / "off" / "depth_prior.npy").exists()
+    assert not (tmp_path / "off" / "bg_depths").exists()
     # The same run with the pieces on calls each of them (so the zero counts above mean something).
     monkeypatch.undo()
     monkeypatch.setattr("coin_cl.gs.depth_prior.reference_depth_loss", count_depth)
@@ -174,8 +176,10 @@ def test_ablation_switches_remove_their_piece(room, tmp_path, monkeypatch):
     res = run_refgs(scene, targets, tmp_path / "on", _cfg(), budget_minutes=None, iters=12, seed=0,
                     gs_depth=_gs_depth(syn, scene, k))  # fmt: skip
     log = json.loads(Path(res["log"]).read_text())
-    assert called["depth"] > 0 and called["features"] > 0 and called["return_depth"] == called["depth"]
-    assert set(log["terms"]) == {"photometric", "scale_reg", "ref_depth", "attention"}
+    # Depth is rendered on the reference (ref_depth) and on every view with a mask (bg_depth).
+    assert called["depth"] > 0 and called["features"] > 0 and called["return_depth"] == 12
+    assert set(log["terms"]) == {"photometric", "scale_reg", "ref_depth", "bg_depth", "attention"}
+    assert log["refgs"]["terms"]["bg_depth"]["n_applied"] > 0
     assert res["n_removed"] > 0
 
 
@@ -221,8 +225,16 @@ def test_render_kwargs_clash_is_an_error():
     cfg = TrainConfig(iters=1, backend="torch", progress=False, export_ply=False)
     Trainer(model, sc.views, [], cfg, terms=[PhotometricLoss(), Depth()]).train()  # depth delivered
     d2 = Depth()
-    d2.name = "b"
-    tr = Trainer(model, sc.views, [], cfg, terms=[PhotometricLoss(), Depth(), d2])
+    d2.name = "b"  # two terms asking for the same flag agree: accepted
+    Trainer(model, sc.views, [], cfg, terms=[PhotometricLoss(), Depth(), d2]).train()
+
+    class NoDepth(Depth):
+        name = "c"
+
+        def before_render(self, view, index, step, model):
+            return {"return_depth": False}
+
+    tr = Trainer(model, sc.views, [], cfg, terms=[PhotometricLoss(), Depth(), NoDepth()])
     with pytest.raises(ValueError, match="already set"):
         tr.train()
 
@@ -265,7 +277,8 @@ def _residuals(syn, scene, targets, tmp_path, cfg: RefGSConfig, iters: int = 300
     """(plain training, `cfg`) masked residuals to the reference after `iters` steps, seed 0."""
     k = reference.choose_reference(scene)
     kw = dict(budget_minutes=None, iters=iters, seed=0, gs_depth=_gs_depth(syn, scene, k))
-    plain = RefGSConfig(adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False)
+    plain = RefGSConfig(adaptive_weights=False, feature_attention=False, depth_loss=False, prune_points=False,
+                        bg_depth=False)  # fmt: skip
     run_refgs(scene, targets, tmp_path / "plain", plain, **kw)
     run_refgs(scene, targets, tmp_path / "refgs", cfg, **kw)
     return (
@@ -297,7 +310,7 @@ def test_adaptive_weights_pull_towards_an_arbitrary_reference(room, tmp_path):
     Full Ref-GS does not here (0.3888): anchor attention replaces in-mask features with convex
     combinations of the ring's, i.e. the surroundings, which an arbitrary colour is not."""
     syn, scene, targets = room
-    off = dict(feature_attention=False, depth_loss=False, prune_points=False)
+    off = dict(feature_attention=False, depth_loss=False, prune_points=False, bg_depth=False)
     e_plain, e_w = _residuals(syn, scene, targets, tmp_path, RefGSConfig(**off))
     print(f"masked residual to the reference: plain {e_plain:.4f}, adaptive weights {e_w:.4f}")
     assert e_w < 0.6 * e_plain

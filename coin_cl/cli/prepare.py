@@ -30,6 +30,12 @@ def add_commands(subparsers) -> None:
     p.add_argument(
         "--threads", type=int, default=d.num_threads, help=f"CPU threads (default {d.num_threads})"
     )
+    p.add_argument("--holdout", nargs="+", default=[], metavar="PHOTO",
+                   help="photos to pose but not train on (e.g. object-absent ground truth): localized in "
+                        "the model of the others, written as test views (sparse/0/test.txt)")  # fmt: skip
+    p.add_argument("--holdout-masks", type=Path, default=None, metavar="DIR",
+                   help="region masks of the held-out photos, drawn on them (DIR/<name>.png): the "
+                        "region `coin-cl eval` scores")  # fmt: skip
     a = p.add_mutually_exclusive_group()
     a.add_argument("--box", nargs=5, metavar=("VIEW", "X0", "Y0", "X1", "Y1"),
                    help="the object's box in one photo (name or index), in that photo's pixels")  # fmt: skip
@@ -54,7 +60,8 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     elif args.mask:
         ann = Annotation(view=args.mask[0], mask=Path(args.mask[1]))
     cfg = SfmConfig(width=args.width, exhaustive_max=args.exhaustive_max, num_threads=args.threads)
-    report, masks = prepare(args.photos, args.out, ann, sfm=cfg)
+    report, masks = prepare(args.photos, args.out, ann, sfm=cfg, holdout=args.holdout,
+                            holdout_masks=args.holdout_masks)  # fmt: skip
     print(report.text(), end="")
     print(f"wrote {args.out}/images, {args.out}/sparse/0, {args.out}/prepare_report.txt")
     if masks is not None:

@@ -32,6 +32,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from coin_cl.gs.background_depth import background_depth, dilate_mask
+
 log = logging.getLogger(__name__)
 
 
@@ -141,34 +143,6 @@ class CarveVolume:
         )
 
 
-def background_depth(cam: Any, mask: np.ndarray, points: np.ndarray, cell: int, dilate_px: int) -> np.ndarray:
-    """D_bg of one view [H, W] float32 (camera z): the sparse `points` [N, 3] that project outside
-    the mask dilated by `dilate_px`, nearest per `cell` x `cell` cell, filled in 2D (Telea) over the
-    empty cells and the mask. Raises ValueError when no point lands outside the mask."""
-    from coin_cl.gs.depth_prior import inpaint_depth
-
-    H, W = mask.shape
-    grown = cv2.dilate(mask.astype(np.uint8), np.ones((2 * dilate_px + 1,) * 2, np.uint8)) > 0
-    uv, z = cam.project(points)
-    ok = np.isfinite(uv).all(1) & (z > 0)
-    ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-    iu, iv = uv[ok, 0].astype(int), uv[ok, 1].astype(int)
-    outside = ~grown[iv, iu]
-    iu, iv, zz = iu[outside], iv[outside], z[ok][outside]
-    if len(zz) == 0:
-        raise ValueError(
-            f"view {getattr(cam, 'name', '?')}: no sparse point outside its mask; cannot estimate the "
-            "background depth to carve (give more views, or carve=False)"
-        )
-    gh, gw = -(-H // cell), -(-W // cell)
-    grid = np.full(gh * gw, np.inf)
-    np.minimum.at(grid, (iv // cell) * gw + iu // cell, zz)  # z-buffer: the visible surface per cell
-    grid = grid.reshape(gh, gw)
-    cells_in_mask = cv2.resize(grown.astype(np.uint8), (gw, gh), interpolation=cv2.INTER_AREA) > 0
-    filled = inpaint_depth(np.where(np.isfinite(grid), grid, np.nan), cells_in_mask, radius=3)
-    return cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR).astype(np.float32)
-
-
 def build_carve(cameras: Sequence[Any], masks: Sequence[np.ndarray], points: np.ndarray,
                 cfg: CarveConfig | None = None) -> CarveVolume | None:  # fmt: skip
     """The carve volume of the views with a non-empty mask (None when no view has one).
@@ -187,7 +161,7 @@ def build_carve(cameras: Sequence[Any], masks: Sequence[np.ndarray], points: np.
     for j, (c, m) in enumerate(views):
         d = background_depth(c, m, points, cfg.cell, cfg.dilate_px)
         w, h = max(1, round(c.width * s)), max(1, round(c.height * s))
-        grown = cv2.dilate(m.astype(np.uint8), np.ones((2 * cfg.dilate_px + 1,) * 2, np.uint8))
+        grown = dilate_mask(m, cfg.dilate_px).astype(np.uint8)
         M[j, :h, :w] = torch.from_numpy(cv2.resize(grown, (w, h), interpolation=cv2.INTER_NEAREST) > 0)
         D[j, :h, :w] = torch.from_numpy(cv2.resize(d, (w, h), interpolation=cv2.INTER_LINEAR))
         K = np.asarray(c.K, np.float64).copy()

@@ -6,6 +6,8 @@ trainer terms they build. One concept per module:
 * `coin_cl.gs.view_weights`: the per-view loss weight W_n.
 * `coin_cl.gs.anchor_attention`: in-mask anchors attend to a ring of anchors around the mask.
 * `coin_cl.gs.depth_prior`: the reference's depth loss, its affine fit and its prior D_k.
+* `coin_cl.gs.background_depth`: every view's mask held to the surrounding surfaces' depth
+  (issue 21: no ghost of a removed object).
 * `coin_cl.pipeline.reference`: which view is the reference k.
 
 Every piece can be switched off through `RefGSConfig` for the paper's ablations (Table 4: w/o
@@ -24,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from coin_cl.gs.anchor_attention import AnchorAttention, AnchorAttentionTerm
+from coin_cl.gs.background_depth import BackgroundDepthTerm
 from coin_cl.gs.depth_prior import ReferenceDepthTerm
 from coin_cl.gs.losses import LossConfig
 from coin_cl.gs.optim import ExpSchedule
@@ -71,6 +74,12 @@ class RefGSConfig:
     # Steps of the auxiliary GS trained on the captured images for the depth prior when the dataset
     # ships none (None: max(min(100, iters), iters // 5): a smoke run with a few steps stays quick).
     depth_prior_iters: int | None = None
+    # -- background depth in every view's mask (issue 21; `coin_cl.gs.background_depth`): removal
+    #    only (an insertion's masks hold the new object, not the background)
+    bg_depth: bool = True
+    lambda_bg_depth: float = 3.0
+    bg_depth_margin: float = 0.05  # relative band around D_bg left free
+    bg_depth_behind: float = 0.1  # weight of the behind side (0: penalise only what is in front)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -90,6 +99,8 @@ class RefGSConfig:
             raise ValueError(f"attn_mix must be in (0, 1], got {self.attn_mix}")
         if self.ring_frac < 0 or self.ring_min_px < 1:
             raise ValueError("ring_frac must be >= 0 and ring_min_px >= 1")
+        if self.lambda_bg_depth < 0 or self.bg_depth_margin < 0 or self.bg_depth_behind < 0:
+            raise ValueError("lambda_bg_depth, bg_depth_margin and bg_depth_behind must be >= 0")
         if self.lambda_depth < 0:
             raise ValueError(f"lambda_depth must be >= 0, got {self.lambda_depth}")
         if not 0.0 <= self.attn_from <= 1.0:
@@ -141,12 +152,15 @@ def refgs_terms(
     depth_prior: np.ndarray | None = None,
     depth_is_disparity: bool = False,
     loss_cfg: LossConfig | None = None,
+    bg_depths: Sequence[np.ndarray | None] | None = None,
 ) -> list[LossTerm]:
     """Scaffold-GS's published loss plus Ref-GS's pieces, as `RefGSConfig` switches them.
 
     Always: `PhotometricLoss` (with `AdaptiveWeightSource`; constant 1 when
     `cfg.adaptive_weights` is off) and `ScaleVolumeReg`. `ReferenceDepthTerm` when
-    `cfg.depth_loss` (needs `depth_prior` [H, W]); `AnchorAttentionTerm` when `cfg.feature_attention`.
+    `cfg.depth_loss` (needs `depth_prior` [H, W]); `BackgroundDepthTerm` when `cfg.bg_depth` and
+    `bg_depths` (D_bg [H, W] or None per trainer view) are given; `AnchorAttentionTerm` when
+    `cfg.feature_attention`.
 
     Args:
         ref_index: the reference's trainer view index; masks: [H, W] bool per trainer view.
@@ -163,12 +177,23 @@ def refgs_terms(
         terms.append(
             ReferenceDepthTerm(ref_index, depth_prior, masks[ref_index], cfg.lambda_depth, depth_is_disparity)
         )
+    if cfg.bg_depth and bg_depths is not None:
+        terms.append(background_depth_term(cfg, bg_depths, masks))
     if cfg.feature_attention:
         # attention_active(step, iters) is step >= attn_from * iters once feature_attention is on
         terms.append(AnchorAttentionTerm(anchor_attention(cfg, feat_dim), masks, cfg.attn_lr(iters),
                                          cfg.attn_from * iters, cfg.ring_frac, cfg.ring_min_px,
                                          cfg.attn_write_back))  # fmt: skip
     return terms
+
+
+def background_depth_term(
+    cfg: RefGSConfig, bg_depths: Sequence[np.ndarray | None], masks: Sequence[np.ndarray]
+) -> BackgroundDepthTerm:
+    """The background depth term with `cfg`'s settings (Ref-GS builds it; TE-D reuses it)."""
+    return BackgroundDepthTerm(
+        bg_depths, masks, cfg.lambda_bg_depth, cfg.bg_depth_margin, cfg.bg_depth_behind
+    )
 
 
 def adaptive_weights_of(terms: Sequence[LossTerm]) -> AdaptiveViewWeights | None:

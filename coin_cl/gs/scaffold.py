@@ -13,6 +13,7 @@ the drawn Gaussians' scales in `meta['scales']`).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -28,6 +29,8 @@ from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
 from coin_cl.gs.sh import rgb_to_sh
+
+log = logging.getLogger(__name__)
 
 PER_ANCHOR = ("anchors", "offsets", "features", "scaling")
 MLPS = ("mlp_opacity", "mlp_cov", "mlp_color")
@@ -56,6 +59,20 @@ def scaffold_config_from_dict(d: dict[str, Any]) -> ScaffoldConfig:
     for k in ("lr_offsets", "lr_mlp_opacity", "lr_mlp_cov", "lr_mlp_color"):
         d[k] = ExpSchedule(**d[k])
     return ScaffoldConfig(**d)
+
+
+# Anchor grid coordinates are hashed with 21 bits per axis (`coin_cl.gs.strategy`), so |x| / voxel
+# must stay under 2^20; the voxel keeps GRID_HEADROOM x that margin for anchors grown outward.
+GRID_HALF_CELLS = 1 << 20
+GRID_HEADROOM = 16
+
+
+def min_voxel_size(points: np.ndarray) -> float:
+    """The smallest voxel size whose anchor grid holds `points` [N, 3] with GRID_HEADROOM x margin
+    (a positive float; 1e-12 for an empty or all-zero cloud)."""
+    p = np.asarray(points, np.float64)
+    reach = float(np.abs(p[np.isfinite(p)]).max()) if p.size and np.isfinite(p).any() else 0.0
+    return max(reach * GRID_HEADROOM / GRID_HALF_CELLS, 1e-12)
 
 
 def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -94,8 +111,21 @@ class ScaffoldModel(Model):
         self.extent = float(extent)
         pts = np.asarray(points, dtype=np.float64)
         vs = c.voxel_size
+        floor = min_voxel_size(pts)
         if vs <= 0:
-            vs = float(np.median(knn_mean_dist(pts, k=1))) * c.voxel_scale
+            # Unique points: duplicated SfM points (tiny captures) would give a zero median.
+            vs = float(np.median(knn_mean_dist(np.unique(pts, axis=0), k=1))) * c.voxel_scale
+            if not (np.isfinite(vs) and vs >= floor):
+                log.warning("automatic voxel size %.3g is below the anchor grid's floor %.3g "
+                            "(|x| / voxel must stay under 2^20 / %d); using the floor",
+                            vs, floor, GRID_HEADROOM)  # fmt: skip
+                vs = floor
+        elif vs < floor:
+            raise ValueError(
+                f"voxel_size {vs:.3g} is too small for points reaching {np.abs(pts).max():.3g}: the "
+                f"anchor grid holds +-2^20 cells (with {GRID_HEADROOM}x headroom); use at least "
+                f"{floor:.3g}, or 0 (auto)"
+            )
         self.voxel_size = float(vs)
         anchors = torch.as_tensor(voxelize(pts, self.voxel_size))
         a = len(anchors)

@@ -32,14 +32,14 @@ from torch import Tensor
 from coin_cl.engine.geometry import quat_to_rotmat
 from coin_cl.gs.base import RenderOutput, inverse_sigmoid, ndc_grad_norm
 from coin_cl.gs.gaussians import PER_GAUSSIAN
-from coin_cl.gs.scaffold import PER_ANCHOR
+from coin_cl.gs.scaffold import GRID_HALF_CELLS, PER_ANCHOR
 
 if TYPE_CHECKING:
     from coin_cl.gs.base import Model
     from coin_cl.gs.gaussians import GaussianModel
     from coin_cl.gs.scaffold import ScaffoldModel
 
-_KEY_BITS = 21  # grid-coordinate hashing: each axis must fit in +-2^20 cells
+_KEY_BITS = 21  # grid-coordinate hashing: each axis must fit in +-2^20 cells (scaffold.GRID_HALF_CELLS)
 
 
 class Strategy:
@@ -239,6 +239,7 @@ class DefaultStrategy(Strategy):
 def _grid_keys(coords: Tensor) -> Tensor:
     """[N, 3] int grid coordinates -> [N] int64 unique keys."""
     half = 1 << (_KEY_BITS - 1)
+    assert half == GRID_HALF_CELLS
     if coords.numel() and (coords.abs().max() >= half):
         raise ValueError("anchor grid coordinates exceed +-2^20 cells: the voxel size is too small")
     c = coords.long() + half

@@ -381,13 +381,14 @@ class Trainer:
 
     def _render_kwargs(self, view: View, idx: int, model: Model) -> dict[str, Any]:
         """Extra `model.render` keyword arguments the terms ask for this step (`before_render`:
-        depth on a reference view, attended features); two terms may not set the same one."""
+        depth on a reference view, attended features); two terms may ask for the same flag
+        (`return_depth=True` from two depth terms) but may not set one argument to different values."""
         extra: dict[str, Any] = {}
         for term in self.terms:
             if not hasattr(term, "before_render"):
                 continue
             kw = term.before_render(view, idx, self.step, model) or {}
-            clash = sorted(set(kw) & set(extra))
+            clash = sorted(k for k in set(kw) & set(extra) if not _same(kw[k], extra[k]))
             if clash:
                 raise ValueError(f"loss term {term.name!r} sets render arguments already set: {clash}")
             extra.update(kw)
@@ -579,3 +580,8 @@ def make_trainer(
         tr.load_checkpoint()
         log.info("resumed from %s at step %d", tr.ckpt_path, tr.step)
     return tr
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Two render arguments agree: the same object, or equal plain values (flags, numbers)."""
+    return a is b or (isinstance(a, (bool, int, float, str)) and type(a) is type(b) and a == b)

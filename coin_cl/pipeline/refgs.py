@@ -9,6 +9,7 @@ per-view inpaints I^_n, leaning toward one reference view k. CLG and TE-D stand 
     alphas/<stem>.npy           rendered alpha [H, W] float32 (depth is meaningful where > 0.5)
     reference_points.ply        P_k: the reference render's depth unprojected, with its colours
     depth_prior.npy / .json     the reference's depth prior D_k and its source (when depth loss is on)
+    bg_depths/<stem>.npy        D_bg of every training view with a mask (when `cfg.bg_depth`)
     stage.json                  what `run_refgs` returns (paths and figures)
 
 The JSON log (gs/log.json) carries under "refgs": the config, the reference, the prior's name,
@@ -38,6 +39,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from coin_cl.gs.background_depth import background_depths
 from coin_cl.gs.data import Camera, View, scene_extent
 from coin_cl.gs.depth_prior import DepthPrior, inpaint_depth, reference_depth_prior
 from coin_cl.gs.prune import prune_points_in_masks
@@ -176,6 +178,7 @@ def run_refgs(
     callback: Callable[[Trainer, int], None] | None = None,
     seed_points: tuple[np.ndarray, np.ndarray] | None = None,
     known_depth: np.ndarray | None = None,
+    object_masks: Sequence[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
 
@@ -196,6 +199,9 @@ def run_refgs(
         known_depth: [H, W] camera z of the reference known from elsewhere (NaN where not; the
             inserted object's hull depth): replaces the depth prior there, and the dataset's
             inpainted disparity (made for removal) is then not used.
+        object_masks: [H, W] bool per scene view, the removed object's masks, where the
+            background depth term holds the depth (default the scene's masks; the pipeline passes
+            the input masks when refined masks narrow what is inpainted).
     Returns:
         JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
     """
@@ -258,12 +264,22 @@ def run_refgs(
         )
         log.info("reference depth prior: %s", prior.name)
 
+    bg = None
+    if cfg.bg_depth:
+        obj_masks = scene.masks if object_masks is None else object_masks
+        obj = [np.asarray(obj_masks[i], bool) for i in train_idx]
+        bg = background_depths([v.camera for v in views], obj, np.asarray(scene.points))
+        _save_bg_depths(out / "bg_depths", scene, train_idx, bg)
+        log.info(
+            "background depth held in the masks of %d of %d views", sum(d is not None for d in bg), len(bg)
+        )
     mcfg = scaled_model_config("scaffold", n_iters)
     model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed, mcfg)
     model.device = device
     terms = refgs_terms(cfg, kt, masks, n_iters, feat_dim=mcfg.feat_dim,
                         depth_prior=None if prior is None else prior.prior,
-                        depth_is_disparity=bool(prior is not None and prior.is_disparity))  # fmt: skip
+                        depth_is_disparity=bool(prior is not None and prior.is_disparity),
+                        bg_depths=bg)  # fmt: skip
     tcfg = TrainConfig(model="scaffold", iters=n_iters, backend=backend, seed=seed, ckpt_every=ckpt_every,
                        max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else max_seconds,
                        progress=True, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
@@ -296,7 +312,9 @@ def run_refgs(
         "history": weights.history,
         "summary": {str(v): s for v, s in weights.summary().items()},
     }
-    tr.log["refgs"]["terms"] = {t.name: t.state_dict() for t in tr.terms if t.name in ("ref_depth",)}
+    tr.log["refgs"]["terms"] = {
+        t.name: t.state_dict() for t in tr.terms if t.name in ("ref_depth", "bg_depth")
+    }
     for t in tr.terms:
         if t.name == "attention":
             tr.log["refgs"]["attention"] = {"applied": t.n_applied, "skipped": t.n_skipped}
@@ -320,6 +338,24 @@ def run_refgs(
     }
     (out / STAGE_JSON).write_text(json.dumps(result, indent=1))
     return result
+
+
+def _save_bg_depths(
+    folder: Path, scene: Any, train_idx: Sequence[int], bg: Sequence[np.ndarray | None]
+) -> None:
+    folder.mkdir(exist_ok=True)
+    for i, d in zip(train_idx, bg, strict=True):
+        if d is not None:
+            np.save(folder / f"{view_stem(scene.cameras[i].name, i)}.npy", d)
+
+
+def read_bg_depths(folder: Path, scene: Any, train_idx: Sequence[int]) -> list[np.ndarray | None]:
+    """The D_bg a Ref-GS run saved (`bg_depths/`), per training view (None where it saved none)."""
+    out = []
+    for i in train_idx:
+        p = Path(folder) / f"{view_stem(scene.cameras[i].name, i)}.npy"
+        out.append(np.load(p) if p.is_file() else None)
+    return out
 
 
 def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt: int,

@@ -139,6 +139,7 @@ def stage_refgs(ctx: StageContext) -> dict:
             feature_attention=False,
             depth_loss=False,
             prune_points=False,
+            bg_depth=False,
             ref=ctx.shared["ref"],
         )
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
@@ -166,10 +167,15 @@ def stage_refgs(ctx: StageContext) -> dict:
         ctx.note(
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
+    if lift is not None or cfg.prompt or ctx.shared.get("edited") is not None:
+        rcfg = replace(rcfg, bg_depth=False)  # insertion: the masks hold the new object, not the background
+    elif rcfg.bg_depth:
+        ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
                      max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
-                     known_depth=None if lift is None else lift.depth)  # fmt: skip
+                     known_depth=None if lift is None else lift.depth,
+                     object_masks=ctx.shared["masks"])  # fmt: skip
 
 
 def _prune_object_points(ctx: StageContext, scene, rcfg, train: list[int]):
@@ -261,6 +267,7 @@ def stage_ted(ctx: StageContext) -> dict:
     tcfg = replace(
         cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
     )
+    extra = _ted_bg_depth(ctx, scene, train)
     tc = ctx.shared.get("ted_caps", {})
     caps = {"finetune": tc.get("ted_finetune", 0.0), "adversarial": tc.get("ted_adversarial", 0.0)}
     res, _ = run_ted(
@@ -270,6 +277,7 @@ def stage_ted(ctx: StageContext) -> dict:
         ctx.out,
         tcfg,
         TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
+        extra_terms=extra,
         max_seconds=caps,
     )
     if not any(ctx.out.rglob(CKPT_NAME)):
@@ -281,3 +289,20 @@ def stage_ted(ctx: StageContext) -> dict:
         ctx.note("TE-D ran 0 iterations: the Ref-GS scene is passed through unchanged")
         res["passed_through"] = True
     return jsonable(res)
+
+
+def _ted_bg_depth(ctx: StageContext, scene, train: list[int]) -> list:
+    """TE-D keeps Ref-GS's background depth term (the same D_bg, saved by Ref-GS), so fine-tuning
+    on the guided images does not grow the ghost back; none when Ref-GS ran without it."""
+    from coin_cl.gs.refgs import background_depth_term
+    from coin_cl.pipeline.refgs import read_bg_depths
+
+    folder = ctx.inputs["2_refgs"] / "bg_depths"
+    rcfg = ctx.shared["refgs_cfg"]
+    if not (rcfg.bg_depth and folder.is_dir()):
+        return []
+    bg = read_bg_depths(folder, scene, train)
+    if all(d is None for d in bg):
+        return []
+    ctx.note(f"TE-D keeps the background depth term on {sum(d is not None for d in bg)} views")
+    return [background_depth_term(rcfg, bg, [np.asarray(ctx.shared["masks"][i], bool) for i in train])]

@@ -19,6 +19,7 @@ from ..scene.colmap import pinhole_for, read_model
 from ..scene.io import IMAGE_EXTS, read_image, to_uint8, write_png, write_text
 from ..scene.types import Camera
 from .annotate import box_mask, check_box, read_annotation, resolve_view, scribble_mask
+from .holdout import read_test_list
 from .propagate import PropagateConfig, PropagateResult, Segmenter, propagate_masks
 from .sfm import image_size
 
@@ -80,7 +81,8 @@ def visible_point_ids(scene_dir: str | Path) -> tuple[np.ndarray, dict[str, np.n
 
 
 def load_prepared(scene_dir: str | Path) -> PreparedViews:
-    """The views of a folder written by `run_sfm` (PINHOLE model in sparse/0, images/)."""
+    """The training views of a folder written by `run_sfm` (PINHOLE model in sparse/0, images/);
+    held-out photos (`sparse/0/test.txt`) are not among them: their masks are given, not propagated."""
     root = Path(scene_dir)
     model_dir = root / "sparse" / "0"
     if not (model_dir / "images.bin").is_file():
@@ -89,7 +91,8 @@ def load_prepared(scene_dir: str | Path) -> PreparedViews:
         )
     model = read_model(model_dir)
     points, seen_by_name = visible_point_ids(root)
-    names = sorted(model.images)
+    held = set(read_test_list(root))
+    names = sorted(n for n in model.images if n not in held)
     cams, imgs = [], []
     for n in names:
         cid, vm = model.images[n]
@@ -153,6 +156,10 @@ def write_masks(scene_dir: str | Path, views: PreparedViews, result: PropagateRe
     shutil.rmtree(tmp, ignore_errors=True)
     for n, m in zip(views.names, result.masks, strict=True):
         write_png(tmp / f"{Path(n).stem}.png", m.astype(np.uint8) * 255)
+    for n in read_test_list(root):  # the held-out photos' region masks were given: keep them
+        src = root / "masks" / f"{Path(n).stem}.png"
+        if src.is_file():
+            shutil.copyfile(src, tmp / src.name)
     shutil.rmtree(root / "masks", ignore_errors=True)
     tmp.rename(root / "masks")
     report = {

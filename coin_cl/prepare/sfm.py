@@ -12,6 +12,9 @@ Steps, each resumable (a second run skips what is already on disk):
      docs/SCENES.md, which `coin_cl.load_scene` reads);
   6. a report (`SCENE/prepare_report.json` and `.txt`): registered images, mean reprojection error,
      and each dropped image with the reason.
+Held-out photos (`holdout`, e.g. object-absent ground-truth views) get features and matches but
+stay out of the mapping; they are localized in the finished model (`holdout.localize`) and written
+as test views (`sparse/0/test.txt`).
 
 Scratch files live in `SCENE/.prepare/` (working images, database, raw models).
 """
@@ -30,6 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..scene.io import IMAGE_EXTS, read_image, write_png, write_text
+from .holdout import localize, resolve_holdout, write_test_list
 from .sfm_report import SfmReport, why_dropped, write_report
 
 log = logging.getLogger(__name__)
@@ -207,13 +211,16 @@ def _match(db_path: Path, names: list[str], cfg: SfmConfig, marker: Path, work: 
     return method
 
 
-def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig, n_images: int) -> tuple[Path, dict[str, int]]:
-    """The largest model in out/best; also name -> size of the other models' images."""
+def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig, train: list[str],
+         held: list[str]) -> tuple[Path, dict[str, int]]:  # fmt: skip
+    """The largest model of the `train` images in out/best (the `held` ones left out); also name ->
+    size of the other models' images."""
     import pycolmap
 
     best = out / "best"
-    others_file = out / "others.json"
-    if (best / "images.bin").is_file() and others_file.is_file():
+    others_file, held_file = out / "others.json", out / "holdout.json"
+    same_held = (json.loads(held_file.read_text()) if held_file.is_file() else []) == held
+    if (best / "images.bin").is_file() and others_file.is_file() and same_held:
         log.info("mapping: reusing %s", best)
         return best, json.loads(others_file.read_text())
     shutil.rmtree(out, ignore_errors=True)
@@ -222,6 +229,9 @@ def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig, n_images: int) -
     opts.num_threads = cfg.num_threads
     opts.random_seed = cfg.seed
     opts.min_model_size = 3
+    if held:
+        opts.image_names = train  # the held-out photos are localized afterwards, never mapped
+    n_images = len(train)
     with tqdm(total=n_images, desc="prepare: mapping", unit="img", leave=False) as bar:
         recs = pycolmap.incremental_mapping(db_path, imdir, out / "raw", opts,
                                             initial_image_pair_callback=lambda: bar.update(2),
@@ -240,6 +250,7 @@ def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig, n_images: int) -
     tmp.mkdir()
     recs[order[0]].write_binary(str(tmp))
     others_file.write_text(json.dumps(others))
+    held_file.write_text(json.dumps(held))
     tmp.rename(best)
     return best, others
 
@@ -263,9 +274,12 @@ def _undistort(model: Path, imdir: Path, work: Path, scene: Path) -> None:
 # ------------------------------------------------------------------------------------------- driver
 
 
-def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | None = None) -> SfmReport:
+def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | None = None,
+            holdout: list[str] | tuple[str, ...] = ()) -> SfmReport:  # fmt: skip
     """Photos -> a posed scene folder (plain COLMAP layout, PINHOLE) and its report.
 
+    holdout: photos (file names or stems) kept out of the mapping, localized in the model of the
+    others and written as test views (`sparse/0/test.txt`; module docstring).
     Resumes: each step whose output exists in `scene_dir/.prepare` is skipped. Raises ValueError /
     FileNotFoundError on unusable input and RuntimeError when no model can be built.
     """
@@ -275,15 +289,16 @@ def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | N
     if not log.isEnabledFor(logging.DEBUG):
         pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines drown the progress bar
     try:
-        return _run_steps(list_photos(photos_dir), Path(scene_dir), config or SfmConfig())
+        return _run_steps(list_photos(photos_dir), Path(scene_dir), config or SfmConfig(), tuple(holdout))
     finally:
         pycolmap.logging.minloglevel = old
 
 
-def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig) -> SfmReport:
+def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig, holdout: tuple[str, ...]) -> SfmReport:
     import pycolmap
 
     work = scene / WORK
+    held = resolve_holdout([f"{p.stem}.png" for p in photos], holdout) if holdout else []
     sizes = [image_size(p) for p in photos]
     W, H = working_size(sizes, [p.name for p in photos], cfg.width)
     work.mkdir(parents=True, exist_ok=True)
@@ -323,7 +338,8 @@ def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig) -> SfmReport:
     t0 = time.perf_counter()
     steps.set_description("prepare: mapping")
     mapped_before = (work / "sparse" / "best" / "images.bin").is_file()
-    model, others = _map(db_path, imdir, work / "sparse", cfg, len(names))
+    train = [n for n in names if n not in held]
+    model, others = _map(db_path, imdir, work / "sparse", cfg, train, held)
     if not mapped_before:
         shutil.rmtree(scene / "sparse" / "0", ignore_errors=True)
     step("mapping")
@@ -331,23 +347,34 @@ def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig) -> SfmReport:
     steps.set_description("prepare: undistort")
     rec = pycolmap.Reconstruction(str(model))
     registered = sorted(im.name for im in rec.images.values() if im.has_pose)
-    if not (scene / "sparse" / "0" / "images.bin").is_file():
+    error, n_points = float(rec.compute_mean_reprojection_error()), int(rec.num_points3D())
+    placed, failed = localize(db_path, rec, held) if held else ([], {})
+    if held:  # the model to undistort: the training photos' plus the localized ones (no points added)
+        model = work / "sparse" / "localized"
+        shutil.rmtree(model, ignore_errors=True)
+        model.mkdir()
+        rec.write_binary(str(model))
+    test_list = scene / "sparse" / "0" / "test.txt"
+    listed = test_list.read_text().split() if test_list.is_file() else []
+    if not (scene / "sparse" / "0" / "images.bin").is_file() or listed != [p.name for p in placed]:
         _undistort(model, imdir, work, scene)
-    _drop_stale_images(scene / "images", set(registered))
+    write_test_list(scene / "sparse" / "0", [p.name for p in placed])
+    _drop_stale_images(scene / "images", set(registered) | {p.name for p in placed})
     step("undistort")
     steps.close()
     report = SfmReport(
         n_photos=len(names),
         registered=registered,
-        dropped=why_dropped(db_path, names, set(registered), others),
-        mean_reproj_error=float(rec.compute_mean_reprojection_error()),
-        n_points=int(rec.num_points3D()),
+        dropped={**why_dropped(db_path, train, set(registered), others), **failed},
+        mean_reproj_error=error,
+        n_points=n_points,
         matching=method,
         width=W,
         height=H,
         photo_width=sizes[0][0],
         photo_height=sizes[0][1],
         seconds=seconds,
+        held_out={p.name: {"matched_points": p.n_corr, "inliers": p.n_inliers} for p in placed},
     )
     write_report(scene, report)
     if len(registered) < 3:

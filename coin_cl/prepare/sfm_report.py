@@ -16,7 +16,8 @@ REPORT = "prepare_report"
 class SfmReport:
     """What `run_sfm` did: registered and dropped images (name -> reason), mean reprojection error
     (pixels, at the working size), point count, the matching used, the working size, the first
-    photo's size and seconds per step."""
+    photo's size, seconds per step, and the held-out photos localized in the model (name ->
+    {matched_points, inliers}; test views, not in `registered`)."""
 
     n_photos: int
     registered: list[str]
@@ -29,6 +30,7 @@ class SfmReport:
     photo_width: int
     photo_height: int
     seconds: dict[str, float] = field(default_factory=dict)
+    held_out: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def text(self) -> str:
         lines = [
@@ -36,6 +38,10 @@ class SfmReport:
             f"({self.width}x{self.height}, {self.matching} matching)",
             f"mean reprojection error {self.mean_reproj_error:.3f} px, {self.n_points} sparse points",
         ]
+        if self.held_out:
+            lines.append(f"held out (test views, localized, not trained on): {len(self.held_out)}")
+            lines += [f"  {n}: {v['inliers']} of {v['matched_points']} matched points fit its pose"
+                      for n, v in sorted(self.held_out.items())]  # fmt: skip
         if self.dropped:
             lines.append("dropped:")
             lines += [f"  {n}: {why}" for n, why in sorted(self.dropped.items())]
