@@ -27,13 +27,15 @@ def _depth(run: Path, scene, i: int) -> np.ndarray | None:
     p = run / "eval" / "depths" / f"{stem}.npy"
     if p.is_file():
         return np.load(p)
-    if (run / "train").is_dir():  # masked reconstruction: its 3DGS checkpoint
+    # a run whose eval wrote no depth (older code): its final model; masked reconstruction: its 3DGS
+    folder = next((run / f for f in ("4_ted", "2_refgs", "train") if (run / f).is_dir()), None)
+    if folder is not None:
         import torch
 
         from coin_cl.gs.trainer import CKPT_NAME, model_from_state
         from coin_cl.pipeline.stages import load_model
 
-        model = load_model(run / "train", CKPT_NAME, model_from_state)
+        model = load_model(folder, CKPT_NAME, model_from_state)
         with torch.no_grad():
             r = model.render(scene.cameras[i], 10**9, return_depth=True)
         return np.where(r.alpha.numpy() > 0.5, r.depth.numpy(), np.nan)
