@@ -16,8 +16,8 @@ The default steps are the plan `coin-cl demo` makes at budget 3 on a quiet machi
 TE-D 411 + 499, scene prior 120 s), given explicitly so that a loaded machine runs the same
 schedule (its timing probe would plan fewer steps).
 
-`--rows ... coin_before` adds a row with stage 0_refine's earlier rule (the see-through test on the
-depth carried inward, grown by 1 px) on the demo room. The last line is JSON (room_*, room360_*).
+`--rows ... coin_view_check` adds a row with stage 0_refine's view check
+(`RefineConfig.view_check`). The last line is JSON (room_*, room360_*).
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
 
 SCENES = {"room": 90, "room360": 360}
-ROWS = ("coin", "naive", "masked_recon", "coin_input", "coin_before")
-# stage 0_refine before issue 21's split: the see-through rule on the depth carried inward, 1-px growth
-BEFORE = RefineConfig(view_check=0.0, ray_samples=0, see_through=0.15, grow_px=1)
+ROWS = ("coin", "naive", "masked_recon", "coin_input", "coin_view_check")
+# stage 0_refine's precise split (off by default: end to end it scored lower; refine_masks' doc)
+VIEW_CHECK = RefineConfig(view_check=0.05, see_through=0.0, grow_px=0)
 
 
 def observed_from(syn, n: int, sources: list[int], tol: float = 0.02) -> np.ndarray:
@@ -169,11 +169,11 @@ def run_scene(name: str, out: Path, args) -> dict:
             syn, scene_dir, out / "coin_input", replace(cfg, inpaint_region="input")
         )
         print(name, "coin_input", json.dumps(rows["coin_input"]), file=sys.stderr, flush=True)
-    if "coin_before" in args.rows and name == "room":
-        share_stages(out / "coin", out / "coin_before", ("0_scene",))
-        before = replace(cfg, inpaint_region="refined", refine=BEFORE)
-        rows["coin_before"] = coin_row(syn, scene_dir, out / "coin_before", before)
-        print(name, "coin_before", json.dumps(rows["coin_before"]), file=sys.stderr, flush=True)
+    if "coin_view_check" in args.rows:
+        share_stages(out / "coin", out / "coin_view_check", ("0_scene",))
+        vc = replace(cfg, inpaint_region="refined", refine=VIEW_CHECK)
+        rows["coin_view_check"] = coin_row(syn, scene_dir, out / "coin_view_check", vc)
+        print(name, "coin_view_check", json.dumps(rows["coin_view_check"]), file=sys.stderr, flush=True)
     return rows
 
 
@@ -190,7 +190,7 @@ def main() -> int:
                     "0 0 0: the budget plan of this machine)")  # fmt: skip
     ap.add_argument("--prior-seconds", type=float, default=120.0, help="scene prior (demo: 120)")
     ap.add_argument("--rows", nargs="+", default=list(ROWS[:4]), choices=ROWS,
-                    help="rows besides coin (coin_before: the earlier split rule, room only)")  # fmt: skip
+                    help="rows besides coin (coin_view_check: 0_refine's view check)")  # fmt: skip
     ap.add_argument("--masked-steps", type=int, default=None,
                     help="masked reconstruction's 3DGS steps (default: Ref-GS + TE-D's)")  # fmt: skip
     args = ap.parse_args()
