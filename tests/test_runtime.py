@@ -32,6 +32,26 @@ def test_only_variants_in_use_are_compiled():
     assert built == [("bin.cl", None), ("project.cl", None), ("rasterize_cpu.cl", 5)]
 
 
+def test_a_failing_kernel_cache_builds_from_source(monkeypatch):
+    """pyopencl turns an on-disk cache failure into KeyError('PYOPENCL_CACHE_FAILURE_FATAL') unless
+    that variable is set (the runtime sets it empty): then a broken cache costs a warning, not the
+    device."""
+    import pyopencl.cache
+
+    def broken(*a, **kw):
+        raise OSError("simulated: the cache entry is being written by another process")
+
+    monkeypatch.setattr(pyopencl.cache, "_create_built_program_from_source_cached", broken)
+    rt = Runtime(get_runtime().device)
+    with pytest.warns(UserWarning, match="caching failed"):
+        prg = rt.program("project.cl")
+    assert prg.get_info(__import__("pyopencl").program_info.NUM_KERNELS) > 0
+    # Without the runtime's default pyopencl's own bug shows (what the default guards against).
+    monkeypatch.delenv("PYOPENCL_CACHE_FAILURE_FATAL")
+    with pytest.raises(KeyError, match="PYOPENCL_CACHE_FAILURE_FATAL"):
+        Runtime(get_runtime().device).program("project.cl")
+
+
 def test_zero_copy_and_explicit_transfer_agree():
     """On unified memory nothing crosses; the copying path (as on a discrete GPU) counts bytes."""
     gs = random_gaussians(100, seed=1)

@@ -40,6 +40,13 @@ log = logging.getLogger(__name__)
 # Before pyopencl first lists platforms: the ICD loader reads its vendor folder once per process.
 register_platforms()
 
+# pyopencl (2026.1, cache.py) reads os.environ["PYOPENCL_CACHE_FAILURE_FATAL"] without a default
+# when its on-disk kernel cache fails (for instance two processes writing one entry at once), so a
+# cache hiccup becomes KeyError('PYOPENCL_CACHE_FAILURE_FATAL') and the device looks broken (seen
+# here: "no OpenCL device can build kernels" in one of five concurrent runs). Empty = its intended
+# default: warn and build from source.
+os.environ.setdefault("PYOPENCL_CACHE_FAILURE_FATAL", "")
+
 _INSTALL_HINT = (
     "install an OpenCL driver: `pip install pocl-binary-distribution` gives a CPU device "
     "(GPU vendors ship their own); `coin-cl doctor` lists what is visible"
