@@ -20,6 +20,17 @@ from coin_cl.scene import load_scene
 from coin_cl.scene.io import read_image, to_uint8, view_stem, write_png
 
 
+def tile_row(tiles: list[np.ndarray], cell: int) -> np.ndarray:
+    """Equal-size crops [h, w, 3] float -> one row [cell + 4, n * (cell + 4), 3]: each scaled so its
+    longer side is `cell` (area), padded white."""
+    h, w = tiles[0].shape[:2]
+    sc = cell / max(h, w)
+    size = (max(1, round(w * sc)), max(1, round(h * sc)))
+    tiles = [cv2.resize(t, size, interpolation=cv2.INTER_AREA) for t in tiles]
+    pad = [((0, cell + 4 - t.shape[0]), (0, cell + 4 - t.shape[1]), (0, 0)) for t in tiles]
+    return np.concatenate([np.pad(t, p, constant_values=1) for t, p in zip(tiles, pad)], axis=1)
+
+
 def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
     """[rows * (cell + 4), (len(runs) + 1) * (cell + 4), 3] uint8."""
     scene = load_scene(runs[0] / "0_scene" / "scene")
@@ -32,13 +43,7 @@ def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
         stem = view_stem(scene.cameras[i].name, i)
         tiles = [read_image(r / "eval" / "renders" / f"{stem}.png")[crop] for r in runs]
         tiles.append(np.asarray(scene.images[i], np.float32)[crop])
-        h, w = tiles[0].shape[:2]
-        sc = cell / max(h, w)
-        size = (max(1, round(w * sc)), max(1, round(h * sc)))
-        tiles = [cv2.resize(t, size, interpolation=cv2.INTER_AREA) for t in tiles]
-        pad = [((0, cell + 4 - t.shape[0]), (0, cell + 4 - t.shape[1]), (0, 0)) for t in tiles]
-        tiles = [np.pad(t, p, constant_values=1) for t, p in zip(tiles, pad)]
-        rows.append(np.concatenate(tiles, axis=1))
+        rows.append(tile_row(tiles, cell))
     if not rows:
         raise ValueError(f"{runs[0]} has no ground-truth test view with a mask")
     return to_uint8(np.concatenate(rows, axis=0))

@@ -51,46 +51,39 @@ def run_demo(
 
 
 def turntable(out: Path, frames: int = 12, size: tuple[int, int] = (480, 320), device=None) -> dict:
-    """Render `frames` views of `coin_cl.scene.procedural.embedded_scene` on a circle: PNG frames
-    and `turntable.gif` under `out`; returns timings and pair counts."""
-    import imageio.v3 as iio
+    """Render `frames` views of `coin_cl.scene.procedural.embedded_scene` on a circle around it
+    (`turntable_viewmat`) through `coin_cl.render_utils.render_views`: PNG frames and
+    `turntable.gif` under `out`; returns timings and pair counts."""
     import torch
-    from tqdm import tqdm
 
     import coin_cl
     from coin_cl.engine.runtime import resolve_device
-    from coin_cl.scene.io import atomic_write, write_png
+    from coin_cl.gs.base import RenderOutput
+    from coin_cl.render_utils import render_views
     from coin_cl.scene.procedural import embedded_scene, turntable_viewmat
+    from coin_cl.scene.types import Camera
 
     rt = resolve_device(device)
     W, H = size
     gs = embedded_scene()
     f = 0.9 * W
     K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
-    out.mkdir(parents=True, exist_ok=True)
     log.info("demo: embedded procedural scene, %d Gaussians, %dx%d, device %s", len(gs.means), W, H, rt.name)
-    images, times, pairs = [], [], []
-    for i in tqdm(range(frames), desc="rendering turntable"):
-        vm = turntable_viewmat(2 * math.pi * i / frames)
+    times, pairs = [], []
+
+    def render(cam: Camera) -> RenderOutput:
         t0 = time.perf_counter()
         img, alpha, depth, meta = coin_cl.rasterize(
-            *gs.tensors(),
-            vm,
-            K,
-            W,
-            H,
-            background=torch.tensor([0.06, 0.07, 0.1]),
-            return_depth=True,
-            device=rt,
-        )
+            *gs.tensors(), cam.viewmat_t, K, W, H, background=torch.tensor([0.06, 0.07, 0.1]),
+            return_depth=True, device=rt,
+        )  # fmt: skip
         times.append(time.perf_counter() - t0)
         pairs.append(meta["n_pairs"])
-        frame = (img.clamp(0, 1) * 255).to(torch.uint8).numpy()
-        images.append(frame)
-        write_png(out / f"frame_{i:03d}.png", frame)
-    atomic_write(
-        out / "turntable.gif", lambda p: iio.imwrite(p, images, extension=".gif", duration=80, loop=0)
-    )
+        return RenderOutput(img, alpha, depth, meta)
+
+    cams = [Camera(K, turntable_viewmat(2 * math.pi * i / frames), W, H, "") for i in range(frames)]
+    names = [f"frame_{i:03d}" for i in range(frames)]
+    render_views(render, cams, out, out / "turntable.gif", desc="rendering turntable", names=names)
     return {
         "gaussians": len(gs.means),
         "size": [W, H],

@@ -1,16 +1,23 @@
-"""Rendering a trained model to files: the library behind `coin-cl render` (test/train views and an
-orbit, each image with a colour-mapped depth map)."""
+"""Rendering to files: the library behind `coin-cl render` (test/train views and an orbit, each
+image with a colour-mapped depth map), and the one orbit of the code base (`orbit_cameras`,
+`render_views`, `orbit_gif`), which the eval stage (paper 5) and `coin-cl demo` call too."""
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from coin_cl.scene.conventions import look_at
+
+# One frame of every GIF written here (12.5 frames per second).
+GIF_FRAME_MS = 80
+# Frames of the eval stage's orbit GIF.
+ORBIT_FRAMES = 36
 
 
 def colorize_depth(depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -33,11 +40,15 @@ def _viewmat(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch
     return torch.as_tensor(look_at(eye.numpy(), target.numpy(), up.numpy()), dtype=torch.float32)
 
 
-def orbit_cameras(cams, n: int, model, step: int, backend: str):
-    """`n` cameras on a circle in the mean camera's image plane, looking at the scene's median
-    depth along the mean view direction (suits forward-facing captures). `cams`: `Camera`s."""
+def orbit_cameras(cams: Sequence, n: int, model, step: int, backend: str = "opencl") -> list:
+    """`n` cameras [`Camera`] on a circle in the mean camera's image plane (radius: half the
+    captured cameras' spread in that plane), looking at the scene's median rendered depth along the
+    mean view direction (suits forward-facing captures). `cams`: the captured `Camera`s; `model`
+    (rendered once from the mean camera, at `step`) decides the depth looked at."""
     from coin_cl.scene.types import Camera
 
+    if not cams:
+        raise ValueError("orbit_cameras needs at least one captured camera")
     centers = torch.stack([c.center_t for c in cams])
     c0 = centers.mean(0)
     fwd = torch.stack([c.viewmat_t[2, :3] for c in cams]).mean(0)
@@ -62,6 +73,74 @@ def orbit_cameras(cams, n: int, model, step: int, backend: str):
         Vi = _viewmat(eye, target, up)
         result.append(Camera(base.K, Vi, base.width, base.height, f"orbit{i:03d}"))
     return result
+
+
+def write_gif(path: Path, frames: Sequence[np.ndarray]) -> None:
+    """Frames [H, W, 3] uint8 -> a looping GIF at `GIF_FRAME_MS` per frame, written atomically."""
+    import imageio.v3 as iio
+
+    from coin_cl.scene.io import atomic_write
+
+    frames = list(frames)
+    atomic_write(path, lambda p: iio.imwrite(p, frames, extension=".gif", duration=GIF_FRAME_MS, loop=0))
+
+
+def render_views(
+    render: Callable,
+    cameras: Sequence,
+    dest: Path | None = None,
+    gif: Path | None = None,
+    depth: bool = False,
+    desc: str = "render",
+    names: Sequence[str] | None = None,
+) -> list[np.ndarray]:
+    """Render each camera and return the frames ([H, W, 3] uint8, or [H, 2W, 3] with the
+    colour-mapped depth beside the image when `depth`).
+
+    render: camera -> an object with image [H, W, 3] in [0, 1], alpha [H, W] and (with `depth`)
+        depth [H, W] (a `RenderOutput`); called under torch.no_grad().
+    dest: a folder for one PNG per view (`<names[i]>.png`; by default `<i:03d>_<name stem>.png`, or
+        `<i:03d>.png` for an unnamed camera; `..._depth.png` beside it with `depth`).
+    gif: a looping GIF of the frames."""
+    from tqdm import tqdm
+
+    from coin_cl.scene.io import to_uint8, write_png
+
+    if dest is not None:
+        Path(dest).mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i, cam in enumerate(tqdm(cameras, desc=desc, unit="view")):
+        with torch.no_grad():
+            r = render(cam)
+        img = to_uint8(r.image.clamp(0, 1).numpy())
+        dep = colorize_depth(r.depth.numpy(), r.alpha.numpy()) if depth else None
+        if dest is not None:
+            stem = names[i] if names else f"{i:03d}_{Path(cam.name).stem}" if cam.name else f"{i:03d}"
+            write_png(Path(dest) / f"{stem}.png", img)
+            if dep is not None:
+                write_png(Path(dest) / f"{stem}_depth.png", dep)
+        frames.append(img if dep is None else np.concatenate([img, dep], 1))
+    if gif is not None:
+        write_gif(gif, frames)
+    return frames
+
+
+def orbit_gif(
+    model,
+    cameras: Sequence,
+    path: Path,
+    frames: int = ORBIT_FRAMES,
+    step: int = 10**9,
+    backend: str = "opencl",
+    dest: Path | None = None,
+    depth: bool = False,
+) -> list:
+    """Render `model` at `step` along `orbit_cameras(cameras, frames)` into the looping GIF `path`
+    (and PNGs under `dest`, see `render_views`); returns the orbit's cameras."""
+    orbit = orbit_cameras(cameras, frames, model, step, backend)
+    render_views(lambda c: model.render(c, step, backend=backend, return_depth=depth), orbit, dest, path,
+                 depth, desc="orbit")  # fmt: skip
+    return orbit
 
 
 def _run_folder(run: Path) -> tuple[Path, dict]:
@@ -98,10 +177,7 @@ def render_checkpoint(
     "train" or "orbit" (`frames` cameras from `orbit_cameras`). Writes an image and a depth map per
     view under `out_dir/renders/<views>/` (and `renders/orbit.gif` for the orbit); returns the
     number of views and the path written (the folder, or the GIF)."""
-    import imageio.v2 as imageio
-
     from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json, model_from_state
-    from coin_cl.scene.io import atomic_write, to_uint8, write_png
 
     out_dir = Path(out_dir)
     ckpt = out_dir / CKPT_NAME
@@ -117,24 +193,12 @@ def render_checkpoint(
     model = model_from_state(state["model"])
     model.device = device
     step = int(state["trainer"]["step"])
-    if views == "orbit":
-        cameras = orbit_cameras(cameras_from_json(cams["train"]), frames, model, step, backend)
-    else:
-        cameras = cameras_from_json(cams[views])
     dest = out_dir / "renders" / views
-    dest.mkdir(parents=True, exist_ok=True)
-    strips = []
-    for i, cam in enumerate(cameras):
-        with torch.no_grad():
-            r = model.render(cam, step, backend=backend, return_depth=True)
-        img = to_uint8(r.image.clamp(0, 1).numpy())
-        dep = colorize_depth(r.depth.numpy(), r.alpha.numpy())
-        stem = f"{i:03d}_{Path(cam.name).stem}" if cam.name else f"{i:03d}"
-        write_png(dest / f"{stem}.png", img)
-        write_png(dest / f"{stem}_depth.png", dep)
-        strips.append(np.concatenate([img, dep], 1))
     if views == "orbit":
         gif = out_dir / "renders" / "orbit.gif"
-        atomic_write(gif, lambda p: imageio.mimsave(p, strips, format="GIF", duration=1000 / 24, loop=0))
-        return len(strips), gif
-    return len(strips), dest
+        train = cameras_from_json(cams["train"])
+        orbit = orbit_gif(model, train, gif, frames, step, backend, dest, depth=True)
+        return len(orbit), gif
+    render_views(lambda c: model.render(c, step, backend=backend, return_depth=True),
+                 cameras_from_json(cams[views]), dest, depth=True, desc=f"{views} views")  # fmt: skip
+    return len(cams[views]), dest

@@ -26,6 +26,8 @@ import cv2
 import numpy as np
 import torch
 
+from coin_cl.crop import crop_image, resize_to  # numpy and OpenCV only: no engine, no pipeline
+
 from .sampling import EnergyFn, SamplerConfig
 
 log = logging.getLogger(__name__)
@@ -93,16 +95,6 @@ def crop_box(mask: np.ndarray, min_side: int, context: float) -> tuple[int, int,
     return place(cy, H), place(cx, W), side
 
 
-def _crop(a: np.ndarray, y0: int, x0: int, side: int) -> np.ndarray:
-    H, W = a.shape[:2]
-    pt, pl = max(-y0, 0), max(-x0, 0)
-    pb, pr = max(y0 + side - H, 0), max(x0 + side - W, 0)
-    if pt or pl or pb or pr:
-        pad = [(pt, pb), (pl, pr)] + [(0, 0)] * (a.ndim - 2)
-        a = np.pad(a, pad, mode="symmetric")  # reflected context (and reflected mask) beyond the border
-    return a[y0 + pt : y0 + pt + side, x0 + pl : x0 + pl + side]
-
-
 def feather_weights(mask: np.ndarray, feather_px: int) -> np.ndarray:
     """Paste weights (H, W) float32: 0 outside the mask, 0.5 on its outer ring, 1 deeper than feather_px."""
     if feather_px <= 0:
@@ -148,11 +140,10 @@ def _model_fill(
     """Crop, resize to the model's size, sample, resize back; returns a full-size fill (H, W, 3)."""
     H, W = mask.shape
     y0, x0, side = crop_box(mask, size, cfg.context)
-    ci, cm = _crop(image, y0, x0, side), _crop(mask, y0, x0, side)
+    ci, cm = crop_image(image, y0, x0, side, side), crop_image(mask, y0, x0, side, side)
     if cm.all():
         raise ValueError("the crop around the mask is entirely masked: nothing to condition on")
-    interp = cv2.INTER_AREA if side > size else cv2.INTER_CUBIC
-    ri = cv2.resize(ci, (size, size), interpolation=interp)
+    ri = resize_to(ci, size, size)
     # any coverage of a low-res pixel makes it a hole, so thin mask parts are not lost by downscaling
     rm = cv2.resize(cm.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) > 0
     it = torch.from_numpy(np.ascontiguousarray(ri.transpose(2, 0, 1)))[None].float()
@@ -160,7 +151,7 @@ def _model_fill(
     g = torch.Generator().manual_seed(seed)
     out = model.inpaint(it, mt, prompt=prompt, cfg=sampler, energy=energy, generator=g)
     fill = out[0].detach().permute(1, 2, 0).numpy().astype(np.float32)
-    back = cv2.resize(fill, (side, side), interpolation=cv2.INTER_CUBIC if side > size else cv2.INTER_AREA)
+    back = resize_to(fill, side, side)
     full = image.copy()
     ys, xs = slice(max(y0, 0), min(y0 + side, H)), slice(max(x0, 0), min(x0 + side, W))
     full[ys, xs] = back[ys.start - y0 : ys.stop - y0, xs.start - x0 : xs.stop - x0]

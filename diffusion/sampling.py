@@ -223,6 +223,13 @@ class DDIMSampler:
             z_prev = z_prev - torch.where(g_rms > 0, rho, 0.0) * grad
         return z_prev, x0, e_val
 
+    def noised(self, x0: torch.Tensor, start: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The clean latent x0 (B, C, ...) forward-noised to the level of step `start` (the z_T of
+        `sample(..., start=start)`): sqrt(a) x0 + sqrt(1 - a) eps."""
+        a = self.a[len(self.timesteps) - 1 - start]
+        eps = torch.randn(x0.shape, generator=generator, dtype=x0.dtype)
+        return math.sqrt(a) * x0 + math.sqrt(1.0 - a) * eps
+
     def _in(self, k: int, start: float, end: float) -> bool:
         f = k / self.cfg.num_steps
         return start <= f < end
@@ -235,8 +242,13 @@ class DDIMSampler:
         energy: EnergyFn | None = None,
         generator: torch.Generator | None = None,
         callback: Callable[[int, int, torch.Tensor, torch.Tensor], None] | None = None,
+        start: int = 0,
     ) -> SampleResult:
         """Run the whole trajectory from z_T (B, C, ...) (pure noise, any float dtype).
+
+        start: skip the first `start` steps (SDEdit): z_T is then a latent at level
+        `self.timesteps[S - 1 - start]` (`noised` makes one from a clean latent); the guidance and
+        time-travel windows keep their place in the whole trajectory.
 
         energy: maps the decoded x0 prediction (B, 3, H, W) to a scalar (or per-sample (B,)) energy;
         used only inside the guidance window. callback(k, t, z_prev, x0) is called after each step
@@ -249,7 +261,9 @@ class DDIMSampler:
         x0 = z_T
         energies: list[float] = []
         S = len(self.timesteps)
-        for k in range(S):
+        if not 0 <= start < S:
+            raise ValueError(f"start must be in [0, {S}), got {start}")
+        for k in range(start, S):
             i = S - 1 - k
             guided = (
                 energy is not None

@@ -15,9 +15,8 @@ import numpy as np
 import torch
 
 import coin_cl
-from coin_cl.gs.sh import eval_sh
+from coin_cl.gs.splats import Splats
 from coin_cl.scene.io import to_uint8, write_png
-from coin_cl.scene.ply import read_gaussians_ply
 
 
 def orbit_viewmat(center: np.ndarray, radius: float, angle: float, height: float) -> torch.Tensor:
@@ -42,12 +41,9 @@ def main(argv: list[str] | None = None) -> list[Path]:
     ap.add_argument("--device", default=None, help="OpenCL device name substring")
     args = ap.parse_args(argv)
 
-    g = read_gaussians_ply(args.ply)
-    means = torch.from_numpy(g.means)
-    coeffs = torch.cat([torch.from_numpy(g.sh_dc)[:, None], torch.from_numpy(g.sh_rest)], 1)  # [N, K, 3]
-    degree = int(round(math.sqrt(coeffs.shape[1]))) - 1
-    center = g.means.mean(0)
-    radius = 2.5 * float(np.linalg.norm(g.means - center, axis=1).mean())
+    g = Splats.from_ply(args.ply)
+    center = g.means.mean(0).numpy()
+    radius = 2.5 * float(np.linalg.norm(g.means.numpy() - center, axis=1).mean())
     W, H = args.size
     f = 0.8 * W
     K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
@@ -56,11 +52,8 @@ def main(argv: list[str] | None = None) -> list[Path]:
     for i in range(args.frames):
         vm = orbit_viewmat(center, radius, 2 * math.pi * i / args.frames, 0.3 * radius)
         eye = -vm[:3, :3].T @ vm[:3, 3]
-        colors = (eval_sh(degree, coeffs, means - eye) + 0.5).clamp_min(0)  # view-dependent colour
-        img, _, _, meta = coin_cl.rasterize(
-            means, torch.from_numpy(g.quats), torch.from_numpy(g.log_scales).exp(),
-            torch.sigmoid(torch.from_numpy(g.opacities)), colors, vm, K, W, H, device=args.device,
-        )  # fmt: skip
+        gs = g.gaussians(cam_center=eye)  # the renderer's inputs, SH colour seen from this camera
+        img, _, _, meta = coin_cl.rasterize(*gs.tensors(), vm, K, W, H, device=args.device)
         paths.append(args.out / f"frame_{i:03d}.png")
         write_png(paths[-1], to_uint8(img.clamp(0, 1).numpy()))
     print(f"rendered {len(paths)} frames of {len(g)} Gaussians to {args.out}/")

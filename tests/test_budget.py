@@ -117,3 +117,66 @@ def test_ted_is_planned_again_from_refgs_measured_rate():
     )
     assert B.replan_ted(explicit, steps["refgs"], planned_refgs, 30)["ted_finetune"] == 5
     assert B.replan_ted(plan, 0, 0.0, 30) == {k: steps[k] for k in on_plan}  # nothing measured: as planned
+
+
+def test_standalone_steps_use_the_pipelines_rule():
+    """One minute->steps rule: a stage run on its own (`run_refgs(budget_minutes=...)`) gets the
+    steps `steps_from_rate` gives that stage for the same minutes at the same probe rate."""
+    from coin_cl.gs.trainer import REFERENCE_ITERS
+
+    def probe():
+        raise AssertionError("no probe needed")
+
+    assert B.standalone_steps("refgs", None, None, probe) == REFERENCE_ITERS
+    assert B.standalone_steps("refgs", 10.0, 123, probe) == 123
+    steps, minutes = B.steps_from_rate(8.0, 0.3)
+    for k in steps:
+        assert B.standalone_steps(k, minutes[k], None, lambda: 0.3) == steps[k] > 0
+    assert B.standalone_steps("refgs", 2.0, None, lambda: 0.5) == int(120 / (0.5 * B.STEP_COST["refgs"]))
+    assert B.standalone_steps("refgs", 1e-4, None, lambda: 0.5) == 1  # at least one step
+    with pytest.raises(ValueError, match="budget_minutes"):
+        B.standalone_steps("refgs", 0.0, None, probe)
+    with pytest.raises(ValueError, match="iters"):
+        B.standalone_steps("refgs", None, 0, probe)
+    with pytest.raises(ValueError, match="probe"):
+        B.standalone_steps("refgs", 1.0, None, lambda: float("nan"))
+
+
+class _Cam:
+    width, height = 64, 48
+
+
+class _Scene:
+    cameras = [_Cam()] * 4
+
+
+def test_ted_counts_none_follow_the_plan_and_numbers_are_honoured(tmp_path, monkeypatch):
+    """TEDConfig.iters_* None: the budget plan's counts; a number is kept by the plan, by the re-plan
+    from Ref-GS's measured rate, and reaches TE-D; the user's config is not changed."""
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.ted import TEDConfig
+
+    monkeypatch.setattr(B, "probe_seconds_per_step", lambda *a, **k: 0.5)
+    auto, _ = B.steps_from_rate(4.0, 0.5)
+    plan = B.plan_for(_Scene(), tmp_path / "none", CoInConfig(budget_minutes=4.0), [0, 1])
+    assert plan.steps == auto and plan.source == "probe"
+
+    cfg = CoInConfig(budget_minutes=4.0, ted=TEDConfig(iters_finetune=7))
+    plan = B.plan_for(_Scene(), tmp_path / "seven", cfg, [0, 1])
+    assert plan.steps == {**auto, "ted_finetune": 7} and plan.minutes["ted_finetune"] is None
+    assert cfg.ted.iters_finetune == 7 and cfg.ted.iters_adversarial is None  # not overwritten
+    # Ref-GS ran twice as slow as planned: TE-D's free phase is planned again, the explicit one is kept.
+    again = B.replan_ted(plan, auto["refgs"], 2.0 * 0.5 * B.STEP_COST["refgs"] * auto["refgs"], 4.0)
+    assert again["ted_finetune"] == 7 and again["ted_adversarial"] != auto["ted_adversarial"]
+    # Both spellings may be used when they agree; disagreeing ones are an error, not a silent choice.
+    both = CoInConfig(iters_ted_finetune=7, ted=TEDConfig(iters_finetune=7))
+    assert B.explicit_steps(both)["ted_finetune"] == 7
+    with pytest.raises(ValueError, match="iters_ted_finetune=5 and CoInConfig.ted.iters_finetune=7"):
+        B.explicit_steps(CoInConfig(iters_ted_finetune=5, ted=TEDConfig(iters_finetune=7)))
+
+
+def test_run_ted_refuses_counts_left_to_a_plan(tmp_path):
+    from coin_cl.pipeline.ted import TEDConfig, run_ted
+
+    with pytest.raises(ValueError, match="TEDConfig.iters_finetune is None"):
+        run_ted(None, [], [], tmp_path, TEDConfig(iters_adversarial=0))

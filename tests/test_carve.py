@@ -82,12 +82,12 @@ def test_scaffold_with_a_carve_never_draws_inside_it(room):
     with torch.no_grad():
         r = model.render(cam, 10**9, return_depth=True)
         g = model.export_gaussians()
-    assert not vol.contains(g["means"]).any()  # exported: carved Gaussians are not part of the model
+    assert not vol.contains(g.means).any()  # exported: carved Gaussians are not part of the model
     model.carve = None
     with torch.no_grad():
         r0 = model.render(cam, 10**9, return_depth=True)
         g0 = model.export_gaussians()
-    assert vol.contains(g0["means"]).sum() > 100 and len(g0["means"]) > len(g["means"])
+    assert vol.contains(g0.means).sum() > 100 and len(g0) > len(g)
     m = torch.as_tensor(s.masks[train[0]])
     assert r.alpha[m].mean() < r0.alpha[m].mean()
     model.carve = vol

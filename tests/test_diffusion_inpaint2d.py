@@ -7,12 +7,13 @@ import pytest
 import torch
 from coin_cl.diffusion.inpaint2d import (
     InpaintConfig,
-    _crop,
     crop_box,
     feather_weights,
     inpaint_image,
     opencv_inpaint,
 )
+
+from coin_cl.crop import crop_image
 
 
 class _ConstModel:
@@ -110,7 +111,7 @@ def test_crop_box_centred_and_inside():
     m2 = np.zeros((40, 40), bool)
     m2[5:10, 5:10] = True
     y0, x0, side = crop_box(m2, 64, 1.5)
-    c = _crop(np.arange(1600).reshape(40, 40), y0, x0, side)
+    c = crop_image(np.arange(1600).reshape(40, 40), y0, x0, side, side)
     assert c.shape == (64, 64) and y0 < 0 and x0 < 0
 
 

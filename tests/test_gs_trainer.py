@@ -107,7 +107,7 @@ def test_zero_weight_view_leaves_parameters_unchanged(scene, kind):
 
 
 def test_outputs_written(scene, tmp_path):
-    from coin_cl.scene.ply import read_gaussians_ply
+    from coin_cl.gs.splats import Splats
 
     tr = _trainer(scene, "scaffold", tmp_path, 12, backend="opencl", ckpt_every=5, eval_every=6)
     res = tr.train()
@@ -117,7 +117,7 @@ def test_outputs_written(scene, tmp_path):
     assert [e["step"] for e in log["eval"]] == [6, 12]
     assert log["train"][-1]["step"] == 12 and "t_fwd" in log["train"][-1]
     assert np.isfinite(res["psnr"])
-    g = read_gaussians_ply(tmp_path / PLY_NAME)
+    g = Splats.from_ply(tmp_path / PLY_NAME)
     assert 0 < len(g) <= tr.model.n_primitives
 
 

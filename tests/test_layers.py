@@ -62,6 +62,21 @@ def test_diffusion_never_imports_opencl():
         assert not hits(names, "pyopencl") and not hits(names, "coin_cl.engine"), f
 
 
+# The modules of coin_cl that diffusion/ may import: leaves that import nothing of coin_cl (so the 2D
+# branch never reaches the engine or the pipeline through them).
+DIFFUSION_MAY_IMPORT = ("coin_cl.atomic", "coin_cl.crop")
+
+
+def test_diffusion_imports_only_coin_cl_leaves():
+    for f in modules("diffusion"):
+        outside = {n for n in hits(imports(f), "coin_cl") if not hits({n}, "coin_cl.diffusion")}
+        bad = {n for n in outside if not any(hits({n}, leaf) for leaf in DIFFUSION_MAY_IMPORT)}
+        assert not bad, f"{f} imports {bad}; diffusion/ may import only {DIFFUSION_MAY_IMPORT}"
+    for leaf in DIFFUSION_MAY_IMPORT:
+        path = ROOT / (leaf.replace(".", "/") + ".py")
+        assert not hits(imports(path), "coin_cl"), f"{path} must import nothing of coin_cl"
+
+
 def test_only_the_cli_imports_the_cli():
     cli = ROOT / "coin_cl/cli"
     assert (cli / "__init__.py").is_file()

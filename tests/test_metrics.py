@@ -1,7 +1,7 @@
-"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance, `coin-cl eval`
-(the LPIPS and Inception networks and their weight loading: tests/test_nets.py)."""
+"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance (`coin-cl eval`
+over a folder: tests/test_evaluation.py; the LPIPS and Inception networks and their weight loading:
+tests/test_nets.py)."""
 
-import json
 import math
 
 import cv2
@@ -10,8 +10,6 @@ import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from coin_cl import metrics as M
-from coin_cl.nets.inception import FID_ENV
-from coin_cl.nets.lpips import LPIPS_ENV
 
 
 def _pair(seed, H=40, W=48):
@@ -125,98 +123,6 @@ def test_frechet_distance_by_hand():
     assert narrow == pytest.approx(d @ d + np.trace(s1) + np.trace(s2) - 2 * tr, rel=1e-6)
 
 
-# ---------------------------------------------------------------- coin-cl eval
-
-
-@pytest.fixture(scope="module")
-def eval_scene(tmp_path_factory):
-    from coin_cl.scene.synthetic import write_synthetic
-
-    return write_synthetic(
-        tmp_path_factory.mktemp("eval") / "scene",
-        coverage=180,
-        seed=2,
-        n_views=8,
-        width=64,
-        height=48,
-        n_points=500,
-    )
-
-
-def test_eval_ground_truth_against_itself(eval_scene, tmp_path, monkeypatch):
-    from coin_cl.cli import main
-    from coin_cl.scene.io import read_image
-
-    for k in (*LPIPS_ENV, FID_ENV):
-        monkeypatch.delenv(k, raising=False)
-    pred = tmp_path / "pred"
-    pred.mkdir()
-    for n in ("view_000.png", "view_001.png"):
-        (pred / n).write_bytes((eval_scene / "images_4" / n).read_bytes())
-    assert main(["eval", str(pred), "--scene", str(eval_scene)]) == 0
-    doc = json.loads((pred / "eval" / "metrics.json").read_text())
-    assert doc["mean"]["psnr"] == "inf" and doc["mean"]["m_psnr"] == "inf"
-    assert doc["mean"]["ssim"] == pytest.approx(1.0) and doc["mean"]["m_ssim"] == pytest.approx(1.0)
-    assert doc["mean"]["swd"] == 0.0 and doc["mean"]["color_dist"] == 0.0
-    assert doc["mean"]["lpips"] is None and "COIN_LPIPS" in doc["lpips"]
-    assert doc["mean"]["fid"] is None and "COIN_FID_WEIGHTS" in doc["fid"]
-    assert set(doc["per_view"]) == {"view_000.png", "view_001.png"}
-    md = (pred / "eval" / "metrics.md").read_text()
-    assert "| **mean** | inf | 1.0000" in md
-    grid = read_image(pred / "eval" / "grids" / "view_001.png")
-    assert grid.shape == (48, 5 * 64 + 8, 3)
-    # error-map tile of a perfect prediction is uniform (zero error)
-    err_tile = grid[:, 4 * 66 :]
-    assert np.ptp(err_tile.reshape(-1, 3), axis=0).max() < 1e-6
-
-
-def test_eval_scores_a_worse_prediction_lower(eval_scene, tmp_path):
-    from coin_cl.evaluation import evaluate_folder
-    from coin_cl.scene.io import read_image, write_png
-
-    pred = tmp_path / "pred"
-    for n in ("view_000.png", "view_001.png"):
-        img = read_image(eval_scene / "images_4" / n)
-        present = read_image(eval_scene / "images_4" / "present" / n)  # object not removed
-        write_png(pred / n, present)
-        assert not np.array_equal(img, present)
-    doc = evaluate_folder(pred, eval_scene, tmp_path / "out")
-    assert 10 < doc["mean"]["psnr"] < 60 and doc["mean"]["m_psnr"] < doc["mean"]["psnr"]
-    assert doc["mean"]["m_ssim"] < doc["mean"]["ssim"] < 1
-    assert doc["mean"]["swd"] > 0 and doc["mean"]["color_dist"] > 0
-
-
-def test_eval_missing_prediction_names_view(eval_scene, tmp_path):
-    from coin_cl.evaluation import evaluate_folder
-
-    pred = tmp_path / "pred"
-    pred.mkdir()
-    (pred / "view_000.png").write_bytes((eval_scene / "images_4" / "view_000.png").read_bytes())
-    with pytest.raises(FileNotFoundError, match="view_001.png"):
-        evaluate_folder(pred, eval_scene)
-
-
-def test_eval_with_weight_files_reports_lpips_and_fid(
-    eval_scene, tmp_path, monkeypatch, inception_file, lpips_files
-):
-    # Wiring only: the weights are random, so the values mean nothing beyond "computed, finite".
-    from coin_cl.evaluation import evaluate_folder
-
-    b, h, _, _ = lpips_files(tmp_path, "alex", seed=2)
-    monkeypatch.setenv("COIN_LPIPS_BACKBONE", str(b))
-    monkeypatch.setenv("COIN_LPIPS_HEADS", str(h))
-    monkeypatch.setenv(FID_ENV, str(inception_file[0]))
-    pred = tmp_path / "pred"
-    pred.mkdir()
-    for n in ("view_000.png", "view_001.png"):
-        (pred / n).write_bytes((eval_scene / "images_4" / "present" / n).read_bytes())
-    doc = evaluate_folder(pred, eval_scene, tmp_path / "out")
-    mean = doc["mean"]
-    assert doc["lpips"] == "available" and doc["fid"] == "available"
-    assert mean["lpips"] > 0 and mean["m_lpips"] > 0
-    assert math.isfinite(mean["fid"]) and math.isfinite(mean["m_fid"])
-
-
 def test_hf_ratio_and_gmsd_see_blur():
     rng = np.random.default_rng(3)
     gt = rng.random((64, 64, 3)).astype(np.float32)
@@ -299,40 +205,3 @@ def test_evaluate_view_has_swd_and_colour():
     assert d["swd"] > 0 and d["color_dist"] >= 0
     d0 = M.evaluate_view(g, g, None)
     assert math.isnan(d0["swd"]) and math.isnan(d0["color_dist"])
-
-
-def test_eval_split_tile_and_depth_grid(eval_scene, tmp_path):
-    """evaluate_folder with the mask's split and rendered depths: per-part m-PSNR (a prediction
-    right on the observed half and wrong on the other scores inf / finite), the split tile in the
-    grid, and the ghost figure: 0 for the exact depth, 1 for a depth at half of it, NaN-free."""
-    from coin_cl.evaluation import evaluate_folder
-    from coin_cl.scene.io import read_image, write_png
-    from coin_cl.scene.masks import write_mask
-
-    pred, split, depth = tmp_path / "pred", tmp_path / "split", tmp_path / "depth"
-    depth.mkdir()
-    for k, n in enumerate(("view_000", "view_001")):
-        gt = read_image(eval_scene / "images_4" / f"{n}.png")
-        m = _test_mask(eval_scene, k)
-        obs = m.copy()
-        obs[:, : m.shape[1] // 2] = False  # the right half of the mask "observed"
-        write_mask(split / "observed" / f"{n}.png", obs)
-        write_mask(split / "unseen" / f"{n}.png", m & ~obs)
-        wrong = np.where((m & ~obs)[..., None], 1 - gt, gt)
-        write_png(pred / f"{n}.png", wrong)
-        ref = np.load(eval_scene / "depth" / f"{n}.npy")
-        np.save(depth / f"{n}.npy", ref if k == 0 else 0.5 * ref)
-    doc = evaluate_folder(pred, eval_scene, tmp_path / "out", split_dir=split, depth_dir=depth)
-    v0, v1 = doc["per_view"]["view_000.png"], doc["per_view"]["view_001.png"]
-    assert v0["m_psnr_observed"] > 45 and v0["m_psnr_unseen"] < 20
-    assert v0["ghost"] == 0.0 and v1["ghost"] == 1.0
-    grid = read_image(tmp_path / "out" / "grids" / "view_000.png")
-    assert grid.shape[1] == 6 * 64 + 10
-    assert read_image(tmp_path / "out" / "grids" / "depth_view_000.png").shape == (48, 3 * 64 + 4, 3)
-
-
-def _test_mask(scene_dir, k):
-    from coin_cl.scene import load_scene
-
-    scene = load_scene(scene_dir)
-    return scene.masks[scene.test_idx[k]]

@@ -9,9 +9,9 @@ import pytest
 import torch
 from coin_cl.diffusion import AnalyticFeatures, opencv_inpaint
 
+from coin_cl.crop import crop_image, resize_to
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.clg_energy import make_energy, setup_view
-from coin_cl.pipeline.crop import crop_image, resize_to
 from coin_cl.pipeline.reference import reference_points
 from coin_cl.scene.synthetic import make_synthetic
 

@@ -13,7 +13,13 @@ from coin_cl.diffusion.exemplar import EXEMPLAR_NAME
 from coin_cl.diffusion.lama import LAMA_ENV, LAMA_NAME
 from coin_cl.diffusion.sd2 import sd2_run_estimate
 
-from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, neighbour_views, resolve_inpainter, run_inpaint2d
+from coin_cl.pipeline.inpaint2d import (
+    Inpaint2DConfig,
+    neighbour_views,
+    rerun_key,
+    resolve_inpainter,
+    run_inpaint2d,
+)
 from coin_cl.scene import load_scene, write_synthetic
 from coin_cl.scene.io import read_image
 
@@ -69,6 +75,31 @@ def test_lama_by_env_and_missing_file(scene, tmp_path, monkeypatch):
         )
     with pytest.raises(ValueError, match="inpainter must be"):
         Inpaint2DConfig(inpainter="magic")
+
+
+def test_rerun_key_follows_the_lama_file_the_run_reads(tmp_path, monkeypatch):
+    """COIN_LAMA_PATH is part of stage 1's rerun key: another file (or the same path rewritten)
+    changes it; with an inpainter that reads no LaMa file the variable does not."""
+    a, b = tmp_path / "a.pt", tmp_path / "b.pt"
+    torch.jit.script(_MeanFill()).save(str(a))
+    b.write_bytes(a.read_bytes() + b"-")  # another file (size differs)
+    monkeypatch.delenv(LAMA_ENV, raising=False)
+    no_lama = rerun_key(Inpaint2DConfig())
+    assert "lama" not in no_lama
+    monkeypatch.setenv(LAMA_ENV, str(a))
+    key_a = rerun_key(Inpaint2DConfig())
+    assert key_a["lama"]["path"] == str(a.resolve()) and key_a != no_lama
+    assert "lama" not in rerun_key(Inpaint2DConfig(inpainter="embedded"))
+    monkeypatch.setenv(LAMA_ENV, str(b))
+    assert rerun_key(Inpaint2DConfig()) != key_a
+    monkeypatch.setenv(LAMA_ENV, str(a))
+    assert rerun_key(Inpaint2DConfig()) == key_a
+    import os
+
+    os.utime(a, ns=(a.stat().st_atime_ns, a.stat().st_mtime_ns + 10**9))  # the same path, a new file
+    assert rerun_key(Inpaint2DConfig()) != key_a
+    # the config's own path wins over the variable (and is what the key names)
+    assert rerun_key(Inpaint2DConfig(lama_path=str(b)))["lama"]["path"] == str(b.resolve())
 
 
 def test_neighbour_views():

@@ -19,11 +19,12 @@ from coin_cl.gs.depth_prior import DATASET_DEPTH_PRIOR, GS_DEPTH_PRIOR
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.gs.scaffold import ScaffoldModel
 from coin_cl.gs.terms import LossTerm
-from coin_cl.gs.trainer import REFERENCE_ITERS, TrainConfig, Trainer
+from coin_cl.gs.trainer import TrainConfig, Trainer
+from coin_cl.pipeline import budget as B
 from coin_cl.pipeline import reference
 from coin_cl.pipeline import refgs as stage
 from coin_cl.pipeline.reference import pk_margin_px
-from coin_cl.pipeline.refgs import plan_iters, run_refgs
+from coin_cl.pipeline.refgs import run_refgs
 from coin_cl.pipeline.reprojection import residual_to_reference
 from coin_cl.scene.ply import read_points_ply
 from coin_cl.scene.synthetic import make_synthetic, write_synthetic
@@ -196,13 +197,19 @@ def test_dataset_prior_wins_and_is_fitted_as_disparity(room, tmp_path):
     assert fit["A"] > 0  # disparity of the render vs the prior's disparity: same direction
 
 
-def test_plan_iters_scales_the_published_schedule():
-    assert plan_iters(None, None) == REFERENCE_ITERS
-    assert plan_iters(10.0, 123) == 123
-    assert plan_iters(2.0, None) == max(200, int(stage.STEPS_PER_SECOND * 120))
-    assert plan_iters(0.01, None) == 200
-    with pytest.raises(ValueError):
-        plan_iters(0.0, None)
+def test_a_minute_budget_follows_the_pipelines_rule(room, tmp_path, monkeypatch):
+    """`budget_minutes` becomes steps by `budget.standalone_steps` at the probe's rate (here a fixed
+    1.0 s/step), and a rerun keeps the first call's plan without probing again."""
+    syn, scene, targets = room
+    calls = []
+    monkeypatch.setattr(stage, "probe_seconds_per_step", lambda *a: calls.append(a) or 1.0)
+    minutes = 6 * B.STEP_COST["refgs"] / 60.0  # 6 Ref-GS steps at 1.0 s per probe step
+    res = run_refgs(scene, targets, tmp_path / "b", _cfg(feature_attention=False, depth_loss=False),
+                    budget_minutes=minutes, iters=None, seed=0)  # fmt: skip
+    assert res["iters"] == B.stage_steps("refgs", minutes, 1.0) == 6 and len(calls) == 1
+    res = run_refgs(scene, targets, tmp_path / "b", _cfg(feature_attention=False, depth_loss=False),
+                    budget_minutes=2 * minutes, iters=None, seed=0)  # fmt: skip
+    assert res["iters"] == 6 and len(calls) == 1
 
 
 def test_render_kwargs_clash_is_an_error():
@@ -290,17 +297,21 @@ def _residuals(syn, scene, targets, tmp_path, cfg: RefGSConfig, iters: int = 300
 @pytest.mark.slow
 def test_refgs_pulls_views_towards_the_reference(room, tmp_path):
     """The issue's test: every non-reference view has a different solid colour in its mask, the
-    reference a plausible fill (the true background, as a good inpaint would be). Full Ref-GS
-    (defaults: weights, pruning, depth, attention from mid-run) ends closer to the reference's
-    content in the other views' masks than plain training. Measured at 300 steps: plain 0.1375,
-    Ref-GS 0.1161."""
+    reference a plausible fill (the true background, as a good inpaint would be). The paper's Ref-GS
+    (weights, pruning, reference depth, attention from mid-run; issue 21's background depth term
+    off) ends closer to the reference's content in the other views' masks than plain training.
+    Measured at 300 steps: plain 0.1375, Ref-GS 0.1161. With the background depth term (the
+    default) the pull is weaker but still there (measured 0.1257): holding every mask at its
+    background depth leaves the views' conflicting colours fewer places to go than the reference."""
     syn, scene, targets = room
     k = reference.choose_reference(scene)
     targets = list(targets)
     targets[k] = np.asarray(syn.absent[k], np.float32)
-    e_plain, e_ref = _residuals(syn, scene, targets, tmp_path, RefGSConfig())
-    print(f"masked residual to the reference: plain {e_plain:.4f}, Ref-GS {e_ref:.4f}")
+    e_plain, e_ref = _residuals(syn, scene, targets, tmp_path, RefGSConfig(bg_depth=False))
+    _, e_default = _residuals(syn, scene, targets, tmp_path / "default", RefGSConfig())
+    print(f"residual to the reference: plain {e_plain:.4f}, Ref-GS {e_ref:.4f}, default {e_default:.4f}")
     assert e_ref < 0.9 * e_plain
+    assert e_default < 0.95 * e_plain
 
 
 @pytest.mark.slow

@@ -45,6 +45,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="training seconds of the embedded scene prior (replaces the budget's share; >= 120 "
                         "to be useful)")  # fmt: skip
     p.add_argument("--sd-path", default=None, help="Stable Diffusion 2 inpainting folder (diffusers format)")
+    p.add_argument("--sd2-mode", choices=("auto", "reference_only", "all"), default="auto",
+                   help="with --sd-path: all = SD2 on every view (paper), reference_only = SD2 on the "
+                        "reference, the other views from it through the warp + the embedded inpainter "
+                        "(CPU-practical); auto = reference_only on a CPU when SD2 on every view is "
+                        "estimated above 2 h (logged with the estimate)")  # fmt: skip
     p.add_argument("--inpainter", choices=("auto", "embedded", "telea", "lama"), default="auto",
                    help="stage 1 without SD2 or dataset inpaints: auto = lama when a file is named, else "
                         "embedded (exemplar patches + smooth structure, no weights)")  # fmt: skip
@@ -63,7 +68,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
     from coin_cl.pipeline.report import run_report
 
-    i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path)
+    i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path, sd2_mode=args.sd2_mode)
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,

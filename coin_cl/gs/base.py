@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from coin_cl.gs.data import Camera
 from coin_cl.gs.optim import ParamOptimizer
+
+if TYPE_CHECKING:
+    from coin_cl.gs.splats import Splats
 
 # gsplat / 3DGS measure the screen-space gradient in NDC-like units: the gradient with respect to
 # the pixel position times half the image size (dL/dx_ndc = dL/dx_px * W / 2). All `grad2d`
@@ -96,10 +99,9 @@ class Model:
     def n_primitives(self) -> int:
         raise NotImplementedError
 
-    def export_gaussians(self, cam_center: Tensor | None = None) -> dict[str, Tensor]:
-        """Plain Gaussians: means [N,3], quats [N,4], scales [N,3] (log), opacities [N]
-        (logit), sh0 [N,1,3], shN [N,K,3]. Models whose colour is decoded per view freeze it as
-        seen from `cam_center` [3] (default: the origin)."""
+    def export_gaussians(self, cam_center: Tensor | None = None) -> Splats:
+        """Plain 3DGS Gaussians (`coin_cl.gs.splats.Splats`, detached). Models whose colour is
+        decoded per view freeze it as seen from `cam_center` [3] (default: the origin)."""
         raise NotImplementedError
 
     def state_dict(self) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from coin_cl.gs.base import Model, RenderOutput, inverse_sigmoid, splat
 from coin_cl.gs.data import Camera
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
 from coin_cl.gs.sh import eval_sh, num_sh_bases, rgb_to_sh
+from coin_cl.gs.splats import Splats
 
 PER_GAUSSIAN = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -137,9 +138,10 @@ class GaussianModel(Model):
         return RenderOutput(image, alpha, depth, meta)
 
     # ---- export / state ----
-    def export_gaussians(self, cam_center: Tensor | None = None) -> dict[str, Tensor]:
+    def export_gaussians(self, cam_center: Tensor | None = None) -> Splats:
         """The parameters themselves (`cam_center` is ignored: SH keeps the view dependence)."""
-        return {k: self.p[k].detach().clone() for k in PER_GAUSSIAN}
+        p = {k: self.p[k].detach().clone() for k in PER_GAUSSIAN}
+        return Splats(p["means"], p["quats"], p["scales"], p["opacities"], p["sh0"][:, 0], p["shN"])
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from coin_cl.engine import Gaussians
 from coin_cl.engine import constants as cst
 from coin_cl.engine.rendering import decode_neural_gaussians
 from coin_cl.gs.base import Model, RenderOutput, splat
@@ -28,7 +29,7 @@ from coin_cl.gs.carve import CarveVolume
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
-from coin_cl.gs.sh import rgb_to_sh
+from coin_cl.gs.splats import Splats
 
 log = logging.getLogger(__name__)
 
@@ -316,7 +317,7 @@ class ScaffoldModel(Model):
 
     # ---- export / state ----
     @torch.no_grad()
-    def export_gaussians(self, cam_center: Tensor | None = None) -> dict[str, Tensor]:
+    def export_gaussians(self, cam_center: Tensor | None = None) -> Splats:
         """Decode every anchor into plain Gaussians (view-dependent colour frozen at
         `cam_center`, default the origin) in the 3DGS parameterisation (log scales, logits)."""
         center = torch.zeros(3) if cam_center is None else cam_center
@@ -324,15 +325,8 @@ class ScaffoldModel(Model):
         if self.carve is not None:  # carved Gaussians are not part of the model
             keep = ~self.carve.contains(g["means"])
             g = {k: g[k][keep] for k in ("means", "quats", "scales", "opacities", "colors")}
-        op = g["opacities"].clamp(1e-6, 1 - 1e-6)
-        return {
-            "means": g["means"],
-            "quats": g["quats"],
-            "scales": torch.log(g["scales"].clamp_min(1e-12)),
-            "opacities": torch.log(op / (1 - op)),
-            "sh0": rgb_to_sh(g["colors"])[:, None, :],
-            "shN": torch.zeros(g["means"].shape[0], 0, 3),
-        }
+        keys = ("means", "quats", "scales", "opacities", "colors")
+        return Splats.from_gaussians(Gaussians(*(g[k] for k in keys)))
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -510,28 +510,9 @@ class Trainer:
 
     def export_ply(self, path: Path) -> None:
         """Write the model as plain 3DGS Gaussians, view-dependent colours frozen at the mean
-        training camera (see `write_model_ply`)."""
+        training camera (`Model.export_gaussians`, `Splats.to_ply`)."""
         center = torch.stack([v.camera.center_t for v in self.train_views]).mean(0)
-        write_model_ply(self.model, path, center)
-
-
-def write_model_ply(model: Model, path: Path, center: Tensor) -> None:
-    """Write `model` as plain 3DGS Gaussians in the standard PLY layout (Scaffold-GS' neural
-    Gaussians decoded, and colours of both models frozen, as seen from `center` [3])."""
-    from coin_cl.scene.ply import GaussianPly, write_gaussians_ply
-
-    g = model.export_gaussians(center)
-    write_gaussians_ply(
-        path,
-        GaussianPly(
-            means=g["means"].numpy().astype(np.float32),
-            sh_dc=g["sh0"][:, 0].numpy().astype(np.float32),
-            sh_rest=g["shN"].numpy().astype(np.float32),
-            opacities=g["opacities"].numpy().astype(np.float32),
-            log_scales=g["scales"].numpy().astype(np.float32),
-            quats=g["quats"].numpy().astype(np.float32),
-        ),
-    )
+        self.model.export_gaussians(center).to_ply(path)
 
 
 def init_points(scene, views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:

@@ -113,9 +113,39 @@ def steps_from_rate(
     steps, minutes = {}, {}
     for k in ("refgs", "ted_finetune", "ted_adversarial"):
         minutes[k] = BUDGET_SHARES[k] * budget_minutes
-        steps[k] = int(minutes[k] * 60.0 / (seconds_per_step * STEP_COST[k]))
+        steps[k] = stage_steps(k, minutes[k], seconds_per_step)
     steps["refgs"] = max(1, steps["refgs"])
     return steps, minutes
+
+
+def stage_steps(stage: str, minutes: float, seconds_per_step: float) -> int:
+    """Steps of GS stage `stage` ("refgs", "ted_finetune", "ted_adversarial") in `minutes` at the
+    probe's `seconds_per_step`: the stage's step costs STEP_COST[stage] probe steps."""
+    return int(minutes * 60.0 / (seconds_per_step * STEP_COST[stage]))
+
+
+def standalone_steps(stage: str, minutes: float | None, iters: int | None, probe: Any) -> int:
+    """The schedule of one GS stage run on its own (e.g. `pipeline.refgs.run_refgs`): `iters` when
+    given; else `minutes` of that stage at the rate `probe()` measures (seconds per probe step, see
+    `probe_seconds_per_step`), by `stage_steps`, the pipeline's rule (at least 1); else the
+    published schedule (`REFERENCE_ITERS`, 30k)."""
+    from coin_cl.gs.trainer import REFERENCE_ITERS
+
+    if iters is not None:
+        if iters < 1:
+            raise ValueError(f"iters must be >= 1, got {iters}")
+        return int(iters)
+    if minutes is None:
+        return REFERENCE_ITERS
+    if not math.isfinite(minutes) or minutes <= 0:
+        raise ValueError(f"budget_minutes must be > 0, got {minutes}")
+    spp = float(probe())
+    if not math.isfinite(spp) or spp <= 0:
+        raise ValueError(f"probe seconds per step must be a positive number, got {spp}")
+    n = max(1, stage_steps(stage, minutes, spp))
+    log.info("%s: %.1f min at the probe's %.3f s/step x %.2f -> %d steps", stage, minutes, spp,
+             STEP_COST[stage], n)  # fmt: skip
+    return n
 
 
 def prior_seconds(budget_minutes: float) -> float:
@@ -243,14 +273,26 @@ def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
     """The plan of a CoIn run (`cfg` a `CoInConfig`, `train` its training views): `plan_run` keyed by
     the settings the step counts depend on, probing `scene` at its working size."""
     cam = scene.cameras[train[0]]
+    explicit = explicit_steps(cfg)
     key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
-           "explicit": [cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial,
-                        cfg.prior_seconds]}  # fmt: skip
-    explicit = {"refgs": cfg.iters_refgs, "ted_finetune": cfg.iters_ted_finetune,
-                "ted_adversarial": cfg.iters_ted_adversarial}  # fmt: skip
+           "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
                     lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
+
+
+def explicit_steps(cfg: Any) -> dict[str, int | None]:
+    """{"refgs", "ted_finetune", "ted_adversarial": the step count `cfg` (a `CoInConfig`) gives, or
+    None for the plan's}. TE-D's may come from `CoInConfig.iters_ted_*` or `cfg.ted.iters_*`; set in
+    both, they must agree (ValueError naming both)."""
+    out = {"refgs": cfg.iters_refgs}
+    for phase in ("finetune", "adversarial"):
+        top, nested = getattr(cfg, f"iters_ted_{phase}"), getattr(cfg.ted, f"iters_{phase}")
+        if top is not None and nested is not None and top != nested:
+            raise ValueError(f"CoInConfig.iters_ted_{phase}={top} and CoInConfig.ted.iters_{phase}={nested} "
+                             "disagree: set one of them")  # fmt: skip
+        out[f"ted_{phase}"] = top if top is not None else nested
+    return out
 
 
 def ted_iters(out: Path, shared: dict) -> list[int]:

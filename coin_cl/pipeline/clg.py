@@ -9,9 +9,12 @@ and its geometry (crop cameras, the intermediate camera phi, the support S) are 
 `coin_cl.pipeline.clg_energy`; the reprojection tools (the reference warped into a view, the
 consistency residual, the sampler-free `warp_fill`) in `coin_cl.pipeline.reprojection`.
 
-Output: the last step's decoded x0 prediction, clamped, resized back to the crop and pasted into
-I^_n inside the mask only (`diffusion.inpaint2d.paste`, feathered inward), so every pixel outside
-the mask is bit-identical to I^_n; written as `images/<stem>.png` with `views/<stem>.json` (figures).
+Output: the last step's decoded x0 prediction, clamped, brought back to the crop with its band
+above half the working size replaced by the reference's detail warped through P_k (where P_k
+reaches) or I^_n's (`coin_cl.pipeline.clg_detail`: the 64 px sample alone is blurrier than I^_n),
+and pasted into I^_n inside the mask only (`diffusion.inpaint2d.paste`, feathered inward), so every
+pixel outside the mask is bit-identical to I^_n; the sampler starts from I^_n's crop noised half way
+(`CLGConfig.strength`); written as `images/<stem>.png` with `views/<stem>.json` (figures).
 A view whose PNG exists is not redone (resume). Randomness: view n samples with seed + n.
 
 Before Ref-GS exists, `coin_cl.pipeline.reference.reference_points` builds P_k from any depth map
@@ -115,6 +118,11 @@ def no_worse(
     rb, ra = rec.get("residual_before"), rec.get("residual_after")
     if rb is not None and ra is not None and np.isfinite(rb) and np.isfinite(ra) and ra > rb:
         why.append(f"residual to the reference {rb:.4f} -> {ra:.4f}")
+    # the same residual by the other geometric route (view n's depth lifted into the reference): the
+    # warp through P_k alone can favour detail that only P_k's own geometry aligns
+    lb, la = rec.get("lifted_before"), rec.get("lifted_after")
+    if lb is not None and la is not None and np.isfinite(lb) and np.isfinite(la) and la > lb:
+        why.append(f"residual to the reference lifted with the view's depth {lb:.4f} -> {la:.4f}")
     t_in, t_out = mask_texture(inp, mask), mask_texture(out, mask)
     rec["texture_input"], rec["texture_output"] = t_in, t_out
     if t_out < (1.0 - cfg.texture_tol) * t_in:
@@ -180,7 +188,7 @@ def run_clg(
     cam_k = cameras[k]
     Hk, Wk = cam_k.height, cam_k.width
     ref = ReferenceView(k, cam_k, _check_image(inpaints[k], Hk, Wk, f"inpaint of the reference view {k}"),
-                     _depth_of(depths, k, Hk, Wk, "depth k"), points)  # fmt: skip
+                     _depth_of(depths, k, Hk, Wk, "depth k"), points, np.asarray(masks[k], bool))  # fmt: skip
     out_dir = Path(out_dir)
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
     (out_dir / "views").mkdir(parents=True, exist_ok=True)
@@ -340,6 +348,15 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
         cfg = replace(cfg, sample=False)
         ctx.note("edited reference: no sampler (no model here can draw the inserted object); each hole pixel "
                  "takes the reference warped through P_k, or R_n where P_k does not reach")  # fmt: skip
+    sd2_plan = ctx.inputs["1_inpaint"] / "sd2.json"
+    if cfg.sample and sd2_plan.is_file() and json.loads(sd2_plan.read_text())["mode"] == "reference_only":
+        # SD2's CPU-practical mode (issue 22): stage 1 ran SD2 on the reference only; no view here calls
+        # it: each hole pixel takes the reference warped through P_k where it reaches, and the view's
+        # initial (embedded) inpaint elsewhere, which stands in for R_n in `warp_fill`
+        cfg = replace(cfg, sample=False)
+        renders = inpaints
+        ctx.note("SD2 reference_only: no sampler; each view takes the reference warped through P_k where "
+                 "P_k reaches and its initial inpaint elsewhere")  # fmt: skip
     denoiser, extractor = None, None
     if cfg.sample:
         from coin_cl.diffusion.features import make_feature_extractor

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 from coin_cl.diffusion.sampling import Denoiser, SamplerConfig
 
 PAPER_STEPS = 200  # paper 4.3 / supplement: 200 'quad' DDIM steps with Stable Diffusion 2
+DETAILS = ("reference", "input", "none")  # CLGConfig.detail (coin_cl.pipeline.clg_detail)
 PRIOR_STEPS = 25  # the scene prior: a small pixel-space UNet on 2 cores, where 200 steps cost minutes a view
 
 
@@ -43,6 +44,21 @@ class CLGConfig:
         minimiser of E(X) with the RGB term alone (`warp_fill`). The pipeline uses it for an
         edited reference (`coin_cl.pipeline.insert`), where no model can draw the inserted object
         and a sampler would paint the hole with the scene's own textures.
+    detail: where the output's band above the sampler's working resolution comes from
+        (`coin_cl.pipeline.clg_detail`): "reference" (default) the reference's detail warped through
+        P_k where the warp supports it and the initial inpaint's elsewhere, "input" the initial
+        inpaint's everywhere, "none" the upsampled sample alone (blurry at 64 px: issue 22).
+    detail_split: where the band split lies, as a share of the working size (0.5: the output's
+        band above half the working resolution comes from `detail`'s source, below it from the
+        guided sample).
+    strength: the share of the trajectory sampled (SDEdit): 1 = from pure noise (paper); below 1
+        the sampler starts from the initial inpaint's crop noised to that level, so what guidance
+        does not constrain stays near I^_n instead of a fresh draw.
+        Defaults (detail "reference", split 0.5, strength 0.5) measured on the shared scene's LaMa
+        inpaints (benchmarks/clg.py, docs/RESULTS.md): the only variant whose images are closer to
+        the reference than the inputs (residual lifted with the views' depths) while as textured;
+        sampling from noise at 64 px and pasting (the paper's way at this size) lost to the input in
+        29 of 33 views.
     keep_if_worse: a view's output must not be worse than its input I^_n on what can be measured
         without ground truth (issue 22): a larger consistency residual to the reference, less
         texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
@@ -65,11 +81,20 @@ class CLGConfig:
     seed: int = 0
     progress: bool = True
     sample: bool = True
+    detail: str = "reference"
+    detail_split: float = 0.5
+    strength: float = 0.5
     keep_if_worse: bool = True
     texture_tol: float = 0.1
     colour_tol: float = 0.25
 
     def __post_init__(self) -> None:
+        if self.detail not in DETAILS:
+            raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {self.detail!r}")
+        if not 0.0 < self.detail_split <= 1.0:
+            raise ValueError(f"CLGConfig.detail_split must be in (0, 1], got {self.detail_split}")
+        if not 0.0 < self.strength <= 1.0:
+            raise ValueError(f"CLGConfig.strength must be in (0, 1], got {self.strength}")
         if self.sampler.num_steps != SamplerConfig().num_steps:
             raise ValueError(
                 f"CLGConfig.sampler.num_steps = {self.sampler.num_steps} is not read: set CLGConfig.steps "

@@ -41,11 +41,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from coin_cl.crop import crop_image, crop_intrinsics, resize_to
 from coin_cl.diffusion.inpaint2d import crop_box
 from coin_cl.diffusion.sampling import Denoiser
 from coin_cl.engine import support_mask, warp_features
 from coin_cl.pipeline.clg_config import CLGConfig
-from coin_cl.pipeline.crop import crop_image, crop_intrinsics, resize_to
 from coin_cl.pipeline.reprojection import depth_tensor
 from coin_cl.scene.conventions import interpolate_pose
 from coin_cl.scene.types import Camera

@@ -15,9 +15,14 @@ import torch
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
+from coin_cl.pipeline.clg_detail import compose_crop, reference_detail
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
-from coin_cl.pipeline.crop import resize_to
-from coin_cl.pipeline.reprojection import consistency_residual, reference_in_view, warp_fill
+from coin_cl.pipeline.reprojection import (
+    consistency_residual,
+    reference_in_view,
+    residual_to_reference,
+    warp_fill,
+)
 from coin_cl.scene.io import to_uint8
 
 
@@ -30,6 +35,7 @@ class ReferenceView:
     image: np.ndarray  # [Hk, Wk, 3] I^_k
     depth: np.ndarray | None  # [Hk, Wk] rendered camera z or None
     points: np.ndarray  # [M, 3] P_k
+    mask: np.ndarray | None = None  # [Hk, Wk] bool its mask (the lifted residual's target region)
 
 
 def residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray, ref: ReferenceView,
@@ -41,6 +47,23 @@ def residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray, r
     written = to_uint8(out).astype(np.float32) / 255  # the residual of what the PNG holds
     r_after, _ = consistency_residual(written, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device)
     return r_before, r_after, n_sup
+
+
+def lifted_residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray,
+                     depth_n: np.ndarray | None, ref: ReferenceView) -> tuple[float, float]:  # fmt: skip
+    """The residual to the reference by the other geometric route (`residual_to_reference`): view n's
+    mask pixels lifted with its own depth and projected into the reference's mask, for the input and
+    for what the PNG will hold; (nan, nan) without a depth or a reference mask."""
+    if depth_n is None or ref.mask is None:
+        return float("nan"), float("nan")
+    region = np.asarray(mask, bool) & np.isfinite(depth_n)
+    written = to_uint8(out).astype(np.float32) / 255
+
+    def r(img: np.ndarray) -> float:
+        return residual_to_reference([cam, ref.cam], [depth_n, None], [img, None], [region, None], 1,
+                                     ref.image, ref.mask)  # fmt: skip
+
+    return r(before), r(written)
 
 
 def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, mask: np.ndarray, ref: ReferenceView,
@@ -75,10 +98,17 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     else:
         shape = tuple(prob.image.shape)
     g = torch.Generator().manual_seed(cfg.seed + n)
-    z = torch.randn(shape, generator=g)
-    sbar = tqdm(total=n_steps, desc=f"  {stem} steps", leave=False, disable=not cfg.progress)
-    res = DDIMSampler(denoiser, cfg.sampler_config(denoiser)).sample(
-        z, cond, uncond, energy=energy, generator=g, callback=lambda *_, b=sbar: b.update(1)
+    sampler = DDIMSampler(denoiser, cfg.sampler_config(denoiser))
+    # strength < 1 (SDEdit): start from I^_n's crop noised to that share of the trajectory
+    start = min(n_steps - 1, round((1.0 - cfg.strength) * n_steps))
+    if start:
+        with torch.no_grad():
+            z = sampler.noised(denoiser.encode(prob.image).float(), start, g)
+    else:
+        z = torch.randn(shape, generator=g)
+    sbar = tqdm(total=n_steps - start, desc=f"  {stem} steps", leave=False, disable=not cfg.progress)
+    res = sampler.sample(
+        z, cond, uncond, energy=energy, generator=g, callback=lambda *_, b=sbar: b.update(1), start=start
     )
     sbar.close()
     with torch.no_grad():
@@ -87,7 +117,9 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         x = denoiser.decode(res.x0).clamp(0, 1).float()
         e_in, e_out = float(energy(prob.image)), float(energy(x))
     fill = x[0].permute(1, 2, 0).numpy()
-    back = resize_to(fill, prob.side, prob.side)
+    scale = cfg.detail_split * work / prob.side  # view n's split as a share of its full size
+    ref_detail = reference_detail(ref, cam, scale, device) if cfg.detail == "reference" else None
+    back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail, cfg.detail_split)
     full = inp_n.copy()
     H, W = mask.shape
     ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
@@ -95,11 +127,14 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
     out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
     r_before, r_after, n_sup = residuals(inp_n, out, cam, mask, ref, device)
+    l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
     rec = {
+        "lifted_before": l_before, "lifted_after": l_after,
         "view": n, "status": "guided" if cfg.sampler.guidance_scale else "unguided", "steps": n_steps,
         "energy_input": e_in, "energy_output": e_out, "energies": res.energies,
         "residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
         "support_work_px": int(prob.support.sum()), "hole_work_px": int(prob.hole.sum()),
         "n_points": int(len(ref.points)), "crop": [prob.y0, prob.x0, prob.side], "work": work,
+        "detail": cfg.detail, "start_step": start,
     }  # fmt: skip
     return out, rec

@@ -44,6 +44,7 @@ from coin_cl.pipeline.budget import (
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.insert import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
@@ -78,7 +79,8 @@ class CoInConfig:
     (`coin_cl.pipeline.budget.working_resolution`, logged). sd_path / dino_path: local weights (else
     the embedded defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
     iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (each
-    replaces the budget plan's figure; see `coin_cl.pipeline.budget`). seed, device: as everywhere.
+    replaces the budget plan's figure; see `coin_cl.pipeline.budget`; TE-D's counts may also be
+    given as `ted.iters_*`, and where both are set they must agree). seed, device: as everywhere.
     edited_ref: path of the reference view edited by the user (insertion without weights,
     `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
     inpaint_region: "input" (inpaint the whole masks), "refined" (3D-first, supplement C.2: stage
@@ -368,7 +370,7 @@ def _run(
         *([Stage("0_refine", stage_refine, ["0_scene"],
                  {"cfg": jsonable(cfg.refine), "iters": iters["refgs"]})] if refined else []),
         Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
-              {"cfg": jsonable(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
+              {**inpaint_key(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
         Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
               {"cfg": jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,
@@ -376,7 +378,8 @@ def _run(
                "plain": "refgs" in cfg.skip}),
         Stage("3_clg", stage_clg_adapter, ["0_scene", *r, "1_inpaint", "2_refgs"],
               {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
-               "sd": cfg.sd_path, "prompt": cfg.prompt},
+               "sd": cfg.sd_path, "prompt": cfg.prompt,
+               **({"sd2_mode": cfg.inpaint2d.sd2_mode} if cfg.sd_path else {})},
               skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
         Stage("4_ted", stage_ted,
               ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),

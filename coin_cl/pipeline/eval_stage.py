@@ -4,7 +4,6 @@ and the metrics against ground truth where the scene has object-absent test view
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -44,12 +43,12 @@ def stage_eval(ctx: StageContext) -> dict:
 
             d = r.depth.numpy().astype(np.float32)
             np.save(ddir / f"{stem}.npy", np.where(r.alpha.numpy() > 0.5, d, np.nan))
-    from coin_cl.gs.trainer import write_model_ply
+    from coin_cl.render_utils import orbit_gif
 
     orbit_gif(model, [scene.cameras[i] for i in scene.train_idx], ctx.out / "orbit.gif")
     ply = ctx.out / "point_cloud.ply"
     centers = torch.stack([scene.cameras[i].center_t for i in scene.train_idx])
-    write_model_ply(model, ply, centers.mean(0))
+    model.export_gaussians(centers.mean(0)).to_ply(ply)
     result: dict[str, Any] = {"final_stage": final, "ply": str(ply)}
     gt_ok = scene.test_idx and all(scene.masks[i].any() for i in scene.test_idx)
     if gt_ok:
@@ -61,27 +60,3 @@ def stage_eval(ctx: StageContext) -> dict:
     else:
         ctx.note("no ground-truth test views with masks: metrics skipped")
     return jsonable(result)
-
-
-def orbit_gif(model, cameras: list, path: Path, frames: int = 36) -> None:
-    """Render `model` along the path through `cameras` (in the given order; slerped rotations,
-    interpolated centres: `coin_cl.scene.conventions.interpolate_pose`) into a looping GIF."""
-    import imageio.v3 as iio
-    import torch
-
-    from coin_cl.scene.conventions import interpolate_pose
-    from coin_cl.scene.io import atomic_write, to_uint8
-
-    if not cameras:
-        return
-    from tqdm import tqdm
-
-    images = []
-    for j in tqdm(range(frames), desc="orbit", unit="frame"):
-        u = j * max(1, len(cameras) - 1) / frames
-        a, b = cameras[min(int(u), len(cameras) - 1)], cameras[min(int(u) + 1, len(cameras) - 1)]
-        vm = interpolate_pose(a.viewmat, b.viewmat, u - int(u))
-        with torch.no_grad():
-            r = model.render(replace(a, viewmat=vm, name=f"orbit_{j:03d}"), 10**9)
-        images.append(to_uint8(r.image.clamp(0, 1).numpy()))
-    atomic_write(path, lambda p: iio.imwrite(p, images, extension=".gif", duration=80, loop=0))

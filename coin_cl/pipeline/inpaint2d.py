@@ -46,7 +46,11 @@ class Inpaint2DConfig:
     use_prior: with inpainter "prior", train and use the scene prior (False: OpenCV).
     prior: the scene prior's settings (its time budget is scaled by the pipeline).
     inpaint: crop/paste/sampler settings. seed: an offset to the run's seed for sampling (view n
-    uses run seed + seed + n)."""
+    uses run seed + seed + n).
+    sd2_mode: with SD2 weights, "all" (SD2 on every view, as the paper), "reference_only" (SD2 on the
+    reference; the other views take `inpainter` here and the reference warped through P_k in CLG:
+    the CPU-practical mode) or "auto" (default: "reference_only" on a CPU when the estimate for
+    "all" exceeds `coin_cl.pipeline.models.SD2_ALL_VIEWS_MAX_HOURS`, logged with the estimate)."""
 
     use_dataset: bool = True
     inpainter: str = "auto"
@@ -57,10 +61,15 @@ class Inpaint2DConfig:
     prior: ScenePriorConfig = field(default_factory=ScenePriorConfig)
     inpaint: InpaintConfig = field(default_factory=InpaintConfig)
     seed: int = 0
+    sd2_mode: str = "auto"
 
     def __post_init__(self) -> None:
+        from coin_cl.pipeline.models import SD2_MODES
+
         if self.inpainter not in INPAINTERS:
             raise ValueError(f"inpainter must be one of {', '.join(INPAINTERS)}, got {self.inpainter!r}")
+        if self.sd2_mode not in SD2_MODES:
+            raise ValueError(f"sd2_mode must be one of {', '.join(SD2_MODES)}, got {self.sd2_mode!r}")
 
 
 INPAINTERS = ("auto", "embedded", "lama", "prior", "telea")
@@ -71,6 +80,26 @@ def resolve_inpainter(cfg: Inpaint2DConfig) -> str:
     if cfg.inpainter != "auto":
         return cfg.inpainter
     return "lama" if (cfg.lama_path or os.environ.get(LAMA_ENV)) else "embedded"
+
+
+def rerun_key(cfg: Inpaint2DConfig) -> dict:
+    """Stage 1's settings as its rerun key: the config, plus the LaMa file the run really reads when
+    the inpainter resolves to LaMa (`lama_path`, else $COIN_LAMA_PATH: pointing the variable at
+    another file must rerun the stage) with its size and modification time (the same path holding a
+    new file reruns it too)."""
+    from coin_cl.pipeline.runner import jsonable
+
+    key = {"cfg": jsonable(cfg)}
+    if resolve_inpainter(cfg) == "lama":
+        src = cfg.lama_path or os.environ.get(LAMA_ENV)
+        p = Path(src).expanduser() if src else None
+        st = p.stat() if p is not None and p.is_file() else None
+        key["lama"] = {
+            "path": str(p.resolve()) if p is not None else None,
+            "bytes": st.st_size if st else None,
+            "mtime_ns": st.st_mtime_ns if st else None,
+        }
+    return key
 
 
 def neighbour_views(i: int, views: list[int], k: int) -> list[int]:
@@ -114,8 +143,14 @@ def run_inpaint2d(
     mask_kind: str = "seg",
     sd2=None,
     prompt: str = "",
+    sd2_views: list[int] | None = None,
+    sd2_why: str = "",
 ) -> dict:
     """Inpaint `views` of `scene` in `masks`; writes `images/<name>.png` and `sources.json`.
+
+    sd2_views: with `sd2`, the views SD2 inpaints (None: all; SD2's CPU-practical mode passes the
+    reference only, the rest take `cfg.inpainter`); the choice and `sd2_why` go to `sd2.json`,
+    which CLG follows.
 
     Resumable: a view whose image exists is not redone. Returns {"sources": the sources used (sorted
     names; per view in `sources.json`), "prior": {...} or None}.
@@ -126,13 +161,18 @@ def run_inpaint2d(
     dataset = scene.priors.get("rgb", {}) if (cfg.use_dataset and mask_kind == "seg" and sd2 is None) else {}
     if cfg.use_dataset and mask_kind != "seg" and scene.priors.get("rgb"):
         log.info("1_inpaint: the dataset's inpaints cover seg masks only; not used for %s masks", mask_kind)
-    todo = [i for i in views if masks[i].any() and i not in dataset and sd2 is None]
+    by_sd2 = set() if sd2 is None else set(views if sd2_views is None else sd2_views)
+    todo = [i for i in views if masks[i].any() and i not in dataset and i not in by_sd2]
     kind = resolve_inpainter(cfg)
     prior, prior_info, lama = None, None, None
     if sd2 is not None:
         from coin_cl.diffusion.sd2 import log_sd2_estimate
 
-        log_sd2_estimate(sum(bool(masks[i].any()) for i in views), cfg.inpaint.sampler_sd.num_steps)
+        n_sd2 = sum(bool(masks[i].any()) for i in by_sd2)
+        log_sd2_estimate(n_sd2, cfg.inpaint.sampler_sd.num_steps, None if sd2_views is None else 0)
+        mode = "all" if sd2_views is None else "reference_only"
+        names = sorted(Path(scene.cameras[i].name).stem for i in by_sd2)
+        write_text(out_dir / "sd2.json", json.dumps({"mode": mode, "views": names, "why": sd2_why}, indent=1))
     if todo and kind == "prior" and cfg.use_prior:
         prior = stage_prior(scene, masks, views, cfg, out_dir)
         prior_info = {"name": "scene prior (embedded default replacing Stable Diffusion 2)",
@@ -170,7 +210,8 @@ def run_inpaint2d(
             img, src = paste(scene.images[i], fill, masks[i], cfg.inpaint.feather_px), LAMA_NAME
         else:
             img, src = inpaint_image(
-                scene.images[i], masks[i], sd2=sd2, dataset_inpaint=dataset.get(i), scene_prior=prior,
+                scene.images[i], masks[i], sd2=sd2 if i in by_sd2 else None, dataset_inpaint=dataset.get(i),
+                scene_prior=prior,
                 cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i,
             )  # fmt: skip
         note(name, src)

@@ -18,8 +18,10 @@ the pruned point count; under "view_weights": the per-visit weight history and p
 P_k: `coin_cl.pipeline.reference.reference_points` on the reference's render depth, restricted to
 rendered alpha > 0.5 (the margin rule `pk_margin_px` lives there too).
 
-Budget: `iters` wins; else `budget_minutes` sets iters = max(200, STEPS_PER_SECOND x seconds) and
-the trainer also stops when the budget's training time is spent; neither: the published 30k steps.
+Budget: `iters` wins; else `budget_minutes` of Ref-GS become steps by the pipeline's rule
+(`pipeline.budget.standalone_steps`: a timing probe on this machine and Ref-GS's measured step
+cost) and the trainer also stops when the budget's training time is spent; neither: the published
+30k steps.
 Schedules (learning rates, densification, attention start and lr) are compressed to `iters` the
 way `scaled_model_config` / `scaled_strategy` do. A rerun with the same `out_dir` continues from
 the checkpoint with the first run's `iters` (a different request is logged and ignored).
@@ -46,7 +48,6 @@ from coin_cl.gs.prune import prune_points_in_masks
 from coin_cl.gs.refgs import RefGSConfig, adaptive_weights_of, refgs_terms
 from coin_cl.gs.targets import composite_targets
 from coin_cl.gs.trainer import (
-    REFERENCE_ITERS,
     TrainConfig,
     Trainer,
     build_model,
@@ -54,29 +55,14 @@ from coin_cl.gs.trainer import (
     scaled_model_config,
     scaled_strategy,
 )
+from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
 from coin_cl.scene.io import view_stem, write_png
 
 log = logging.getLogger(__name__)
 
-# Scaffold-GS steps per second at 504x284 on the 2-core machine (benchmarks/train.py), used only to
-# turn a minute budget into a schedule length.
-STEPS_PER_SECOND = 1.25
 MONOCULAR_PRIOR = "monocular (Depth Anything V2 small, COIN_DEPTH_WEIGHTS)"
 STAGE_JSON = "stage.json"
-
-
-def plan_iters(budget_minutes: float | None, iters: int | None) -> int:
-    """Schedule length: `iters`, else from the minute budget, else the published 30k."""
-    if iters is not None:
-        if iters < 1:
-            raise ValueError(f"iters must be >= 1, got {iters}")
-        return int(iters)
-    if budget_minutes is not None:
-        if budget_minutes <= 0:
-            raise ValueError(f"budget_minutes must be > 0, got {budget_minutes}")
-        return max(200, int(STEPS_PER_SECOND * budget_minutes * 60))
-    return REFERENCE_ITERS
 
 
 def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
@@ -210,7 +196,11 @@ def run_refgs(
     cfg = replace(cfg, seed=seed)
     train_idx = list(scene.train_idx) or list(range(len(scene.cameras)))
     prev_stage = json.loads((out / STAGE_JSON).read_text()) if (out / STAGE_JSON).is_file() else None
-    n_iters = plan_iters(budget_minutes, iters)
+    if iters is None and budget_minutes is not None and prev_stage is not None:
+        n_iters = int(prev_stage["iters"])  # the first call's plan (a new probe would time a busier machine)
+    else:
+        probe = lambda: probe_seconds_per_step(scene, train_idx, device, seed)  # noqa: E731
+        n_iters = standalone_steps("refgs", budget_minutes, iters, probe)
     if (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
         log.warning("resuming a run planned for %d steps; ignoring the new request of %d",
                     prev_stage["iters"], n_iters)  # fmt: skip

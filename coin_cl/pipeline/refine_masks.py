@@ -103,7 +103,6 @@ def refine_masks(
     observed/ and unseen/ only (for the evaluation's grids and per-part scores)."""
     from coin_cl.gs.base import splat
     from coin_cl.gs.prune import in_masks
-    from coin_cl.gs.sh import sh_to_rgb
     from coin_cl.scene.masks import write_mask
 
     out_dir = Path(out_dir)
@@ -115,7 +114,7 @@ def refine_masks(
     centre = torch.stack([v.camera.center_t for v in views]).mean(0)
     with torch.no_grad():
         g = model.export_gaussians(centre)
-    means = g["means"].float()
+    means = g.means.float()
     keep = torch.from_numpy(
         ~in_masks(means.numpy(), [v.camera for v in views], [masks[i] for i in train], cfg.min_fraction)
     )
@@ -126,16 +125,13 @@ def refine_masks(
         raise ValueError(
             "refine masks: every Gaussian lies inside the masks; the masks cover the whole scene?"
         )
-    m, q = means[keep], g["quats"][keep].float()
-    s_own = torch.exp(g["scales"][keep].float())
-    op = torch.sigmoid(g["opacities"][keep].float())
-    rgb = sh_to_rgb(g["sh0"][keep, 0].float()).clamp(0, 1)
+    kept = g.subset(keep).gaussians()  # the renderer's view: activated scales, opacities, colours
+    m, q, s_own, op, rgb = kept.means, kept.quats, kept.scales, kept.opacities, kept.colors.clamp(0, 1)
     from coin_cl.gs.data import Camera as ViewCamera
 
     # the fit with the object: the depth of the captured surface, in front of which a view sees through
-    full = (means, g["quats"].float(), torch.exp(g["scales"].float()), torch.sigmoid(g["opacities"].float()),
-            sh_to_rgb(g["sh0"][:, 0].float()).clamp(0, 1))  # fmt: skip
-
+    every = g.gaussians()
+    full = (every.means, every.quats, every.scales, every.opacities, every.colors.clamp(0, 1))
     extra = [ViewCamera.from_any(scene.cameras[i], name=str(i)) for i in also]
     renders = {}
     for cam_v, i in zip([v.camera for v in views] + extra, list(train) + list(also), strict=True):

@@ -22,7 +22,7 @@ import numpy as np
 
 from coin_cl.pipeline.budget import CAP_FACTOR
 from coin_cl.pipeline.inpaint2d import effective_config, read_inpaints, run_inpaint2d
-from coin_cl.pipeline.models import sd2_denoiser
+from coin_cl.pipeline.models import sd2_denoiser, sd2_mode_for
 from coin_cl.pipeline.runner import StageContext, jsonable
 
 if TYPE_CHECKING:
@@ -108,8 +108,13 @@ def stage_inpaint(ctx: StageContext) -> dict:
     icfg = effective_config(
         cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
     )
-    sd2 = sd2_denoiser(cfg.sd_path)
-    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt)
+    sd2, only, why = sd2_denoiser(cfg.sd_path), None, ""
+    if sd2 is not None:  # SD2 on every view, or on the reference only (CPU-practical mode, issue 22)
+        mode, why = sd2_mode_for(cfg, sd2, sum(bool(masks[i].any()) for i in train))
+        ctx.note(why)
+        only = [ctx.shared["ref"]] if mode == "reference_only" else None
+    res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt,
+                        sd2_views=only, sd2_why=why)  # fmt: skip
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
     return res
@@ -264,8 +269,11 @@ def stage_ted(ctx: StageContext) -> dict:
         f"{k} {it[k]} steps" + ("" if k not in ctx.shared.get("ted_caps", {})
                                 else f" (~{ctx.shared['ted_caps'][k] / 60 / CAP_FACTOR:.1f} min)")
         for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
+    # The plan's counts (explicit ones included, `budget.explicit_steps`) and the run's seed where
+    # TEDConfig leaves them to the run (None); the user's config is not changed.
+    seed = cfg.seed if cfg.ted.seed is None else cfg.ted.seed
     tcfg = replace(
-        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=cfg.seed
+        cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=seed
     )
     extra = _ted_bg_depth(ctx, scene, train)
     tc = ctx.shared.get("ted_caps", {})

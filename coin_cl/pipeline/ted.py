@@ -13,8 +13,8 @@ folder:
    ratio, as pix2pix.
 
 The primitives are fixed in this stage (no densification): it refines the appearance of the coarse
-structure Ref-GS built. The paper runs 10k + 10k iterations; `TEDConfig.iters_*` are scaled by the
-pipeline's budget.
+structure Ref-GS built. The paper runs 10k + 10k iterations; a CoIn run takes its counts from the
+budget plan (`pipeline.budget`) unless `TEDConfig.iters_*` give them.
 """
 
 from __future__ import annotations
@@ -45,15 +45,19 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TEDConfig:
-    """iters_finetune / iters_adversarial: steps of the two phases (paper 10k + 10k).
+    """iters_finetune / iters_adversarial: steps of the two phases (the paper: 10k + 10k); 0 skips a
+    phase. None (default): in a CoIn run (`coin_cl.inpaint`) the budget plan decides (recorded in
+    OUT/plan.json); `run_ted` on its own needs numbers. A number is used as given (in a CoIn run it
+    is an explicit count of the plan, like `CoInConfig.iters_ted_*`, which must then agree).
     lambda_gen: weight of the generator loss (paper 0.01). patch: patch side (paper 64; smaller
     images use their shorter side rounded down to a multiple of 8, at least 32). n_patches: patches
     per step. margin / p_near: the sampler's band around the mask and the probability of drawing a
     patch centre from it (1.0: every patch near the mask, so the term only touches pixels near
-    the inpainted region). lr_d, betas_d: the discriminator's Adam (pix2pix). seed: patch RNG."""
+    the inpainted region). lr_d, betas_d: the discriminator's Adam (pix2pix). seed: patch RNG
+    (None: in a CoIn run the run's seed, `CoInConfig.seed`; `run_ted` on its own: 0)."""
 
-    iters_finetune: int = 10_000
-    iters_adversarial: int = 10_000
+    iters_finetune: int | None = None
+    iters_adversarial: int | None = None
     lambda_gen: float = 0.01
     patch: int = 64
     n_patches: int = 4
@@ -61,7 +65,7 @@ class TEDConfig:
     p_near: float = 1.0
     lr_d: float = 2e-4
     betas_d: tuple[float, float] = (0.5, 0.999)
-    seed: int = 0
+    seed: int | None = None
 
 
 def patch_size(cfg: TEDConfig, height: int, width: int) -> int:
@@ -82,6 +86,7 @@ class AdversarialTerm(LossTerm):
     name = "adversarial"
 
     def __init__(self, cfg: TEDConfig, disc_cfg: PatchGANConfig | None = None):
+        cfg = replace(cfg, seed=0 if cfg.seed is None else cfg.seed)
         self.cfg = cfg
         self.weight = cfg.lambda_gen
         with torch.random.fork_rng():  # seeded init without touching the caller's global RNG
@@ -174,6 +179,11 @@ def run_ted(
     """
     out_dir = Path(out_dir)
     base = train_cfg or TrainConfig()
+    for name in ("iters_finetune", "iters_adversarial"):
+        if getattr(cfg, name) is None:
+            raise ValueError(f"TEDConfig.{name} is None: give run_ted a step count (a CoIn run takes it "
+                             "from its budget plan)")  # fmt: skip
+    cfg = replace(cfg, seed=0 if cfg.seed is None else cfg.seed)
     res: dict[str, Any] = {"config": asdict(cfg)}
     for phase, iters, terms in (
         ("finetune", cfg.iters_finetune, [PhotometricLoss(), *extra_terms]),

@@ -3,19 +3,12 @@ embedded synthetic scene with ground truth. Conventions live in `coin_cl.scene.c
 
 from .loader import load_scene, save_scene
 from .masks import bbox_mask, check_mask, derive_mask, dilate_mask, read_mask, scribble_mask
-from .ply import (
-    GaussianPly,
-    read_gaussians_ply,
-    read_points_ply,
-    write_gaussians_ply,
-    write_points_ply,
-)
+from .ply import read_points_ply, write_points_ply
 from .synthetic import make_synthetic, write_synthetic
 from .types import Camera, Scene
 
 __all__ = [
     "Camera",
-    "GaussianPly",
     "Scene",
     "bbox_mask",
     "check_mask",
@@ -23,12 +16,10 @@ __all__ = [
     "dilate_mask",
     "load_scene",
     "make_synthetic",
-    "read_gaussians_ply",
     "read_mask",
     "read_points_ply",
     "save_scene",
     "scribble_mask",
-    "write_gaussians_ply",
     "write_points_ply",
     "write_synthetic",
 ]

@@ -1,4 +1,4 @@
-"""Crop cameras (coin_cl.pipeline.crop): the cropped intrinsics agree with what cv2's crop + resize do
+"""Crop cameras (coin_cl.crop): the cropped intrinsics agree with what cv2's crop + resize do
 to the pixels, and the reflect-padded crop."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from coin_cl.pipeline.crop import crop_image, crop_intrinsics, resize_to
+from coin_cl.crop import crop_image, crop_intrinsics, resize_to
 from coin_cl.scene.types import Camera
 
 

@@ -1,6 +1,10 @@
-"""Crop cameras (CoIn paper 4.3, CLG): a crop and a resize of an image are a change of intrinsics,
-K' = diag(sx, sy, 1) (K - [0 0 x0; 0 0 y0; 0 0 0]). Pixel centres are at +0.5, so this matches
-cv2's area/cubic resizes exactly; CLG evaluates everything at its sampler's working size this way."""
+"""Crops and resizes of images, and the crop cameras that go with them (CoIn paper 4.1's
+mask-centred crops, 4.3's CLG at the sampler's working size). A crop and a resize of an image are a
+change of intrinsics, K' = diag(sx, sy, 1) (K - [0 0 x0; 0 0 y0; 0 0 0]). Pixel centres are at
++0.5, so this matches cv2's area/cubic resizes exactly.
+
+Numpy and OpenCV only: both the 2D branch (`diffusion.inpaint2d`, which never imports the engine
+or the pipeline) and the pipeline (CLG) import it."""
 
 from __future__ import annotations
 

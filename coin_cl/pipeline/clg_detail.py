@@ -1,0 +1,85 @@
+"""The detail band of CLG's output (CoIn paper 4.3; issue 22): the guided sample lives at the sampler's
+working size (64 px for the scene prior, 512 for SD2), while the hole's crop is often several times
+larger, so a sample brought back to the crop has no detail above the working resolution, and the
+guard (`coin_cl.pipeline.clg.no_worse`) then keeps the blurrier input in most views.
+
+A Laplacian split fixes that: with down = area resize to a side of `split` x work and up = bicubic
+resize back to the crop (how the sample itself is brought back),
+
+    low(I) = up(down(I)),   high(I) = I - low(I),
+    output = low(up(x)) + high(D)
+
+where x is the guided sample (the band the energy can steer) and D the detail source, by
+`CLGConfig.detail`:
+- "input": the initial inpaint I^_n everywhere (its texture above the split is kept unchanged; where
+  the sample's low band equals I^_n's the output is I^_n);
+- "reference" (default): the reference's detail warped through P_k (`reprojection.reference_in_view`
+  of high(I^_k), the split made at view n's scale) on the pixels the warp supports, I^_n's elsewhere:
+  the guidance pulls the low band toward the reference, and the detail there comes from the same
+  reference through the same geometry, so the residual to the reference falls in both bands;
+- "none": up(x) alone (the behaviour before issue 22).
+`CLGConfig.detail_split` (default 0.5) sets the split; at 1 it is the working resolution itself,
+where the 64 px sample still carries its own noise-like texture into the output (measured: the
+shared scene's images were then further from the reference than the inputs).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from coin_cl.crop import crop_image, resize_to
+from coin_cl.pipeline.clg_config import DETAILS
+from coin_cl.pipeline.reprojection import reference_in_view
+
+
+def high_band(img: np.ndarray, w_low: int, h_low: int) -> np.ndarray:
+    """(H, W, C) float -> (H, W, C): img minus img taken down to (w_low, h_low) (area) and back up
+    (bicubic). Zero when the low size is the image's own."""
+    H, W = img.shape[:2]
+    w_low, h_low = max(1, int(w_low)), max(1, int(h_low))
+    if (w_low, h_low) == (W, H):
+        return np.zeros_like(img)
+    low = resize_to(resize_to(img, w_low, h_low), W, H)
+    return (img - low).astype(np.float32)
+
+
+def reference_detail(ref: Any, cam_n: Any, scale: float, device: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's high band (split at `scale` x its size: view n's working scale) warped into
+    view n through P_k: ((H, W, 3) detail, (H, W) bool where the warp supports it)."""
+    Hk, Wk = ref.image.shape[:2]
+    hi_k = high_band(ref.image, round(Wk * scale), round(Hk * scale))
+    warped, weight = reference_in_view(hi_k, cam_n, ref.cam, ref.points, ref.depth, device)
+    return warped, weight > 0
+
+
+def compose_crop(
+    fill: np.ndarray,
+    inp_n: np.ndarray,
+    y0: int,
+    x0: int,
+    side: int,
+    detail: str,
+    ref_detail: tuple[np.ndarray, np.ndarray] | None = None,
+    split: float = 1.0,
+) -> np.ndarray:
+    """The crop [side, side, 3] CLG pastes: the sample `fill` [work, work, 3] brought back to the
+    crop at (y0, x0) of view n, its low band below `split` x work plus the high band of the detail
+    source (module docstring). ref_detail: `reference_detail`'s pair (split at the same scale),
+    required for detail "reference"."""
+    if detail not in DETAILS:
+        raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {detail!r}")
+    work = fill.shape[0]
+    low = max(1, round(work * split))
+    if detail == "none":
+        return resize_to(fill, side, side)
+    back = resize_to(resize_to(fill, low, low), side, side)  # the sample's band below the split
+    hi = high_band(crop_image(inp_n, y0, x0, side, side), low, low)
+    if detail == "reference":
+        if ref_detail is None:
+            raise ValueError("detail 'reference' needs the reference's warped detail")
+        warped, sup = ref_detail
+        sup_c = crop_image(sup, y0, x0, side, side)
+        hi = np.where(sup_c[..., None], crop_image(warped, y0, x0, side, side), hi)
+    return (back + hi).astype(np.float32)

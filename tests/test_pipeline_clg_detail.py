@@ -1,0 +1,62 @@
+"""The detail band of CLG's output (coin_cl.pipeline.clg_detail): the Laplacian split at a share of
+the sampler's working size, its sources, and its exact cases."""
+
+import numpy as np
+import pytest
+
+from coin_cl.crop import resize_to
+from coin_cl.pipeline.clg_detail import compose_crop, high_band
+
+
+def _texture(h=96, w=96, seed=0):
+    rng = np.random.default_rng(seed)
+    ramp = np.linspace(0.2, 0.8, w, dtype=np.float32)[None, :, None] * np.ones((h, 1, 3), np.float32)
+    return np.clip(ramp + 0.1 * rng.standard_normal((h, w, 3)).astype(np.float32), 0, 1)
+
+
+def test_high_band_is_what_the_low_size_cannot_hold():
+    img = _texture()
+    assert np.array_equal(high_band(img, 96, 96), np.zeros_like(img))  # nothing above its own size
+    flat = np.full((96, 96, 3), 0.4, np.float32)
+    assert np.abs(high_band(flat, 16, 16)).max() < 1e-5  # a flat image has no detail
+    hb = high_band(img, 16, 16)
+    assert hb.std() > 0.05 and abs(float(hb.mean())) < 0.01  # the noise, zero-mean
+
+
+def test_input_detail_returns_the_input_where_the_sample_matches_it():
+    side, work = 96, 32
+    inp = _texture(side, side)
+    fill = resize_to(inp, work, work)  # a sample equal to the input at the working size
+    out = compose_crop(fill, inp, 0, 0, side, "input", split=1.0)
+    np.testing.assert_allclose(out, inp, atol=1e-5)
+    # a sample that differs only in its low band moves the output's low band, not its detail
+    shifted = compose_crop(fill + 0.1, inp, 0, 0, side, "input", split=0.5)
+    np.testing.assert_allclose(high_band(shifted, 16, 16), high_band(inp, 16, 16), atol=1e-4)
+    assert abs(float((shifted - inp).mean()) - 0.1) < 1e-3
+
+
+def test_none_is_the_upsampled_sample_and_blurs():
+    side, work = 96, 32
+    inp = _texture(side, side)
+    fill = resize_to(inp, work, work)
+    out = compose_crop(fill, inp, 0, 0, side, "none")
+    np.testing.assert_allclose(out, resize_to(fill, side, side))
+    assert np.abs(np.diff(out, axis=1)).mean() < 0.6 * np.abs(np.diff(inp, axis=1)).mean()
+
+
+def test_reference_detail_where_supported_input_elsewhere():
+    side, work = 96, 32
+    inp, ref = _texture(side, side, 0), _texture(side, side, 1)
+    sup = np.zeros((side, side), bool)
+    sup[:, :48] = True
+    fill = resize_to(inp, work, work)
+    out = compose_crop(fill, inp, 0, 0, side, "reference", (high_band(ref, 16, 16), sup), split=0.5)
+    hb = high_band(out, 16, 16)
+    # away from the seam, the left half carries the reference's detail and the right half the input's
+    left, right = (slice(None), slice(4, 40)), (slice(None), slice(56, 92))
+    assert np.corrcoef(hb[left].ravel(), high_band(ref, 16, 16)[left].ravel())[0, 1] > 0.9
+    assert np.corrcoef(hb[right].ravel(), high_band(inp, 16, 16)[right].ravel())[0, 1] > 0.9
+    with pytest.raises(ValueError, match="warped detail"):
+        compose_crop(fill, inp, 0, 0, side, "reference")
+    with pytest.raises(ValueError, match="detail must be"):
+        compose_crop(fill, inp, 0, 0, side, "sharp")

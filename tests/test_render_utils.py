@@ -1,0 +1,109 @@
+"""Rendering to files (coin_cl.render_utils): the depth colour map, the one orbit (cameras on a
+circle looking at the scene's depth), frames / PNG names / GIF, and `coin-cl render`'s errors."""
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from coin_cl.gs.base import RenderOutput
+from coin_cl.render_utils import colorize_depth, orbit_cameras, orbit_gif, render_checkpoint, render_views
+from coin_cl.scene.conventions import look_at
+from coin_cl.scene.types import Camera
+
+W, H = 40, 30
+K = np.array([[35.0, 0, W / 2], [0, 35.0, H / 2], [0, 0, 1]])
+
+
+class _FlatModel:
+    """Renders a constant depth and an image that encodes the camera centre's x (to tell views apart)."""
+
+    def __init__(self, depth: float = 2.0):
+        self.depth = depth
+        self.calls = []
+
+    def render(self, cam, step, backend="opencl", return_depth=False, **kw):
+        self.calls.append((cam.name, step, backend))
+        x = float(cam.center_t[0])
+        img = torch.full((cam.height, cam.width, 3), 0.5 + 0.4 * np.tanh(x))
+        img[:, : cam.width // 2, 1] = 0.0
+        return RenderOutput(
+            img, torch.ones(cam.height, cam.width), torch.full((cam.height, cam.width), self.depth)
+        )
+
+
+def _captured(n: int = 5) -> list[Camera]:
+    """Forward-facing cameras on a line along x at z = -3, all looking down +z."""
+    xs = [0.2 * (i - n // 2) for i in range(n)]
+    return [
+        Camera(K, look_at((x, 0.0, -3.0), (x, 0.0, 0.0), (0, -1, 0)), W, H, f"cap_{i}.png")
+        for i, x in enumerate(xs)
+    ]
+
+
+def test_colorize_depth_near_is_warm_and_invalid_is_black():
+    depth = np.tile(np.linspace(1.0, 10.0, 32, dtype=np.float32), (4, 1))
+    alpha = np.ones_like(depth)
+    alpha[:, -4:] = 0.0  # not drawn
+    depth[0, 0] = np.nan
+    rgb = colorize_depth(depth, alpha)
+    assert rgb.shape == (4, 32, 3) and rgb.dtype == np.uint8
+    near, far = rgb[1, 1].astype(int), rgb[1, 27].astype(int)
+    assert near[0] > near[2] and far[2] > far[0]  # turbo: red near, blue far
+    assert (rgb[:, -4:] == 0).all() and (rgb[0, 0] == 0).all()
+    assert (colorize_depth(depth, np.zeros_like(depth)) == 0).all()  # nothing valid: black, no NaN
+
+
+def test_orbit_cameras_circle_the_mean_camera_and_look_at_the_rendered_depth():
+    cams = _captured()
+    model = _FlatModel(depth=2.0)
+    orbit = orbit_cameras(cams, 8, model, step=7, backend="torch")
+    assert len(orbit) == 8 and model.calls == [("mean", 7, "torch")]
+    centres = np.stack([c.center for c in orbit])
+    c0 = np.mean([c.center for c in cams], 0)
+    # on a circle around the mean centre, in the captured cameras' image plane (z = -3), radius half
+    # the cameras' spread (0.4 on either side of the mean)
+    np.testing.assert_allclose(np.linalg.norm(centres - c0, axis=1), 0.2, atol=1e-5)
+    np.testing.assert_allclose(centres[:, 2], -3.0, atol=1e-5)
+    assert len({tuple(np.round(c, 5)) for c in centres}) == 8
+    # every orbit camera looks at the point the mean camera sees at the rendered depth
+    target = c0 + np.array([0, 0, 2.0])
+    for c in orbit:
+        uv, z = c.project(target[None])
+        np.testing.assert_allclose(uv[0], [W / 2, H / 2], atol=1e-3)
+        assert z[0] > 0
+    with pytest.raises(ValueError, match="at least one"):
+        orbit_cameras([], 4, model, 0)
+
+
+def test_render_views_names_files_and_writes_the_gif(tmp_path):
+    cams = _captured(3)
+    model = _FlatModel()
+    render = lambda c: model.render(c, 0, return_depth=True)  # noqa: E731
+    frames = render_views(render, cams, tmp_path / "v", tmp_path / "v.gif", depth=True)
+    assert [f.shape for f in frames] == [(H, 2 * W, 3)] * 3  # image | depth
+    names = sorted(p.name for p in (tmp_path / "v").iterdir())
+    assert names == sorted([f"{i:03d}_cap_{i}{s}.png" for i in range(3) for s in ("", "_depth")])
+    gif = iio.imread(tmp_path / "v.gif", index=None)
+    assert gif.shape[:3] == (3, H, 2 * W)
+    assert not np.array_equal(gif[0], gif[2])  # the frames are the views, in order
+    plain = render_views(lambda c: model.render(c, 0), cams[:2], tmp_path / "n", names=["a", "b"])
+    assert plain[0].shape == (H, W, 3) and sorted(p.name for p in (tmp_path / "n").iterdir()) == [
+        "a.png",
+        "b.png",
+    ]
+
+
+def test_orbit_gif_renders_the_orbit(tmp_path):
+    model = _FlatModel()
+    orbit = orbit_gif(model, _captured(), tmp_path / "o.gif", frames=6, step=3, backend="torch")
+    assert len(orbit) == 6 and [c[0] for c in model.calls] == ["mean"] + [c.name for c in orbit]
+    assert iio.imread(tmp_path / "o.gif", index=None).shape[0] == 6
+
+
+def test_render_checkpoint_without_a_model_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="ckpt.pt not found: train into"):
+        render_checkpoint(tmp_path)
+    (tmp_path / "run.json").write_text("{}")  # a coin-cl run folder with no trained stage yet
+    with pytest.raises(FileNotFoundError, match="without a trained stage"):
+        render_checkpoint(tmp_path)
