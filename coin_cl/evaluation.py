@@ -42,6 +42,41 @@ def comparison_grid(inp: np.ndarray, mask: np.ndarray, pred: np.ndarray, gt: np.
     return np.concatenate(row, axis=1)
 
 
+def split_tile(observed: np.ndarray, unseen: np.ndarray) -> np.ndarray:
+    """(H, W, 3) tile of a mask's split: green where other views observe the background, red for
+    the unseen core, black elsewhere."""
+    tile = np.zeros(np.shape(observed) + (3,), np.float32)
+    tile[np.asarray(observed, bool)] = (0.2, 0.8, 0.2)
+    tile[np.asarray(unseen, bool)] = (0.9, 0.2, 0.2)
+    return tile
+
+
+def depth_grid(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, tol: float = 0.1) -> np.ndarray:
+    """render depth | reference depth | mask pixels rendered more than `tol` in front of the
+    reference (red; the ghost figure's pixels, `coin_cl.metrics.ghost_fraction`) over the relative
+    error: (H, 3W + 4, 3). Depths share one colour scale (TURBO, near = blue) from the reference's
+    2nd-98th percentiles; non-finite depth is black."""
+    ref = np.asarray(reference, np.float64)
+    d = np.asarray(depth, np.float64)
+    ok = np.isfinite(ref) & (ref > 0)
+    lo, hi = np.percentile(ref[ok], (2, 98)) if ok.any() else (0.0, 1.0)
+
+    def colour(x: np.ndarray) -> np.ndarray:
+        t = np.clip((np.nan_to_num(x, nan=hi) - lo) / max(hi - lo, 1e-9), 0, 1)
+        cm = cv2.applyColorMap((t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1] / 255.0
+        cm[~np.isfinite(x)] = 0
+        return cm.astype(np.float32)
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.where(ok, np.abs(d - ref) / ref, 0.0)
+    err = np.repeat(np.clip(np.nan_to_num(rel, nan=1.0) * 4, 0, 1)[..., None], 3, axis=2).astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        ghost = np.asarray(mask, bool) & ok & (np.nan_to_num(d, nan=np.inf) < (1 - tol) * ref)
+    err[ghost] = (1.0, 0.1, 0.1)
+    gap = np.ones((ref.shape[0], 2, 3), np.float32)
+    return np.concatenate([colour(d), gap, colour(ref), gap, err], axis=1)
+
+
 def fmt_metric(v) -> str:
     if v is None:
         return "n/a"
@@ -52,13 +87,26 @@ def fmt_metric(v) -> str:
     return f"{v:.4f}"
 
 
-def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None) -> dict:
+def evaluate_folder(
+    pred_dir: Path,
+    scene_dir: Path,
+    out_dir: Path | None = None,
+    split_dir: Path | None = None,
+    depth_dir: Path | None = None,
+) -> dict:
     """Score PRED_DIR's test-view images against SCENE_DIR; writes metrics.json, metrics.md and
-    grids/<view>.png under out_dir (default PRED_DIR/eval). Returns the metrics document."""
+    grids/<view>.png under out_dir (default PRED_DIR/eval). Returns the metrics document.
+
+    split_dir: a folder with observed/<stem>.png and unseen/<stem>.png (the mask's split, stage
+    0_refine): the grid gains a split tile and the view m_psnr_observed / m_psnr_unseen.
+    depth_dir: rendered camera z per view (<stem>.npy); where the scene has a reference depth
+    (the synthetic scenes' exact depth), grids/depth_<view>.png (`depth_grid`) and the view's
+    ghost figure (`coin_cl.metrics.ghost_fraction`, key ghost) are added."""
     from coin_cl import metrics as M
     from coin_cl.nets import inception_from_env, lpips_from_env
     from coin_cl.scene import load_scene
     from coin_cl.scene.io import read_image, write_png, write_text
+    from coin_cl.scene.masks import read_mask
 
     pred_dir, scene_dir = Path(pred_dir), Path(scene_dir)
     if not pred_dir.is_dir():
@@ -97,7 +145,22 @@ def evaluate_folder(pred_dir: Path, scene_dir: Path, out_dir: Path | None = None
         inp = scene.extras.get("object_present", {}).get(i)
         if inp is None:  # no object-present render of a test view: show the masked GT instead
             inp = np.where(m[..., None], 0.5, gt).astype(np.float32)
-        write_png(out / "grids" / f"{Path(cam.name).stem}.png", comparison_grid(inp, m, pred, gt))
+        grid = comparison_grid(inp, m, pred, gt)
+        stem = Path(cam.name).stem
+        if split_dir is not None and (Path(split_dir) / "observed" / f"{stem}.png").is_file():
+            obs = read_mask(Path(split_dir) / "observed" / f"{stem}.png", m.shape) & m
+            uns = m & ~obs
+            per_view[cam.name].update(
+                m_psnr_observed=M.masked_psnr(pred, gt, obs), m_psnr_unseen=M.masked_psnr(pred, gt, uns)
+            )
+            gap = np.ones((grid.shape[0], 2, 3), np.float32)
+            grid = np.concatenate([grid, gap, split_tile(obs, uns)], axis=1)
+        write_png(out / "grids" / f"{stem}.png", grid)
+        ref_depth = scene.extras.get("depth", {}).get(i)
+        if depth_dir is not None and ref_depth is not None and (Path(depth_dir) / f"{stem}.npy").is_file():
+            d = np.load(Path(depth_dir) / f"{stem}.npy")
+            per_view[cam.name]["ghost"] = M.ghost_fraction(d, ref_depth, m)
+            write_png(out / "grids" / f"depth_{stem}.png", depth_grid(d, ref_depth, m))
     mean = M.aggregate(list(per_view.values()))
     inception, fid_reason = inception_from_env()
     if inception is not None and len(per_view) >= 2:

@@ -173,3 +173,40 @@ def test_scores_follow_a_known_error(eval_scene, tmp_path):
     want = np.mean([20.0 - 10 * np.log10(s) for s in share])
     assert doc["mean"]["psnr"] == pytest.approx(want, abs=0.3)
     assert json.loads((tmp_path / "out" / "metrics.json").read_text())["n_views"] == len(scene.test_idx)
+
+
+def test_eval_split_tile_and_depth_grid(eval_scene, tmp_path):
+    """evaluate_folder with the mask's split and rendered depths: per-part m-PSNR (a prediction
+    right on the observed half and wrong on the other scores inf / finite), the split tile in the
+    grid, and the ghost figure: 0 for the exact depth, 1 for a depth at half of it, NaN-free."""
+    from coin_cl.evaluation import evaluate_folder
+    from coin_cl.scene.io import read_image, write_png
+    from coin_cl.scene.masks import write_mask
+
+    pred, split, depth = tmp_path / "pred", tmp_path / "split", tmp_path / "depth"
+    depth.mkdir()
+    for k, n in enumerate(("view_000", "view_001")):
+        gt = read_image(eval_scene / "images_4" / f"{n}.png")
+        m = _test_mask(eval_scene, k)
+        obs = m.copy()
+        obs[:, : m.shape[1] // 2] = False  # the right half of the mask "observed"
+        write_mask(split / "observed" / f"{n}.png", obs)
+        write_mask(split / "unseen" / f"{n}.png", m & ~obs)
+        wrong = np.where((m & ~obs)[..., None], 1 - gt, gt)
+        write_png(pred / f"{n}.png", wrong)
+        ref = np.load(eval_scene / "depth" / f"{n}.npy")
+        np.save(depth / f"{n}.npy", ref if k == 0 else 0.5 * ref)
+    doc = evaluate_folder(pred, eval_scene, tmp_path / "out", split_dir=split, depth_dir=depth)
+    v0, v1 = doc["per_view"]["view_000.png"], doc["per_view"]["view_001.png"]
+    assert v0["m_psnr_observed"] > 45 and v0["m_psnr_unseen"] < 20
+    assert v0["ghost"] == 0.0 and v1["ghost"] == 1.0
+    grid = read_image(tmp_path / "out" / "grids" / "view_000.png")
+    assert grid.shape[1] == 6 * 64 + 10
+    assert read_image(tmp_path / "out" / "grids" / "depth_view_000.png").shape == (48, 3 * 64 + 4, 3)
+
+
+def _test_mask(scene_dir, k):
+    from coin_cl.scene import load_scene
+
+    scene = load_scene(scene_dir)
+    return scene.masks[scene.test_idx[k]]

@@ -387,7 +387,7 @@ def _run(
               skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
     final = "2_refgs" if "ted" in cfg.skip else "4_ted"
-    stages.append(Stage("eval", stage_eval, ["0_scene", final], {"final": final}))
+    stages.append(Stage("eval", stage_eval, ["0_scene", *r, final], {"final": final}))  # 0_refine: the split
     records = run_stages(out, stages, shared, force)
     ev = records["eval"].get("result", {})
     from coin_cl.gs.trainer import CKPT_NAME, model_from_state

@@ -26,16 +26,23 @@ def stage_eval(ctx: StageContext) -> dict:
     folder = [p for n, p in ctx.inputs.items() if n == final][0]
     model = load_model(folder, CKPT_NAME, model_from_state)
     model.device = cfg.device
-    rdir = ctx.out / "renders"
+    rdir, ddir = ctx.out / "renders", ctx.out / "depths"
     rdir.mkdir(parents=True, exist_ok=True)
+    ddir.mkdir(parents=True, exist_ok=True)
 
     from tqdm import tqdm
 
     views = list(scene.test_idx) + list(scene.train_idx)
     for i in tqdm(views, desc="eval renders", unit="view"):
         with torch.no_grad():
-            r = model.render(scene.cameras[i], 10**9)
-        write_png(rdir / (Path(scene.cameras[i].name).stem + ".png"), to_uint8(r.image.clamp(0, 1).numpy()))
+            r = model.render(scene.cameras[i], 10**9, return_depth=True)
+        stem = Path(scene.cameras[i].name).stem
+        write_png(rdir / f"{stem}.png", to_uint8(r.image.clamp(0, 1).numpy()))
+        if i in scene.test_idx:  # camera z where the render is opaque (the depth grid, the ghost figure)
+            import numpy as np
+
+            d = r.depth.numpy().astype(np.float32)
+            np.save(ddir / f"{stem}.npy", np.where(r.alpha.numpy() > 0.5, d, np.nan))
     from coin_cl.render_utils import orbit_gif
 
     orbit_gif(model, [scene.cameras[i] for i in scene.train_idx], ctx.out / "orbit.gif")
@@ -47,7 +54,8 @@ def stage_eval(ctx: StageContext) -> dict:
     if gt_ok:
         from coin_cl.evaluation import evaluate_folder
 
-        doc = evaluate_folder(rdir, ctx.inputs["0_scene"] / "scene", ctx.out / "metrics")
+        doc = evaluate_folder(rdir, ctx.inputs["0_scene"] / "scene", ctx.out / "metrics",
+                              split_dir=ctx.inputs.get("0_refine"), depth_dir=ddir)  # fmt: skip
         result["metrics"] = doc["mean"]
     else:
         ctx.note("no ground-truth test views with masks: metrics skipped")
