@@ -74,7 +74,7 @@ def test_the_term_penalises_depth_outside_the_band_only():
     # In front by 20 %: (1 - 0.05 - 0.8) per pixel; the gradient pushes depth back, inside the mask only.
     d = torch.full((H, W), 1.6, requires_grad=True)
     loss = term(_ctx(d, alpha))
-    assert float(loss) == pytest.approx(0.15, abs=1e-6)
+    assert float(loss.detach()) == pytest.approx(0.15, abs=1e-6)
     loss.backward()
     assert (d.grad[torch.as_tensor(mask)] < 0).all() and (d.grad[~torch.as_tensor(mask)] == 0).all()
     # Inside the band: nothing.
@@ -100,7 +100,7 @@ def test_unusable_pixels_are_left_out_with_a_zero_gradient():
     alpha = torch.ones(H, W)
     alpha[3, :] = 0.2  # thin coverage: expected depth is ill-defined
     loss = term(_ctx(d, alpha))
-    assert torch.isfinite(loss) and float(loss) == pytest.approx(1 - 0.05 - 0.5, abs=1e-6)
+    assert torch.isfinite(loss) and float(loss.detach()) == pytest.approx(1 - 0.05 - 0.5, abs=1e-6)
     loss.backward()
     g = d.grad
     assert torch.isfinite(g).all()
