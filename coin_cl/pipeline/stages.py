@@ -149,8 +149,6 @@ def stage_refgs(ctx: StageContext) -> dict:
         )
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
     scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
-    if "0_refine" in ctx.inputs and rcfg.prune_points:
-        scene_m = _prune_object_points(ctx, scene_m, rcfg, train)
     full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
     from coin_cl.pipeline.insert import read_lift
 
@@ -159,7 +157,8 @@ def stage_refgs(ctx: StageContext) -> dict:
     ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
              f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
-    # The carve is the object's volume: the input masks, also when refined masks narrow what is inpainted.
+    # The object's volume is the input masks', also when refined masks narrow what is inpainted (the
+    # carve here, the pruning vote and the background depth in run_refgs's object_masks).
     attach, bg = _carve_hook(ctx, ctx.shared["scene"], ctx.shared["masks"], train)
     seed_points = None if lift is None else (lift.points, lift.colors)
     if bg is not None and len(bg):
@@ -180,23 +179,7 @@ def stage_refgs(ctx: StageContext) -> dict:
                      max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
-                     object_masks=ctx.shared["masks"])  # fmt: skip
-
-
-def _prune_object_points(ctx: StageContext, scene, rcfg, train: list[int]):
-    """`scene` with the SfM points on the object removed by the *input* masks' vote. Ref-GS prunes
-    by the masks it is given, and refined masks (the unseen core) hold the object in too few views
-    for the vote: on the demo room they kept 611 of its 1083 object points, which then seeded
-    Gaussians where the object stood."""
-    from coin_cl.gs.prune import prune_points_in_masks
-
-    inputs = ctx.shared["masks"]
-    cams, masks = [scene.cameras[i] for i in train], [inputs[i] for i in train]
-    frac, views = rcfg.prune_min_fraction, rcfg.prune_min_views
-    pr = prune_points_in_masks(np.asarray(scene.points), cams, masks, frac, views)
-    ctx.note(f"refined masks: {pr.n_removed} SfM points inside the input masks pruned before Ref-GS")
-    cols = None if scene.colors is None else np.asarray(scene.colors)[pr.keep]
-    return replace(scene, points=pr.points, colors=cols)
+                     object_masks=ctx.shared["masks"] if "0_refine" in ctx.inputs else None)  # fmt: skip
 
 
 def carves(cfg: CoInConfig, edited: Any) -> bool:
