@@ -363,7 +363,8 @@ def render_view(boxes: list[Box], cam: Camera, supersample: int = 2) -> dict[str
 class SyntheticScene:
     """A generated scene in memory. Per view i: cameras[i], present/absent images (H, W, 3),
     masks (H, W) bool, depth_present/depth_absent (H, W) camera z; is_test[i] marks the
-    object-absent test views. points (N, 3) / colors (N, 3) in [0, 1] sampled on visible surfaces."""
+    object-absent test views. points (N, 3) / colors (N, 3) in [0, 1] sampled on the surfaces the
+    training views capture (none from the test views)."""
 
     boxes: list[Box]
     cameras: list[Camera]
@@ -408,7 +409,8 @@ def make_synthetic(
         c.name = f"view_{j:03d}.png"
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("present", "absent", "mask", "dp", "da")}
     pts, cols = [], []
-    per_view = int(np.ceil(n_points / n_views))
+    n_train = n_views - len(test_pos)
+    per_view = int(np.ceil(n_points / n_train))
     for j, cam in enumerate(cams):
         r = render_view(boxes, cam, supersample)
         out["present"].append(r["present"])
@@ -416,9 +418,13 @@ def make_synthetic(
         out["mask"].append(r["mask"])
         out["dp"].append(r["depth_present"])
         out["da"].append(r["depth_absent"])
-        # "SfM" points: what each view sees (removal: test views see the room without the object;
-        # insertion: every captured view is of the room without the object).
-        key = "absent" if is_test[j] or task == "insertion" else "present"
+        # "SfM" points: what the training views capture (removal: the room with the object;
+        # insertion: the room without it). The test views are ground truth the method never sees,
+        # so no point comes from them: points on surfaces only a test view sees would hand a
+        # method the truth behind the object (they flattered masked reconstruction, issue 21).
+        if is_test[j]:
+            continue
+        key = "absent" if task == "insertion" else "present"
         depth = r[f"depth_{key}"]
         flat = rng.choice(width * height, size=per_view, replace=per_view > width * height)
         yy, xx = np.divmod(flat, width)
