@@ -152,6 +152,21 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
     return rows
 
 
+def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
+    """`base` with the resolution, step counts and scene prior seconds of the run folder `run`'s
+    plan.json (TE-D's counts as re-planned from its Ref-GS rate), given explicitly."""
+    f = run / "plan.json"
+    if not f.is_file():
+        raise SystemExit(f"--steps-from: {f} not found (pass a finished run folder, e.g. OUT/default)")
+    plan = json.loads(f.read_text())
+    st = plan["steps"]
+    print(f"schedule from {f}: {st}, scene prior {plan['prior_seconds']:.0f} s, "
+          f"resolution {plan['key']['resolution']}", file=sys.stderr, flush=True)  # fmt: skip
+    return replace(base, resolution=plan["key"]["resolution"], iters_refgs=st["refgs"],
+                   iters_ted_finetune=st["ted_finetune"], iters_ted_adversarial=st["ted_adversarial"],
+                   prior_seconds=plan["prior_seconds"])  # fmt: skip
+
+
 TEXTURE_SOURCES = {  # (folder under the run, views): the images each stage hands to the next
     "initial": ("1_inpaint/images", "train"),
     "clg": ("3_clg/images", "train"),
@@ -224,6 +239,10 @@ def main() -> int:
     ap.add_argument("--resolution", type=float, default=0.5)
     ap.add_argument("--out", type=Path, default=None, help="default benchmarks/out/coin (or coin_insertion)")
     ap.add_argument("--only", choices=["insertion"], help="run issue 13's synthetic rows instead of these")
+    ap.add_argument("--steps-from", type=Path, default=None, metavar="RUN",
+                    help="the full-pipeline rows take RUN's plan.json (its resolution, step counts after "
+                         "TE-D's re-plan, scene prior seconds) instead of a timing probe: the same "
+                         "schedule as RUN on any load (e.g. OUT/default of a quiet run)")  # fmt: skip
     ap.add_argument("--texture-only", action="store_true",
                     help="print the texture table of the rows already under --out; run nothing")  # fmt: skip
     import coin_insertion
@@ -253,6 +272,8 @@ def main() -> int:
         print_texture(args, [n for n in names if (args.out / n / "log.json").is_file()])
         return 0
     base = CoInConfig(budget_minutes=args.budget, resolution=args.resolution)
+    if args.steps_from is not None:
+        base = steps_from(args.steps_from, base)
 
     rows: dict[str, dict] = {}
     for name in names:

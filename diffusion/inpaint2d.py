@@ -194,10 +194,11 @@ def inpaint_image(
             raise ValueError(f"dataset inpaint shape {fill.shape} does not match the image's {image.shape}")
         if not np.isfinite(fill).all():
             raise ValueError("dataset inpaint contains NaN/Inf")
-        log.info("inpaint: no Stable Diffusion weights, using the %s", DATASET_NAME)
+        # debug: a pipeline calls this per view and logs the sources once (the return names it)
+        log.debug("inpaint: no Stable Diffusion weights, using the %s", DATASET_NAME)
     elif scene_prior is not None:
         source = PRIOR_NAME
-        log.info("inpaint: no Stable Diffusion weights or dataset inpaints, using the %s", PRIOR_NAME)
+        log.debug("inpaint: no Stable Diffusion weights or dataset inpaints, using the %s", PRIOR_NAME)
         fill = _model_fill(
             scene_prior, image, mask, scene_prior.work_size, cfg, cfg.sampler_prior, prompt, seed, energy
         )

@@ -241,6 +241,32 @@ def test_a_view_never_leaves_clg_worse_than_it_came(room, tmp_path):
     assert res["n_kept_input"] + res["n_guided"] == 3
 
 
+def test_warp_guard_keeps_the_input_where_the_warped_reference_is_worse(room, tmp_path):
+    """Without a sampler (SD2's reference_only mode) the warp of the reference passes the same checks
+    when `warp_guard` is on: a reference of hue noise inside its mask is warped into view n when the
+    guard is off (an edited reference's path), and view n keeps I^_n when it is on."""
+    s, k, n = room["s"], room["k"], room["train"][2]
+    inp = list(room["inp"])
+    noisy = np.array(inp[k], dtype=np.float32)
+    noisy[s.masks[k]] = np.random.default_rng(0).uniform(0, 1, (int(s.masks[k].sum()), 3))
+    inp[k] = noisy
+
+    def run(out, guard):
+        cfg = CLGConfig(progress=False, sample=False, warp_guard=guard)
+        return run_clg(k, [n], s.cameras, inp, inp, s.depth_absent, s.masks, room["pk"], None, None, out, cfg)
+
+    stem = f"view_{n:03d}"
+    off, on = run(tmp_path / "off", False)["views"][stem], run(tmp_path / "on", True)["views"][stem]
+    assert off["status"] == "warped" and off["support_px"] > 0
+    written_off = read_image(tmp_path / "off" / "images" / f"{stem}.png")
+    assert not np.array_equal(to_uint8(written_off), to_uint8(inp[n]))
+    assert on["status"] == "kept input"
+    assert any(w.startswith("colour") for w in on["kept_because"])
+    assert np.isfinite(on["lifted_before"]) and np.isfinite(on["lifted_after"])
+    written_on = read_image(tmp_path / "on" / "images" / f"{stem}.png")
+    assert np.array_equal(to_uint8(written_on), to_uint8(inp[n]))
+
+
 class _SmoothPosterior:
     """A denoiser whose answer is known: the exact posterior mean of x0 for a Gaussian prior centred
     on the crop's OpenCV Telea fill with per-pixel variance V (tiny): its samples are that smooth fill

@@ -228,7 +228,7 @@ def run_clg(
             ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
             depth_n = _depth_of(depths, n, cam.height, cam.width, f"depth of view {n}")
             if not cfg.sample:
-                out, rec = warp_view(n, cam, inp_n, ren_n, mask, ref, device)
+                out, rec = warp_view(n, cam, inp_n, ren_n, depth_n, mask, ref, device)
                 log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
                          "residual %.4f -> %.4f", n, stem, rec["support_px"], rec["hole_px"],
                          rec["residual_before"], rec["residual_after"])  # fmt: skip
@@ -238,13 +238,13 @@ def run_clg(
                                        cfg, device)  # fmt: skip
         except (ValueError, RuntimeError) as exc:  # say which view, whatever failed inside
             raise type(exc)(f"CLG, view {n} ({stem}): {exc}") from exc
-        if cfg.sample and cfg.keep_if_worse:
+        if cfg.keep_if_worse and (cfg.sample or cfg.warp_guard):
             why = no_worse(inp_n, out, mask, rec, cfg)
             if why:
                 out = inp_n
                 rec.update(status="kept input", kept_because=why, residual_written=rec.get("residual_before"))
-                log.info("CLG: view %d (%s) keeps its input I^_n: the guided image is worse (%s)", n, stem,
-                         "; ".join(why))  # fmt: skip
+                log.info("CLG: view %d (%s) keeps its input I^_n: the %s image is worse (%s)", n, stem,
+                         "guided" if cfg.sample else "warped", "; ".join(why))  # fmt: skip
         rec["seconds"] = time.perf_counter() - t0
         _write_view(js, png, rec, out)
         records[stem] = rec
@@ -353,10 +353,11 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
         # SD2's CPU-practical mode (issue 22): stage 1 ran SD2 on the reference only; no view here calls
         # it: each hole pixel takes the reference warped through P_k where it reaches, and the view's
         # initial (embedded) inpaint elsewhere, which stands in for R_n in `warp_fill`
-        cfg = replace(cfg, sample=False)
+        cfg = replace(cfg, sample=False, warp_guard=True)
         renders = inpaints
         ctx.note("SD2 reference_only: no sampler; each view takes the reference warped through P_k where "
-                 "P_k reaches and its initial inpaint elsewhere")  # fmt: skip
+                 "P_k reaches and its initial inpaint elsewhere, and keeps its input where that is "
+                 "worse")  # fmt: skip
     denoiser, extractor = None, None
     if cfg.sample:
         from coin_cl.diffusion.features import make_feature_extractor

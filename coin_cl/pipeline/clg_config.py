@@ -64,6 +64,11 @@ class CLGConfig:
         texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
         mask's surroundings (more than (1 + colour_tol) x the input's distance). Such a view keeps
         I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg.no_worse`).
+    warp_guard: keep_if_worse also for the warp-only fill (sample False). Off by default because
+        that fill's main use is an edited reference, whose warp adds an object with colours and
+        texture its surroundings lack (the colour check would reject exactly what was asked for);
+        SD2's reference_only mode turns it on: there the warp replaces an embedded fill with the
+        reference's content and must pass the same checks as a guided sample.
     """
 
     steps: int | None = None
@@ -85,6 +90,7 @@ class CLGConfig:
     detail_split: float = 0.5
     strength: float = 0.5
     keep_if_worse: bool = True
+    warp_guard: bool = False
     texture_tol: float = 0.1
     colour_tol: float = 0.25
 

@@ -66,13 +66,17 @@ def lifted_residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.nda
     return r(before), r(written)
 
 
-def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, mask: np.ndarray, ref: ReferenceView,
+def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: np.ndarray | None,
+              mask: np.ndarray, ref: ReferenceView,
               device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
-    """CLG without a sampler for view n: (output [H, W, 3], record)."""
+    """CLG without a sampler for view n: (output [H, W, 3], record). The fill is the reference itself
+    (both bands: no band split is needed, the detail comes through the same warp as the colours)."""
     warped = reference_in_view(ref.image, cam, ref.cam, ref.points, ref.depth, device)
     out, n_sup = warp_fill(inp_n, ren_n, mask, *warped)
     r_before, r_after, _ = residuals(inp_n, out, cam, mask, ref, device)
+    l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
     rec = {"view": n, "status": "warped", "residual_before": r_before, "residual_after": r_after,
+           "lifted_before": l_before, "lifted_after": l_after,
            "support_px": n_sup, "hole_px": int(mask.sum())}  # fmt: skip
     return out, rec
 
