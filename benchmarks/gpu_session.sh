@@ -81,16 +81,17 @@ check() {
   nvidia_ocl_libs
   echo "== OpenCL devices (rank: the default order; limits the kernels depend on)"
   python3 - <<'EOF'
-from coin_cl.engine import runtime
+from coin_cl.engine import devices
 from coin_cl.engine.limits import query_limits
+from coin_cl.engine.runtime import get_runtime
 
-for p, d in runtime.all_devices():
-    pr = runtime.probe_device(d)
-    print(f"{runtime.device_label(d)} | {d.version} | driver {d.driver_version} | rank {runtime.default_rank(d)}"
-          f" | probe {'ok' if pr.ok else 'FAILS: ' + pr.message} | host-unified {runtime.host_unified(d)}"
-          f" | {query_limits(d)} | float atomics {runtime.probe_float_atomics(d)}"
-          f" | CAS add {runtime.probe_cas_atomics(d)}")
-rt = runtime.get_runtime()
+for p, d in devices.all_devices():
+    pr = devices.probe_device(d)
+    print(f"{devices.device_label(d)} | {d.version} | driver {d.driver_version} | rank {devices.default_rank(d)}"
+          f" | probe {'ok' if pr.ok else 'FAILS: ' + pr.message} | host-unified {devices.host_unified(d)}"
+          f" | {query_limits(d)} | float atomics {devices.probe_float_atomics(d)}"
+          f" | CAS add {devices.probe_cas_atomics(d)}")
+rt = get_runtime()
 print(f"chosen: {rt.name}; discrete memory path: {rt.discrete}")
 EOF
 }
@@ -98,7 +99,7 @@ EOF
 suite() {
   python3 -m pytest -q -p no:cacheprovider -m kernel tests/test_ops.py tests/test_rendering.py \
     tests/test_warp.py tests/test_decode.py tests/test_ssim.py tests/test_runtime.py tests/test_limits.py \
-    tests/test_transfers.py
+    tests/test_devices.py tests/test_transfers.py
 }
 
 # shellcheck disable=SC2086

@@ -159,14 +159,14 @@ class Case:
 
 def devices(request: str | None) -> list[Runtime]:
     """The runtimes to benchmark: the default, a named one, or every device that builds kernels."""
-    from coin_cl.engine import runtime
+    from coin_cl.engine.devices import all_devices, default_rank, device_label, probe_device, working_devices
 
     if request != "all":
         return [get_runtime(request)]
-    for _, d in runtime.all_devices():
-        if runtime.default_rank(d)[0] < 9 and not runtime.probe_device(d).ok:
-            print(f"# skipped {runtime.device_label(d)}: {runtime.probe_device(d).message}")
-    return [Runtime(d) for d in runtime.working_devices()]
+    for _, d in all_devices():
+        if default_rank(d)[0] < 9 and not probe_device(d).ok:
+            print(f"# skipped {device_label(d)}: {probe_device(d).message}")
+    return [Runtime(d) for d in working_devices()]
 
 
 def main() -> None:

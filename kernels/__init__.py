@@ -1,1 +1,1 @@
-"""OpenCL C sources of the renderer, shipped as package data (see runtime.load_source)."""
+"""OpenCL C sources of the renderer, shipped as package data (found by coin_cl.engine.devices.kernel_dir)."""

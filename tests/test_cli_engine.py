@@ -58,10 +58,10 @@ def test_doctor_working_lists_usable_devices(capsys):
 
 
 def test_doctor_fails_when_no_device_builds(capsys, monkeypatch):
-    from coin_cl.engine import runtime
+    from coin_cl.engine import devices
 
-    monkeypatch.setattr(runtime, "_PROBES", {})
-    monkeypatch.setattr(runtime, "_PROBE_SOURCE", "__kernel void probe(__global float *x) { x[0] = y; }")
+    monkeypatch.setattr(devices, "_PROBES", {})
+    monkeypatch.setattr(devices, "_PROBE_SOURCE", "__kernel void probe(__global float *x) { x[0] = y; }")
     assert main(["doctor"]) == 1
     out = capsys.readouterr().out
     assert "FAILS:" in out and "No OpenCL device can build kernels" in out and "intel-opencl-rt" in out
@@ -85,7 +85,7 @@ def _record_launches(monkeypatch) -> list[str]:
 def test_demo_device_flag_is_the_device_that_renders(tmp_path, monkeypatch):
     """--device is honoured: every kernel launch of the demo goes to the named device (the last
     working one, so that with two implementations present it is not the default)."""
-    from coin_cl.engine.runtime import device_label, working_devices
+    from coin_cl.engine.devices import device_label, working_devices
 
     target = device_label(working_devices()[-1])
     seen = _record_launches(monkeypatch)

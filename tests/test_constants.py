@@ -3,7 +3,7 @@
 import re
 
 from coin_cl.engine import constants
-from coin_cl.engine.runtime import kernel_dir
+from coin_cl.engine.devices import kernel_dir
 
 NAMES = [
     "TILE_SIZE", "NEAR_PLANE", "FAR_PLANE", "EPS2D", "ALPHA_THRESHOLD", "MAX_ALPHA",

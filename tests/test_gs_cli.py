@@ -50,7 +50,8 @@ def test_render_without_training_is_a_clear_error(tmp_path, capsys):
 
 
 def test_train_and_render_honour_device(scene_dir, tmp_path, monkeypatch):
-    from coin_cl.engine.runtime import Runtime, device_label, working_devices
+    from coin_cl.engine.devices import device_label, working_devices
+    from coin_cl.engine.runtime import Runtime
 
     target = device_label(working_devices()[-1])
     seen: list[str] = []

@@ -212,7 +212,7 @@ def test_cpu_kernel_exp_matches_float64():
     as the built-in: relative error under 2e-7 over the whole range compositing uses."""
     import pyopencl as cl
 
-    from coin_cl.engine.runtime import kernel_dir
+    from coin_cl.engine.devices import kernel_dir
 
     r = get_runtime()
     src = (kernel_dir() / "rasterize_cpu.cl").read_text()

@@ -25,7 +25,7 @@ W, H = (36, 20) if SMALL else (100, 67)
 def runtimes():
     """(unified, discrete) runtimes on the default device, outputs poisoned (NaN / INT32_MIN):
     on the discrete path too, an element a kernel leaves unwritten shows."""
-    from coin_cl.engine.runtime import host_unified
+    from coin_cl.engine.devices import host_unified
 
     dev = get_runtime().device
     if not host_unified(dev):  # a discrete GPU: every other kernel test runs the discrete path
@@ -152,16 +152,16 @@ def test_every_op_gives_the_same_result_on_both_paths_and_counts_copies_only_whe
 
 
 def test_discrete_path_is_chosen_without_host_unified_memory_or_when_forced(monkeypatch):
-    from coin_cl.engine import runtime
+    from coin_cl.engine import devices
 
     dev = get_runtime().device
     monkeypatch.delenv("COIN_CL_DISCRETE", raising=False)
     monkeypatch.delenv("COIN_CL_NO_ZERO_COPY", raising=False)
-    assert Runtime(dev).discrete is (not runtime.host_unified(dev))
-    monkeypatch.setattr(runtime, "host_unified", lambda d: False)  # as a discrete GPU reports
+    assert Runtime(dev).discrete is (not devices.host_unified(dev))
+    monkeypatch.setattr(devices, "host_unified", lambda d: False)  # as a discrete GPU reports
     rt = Runtime(dev)
     assert rt.discrete and not rt.unified
-    monkeypatch.setattr(runtime, "host_unified", lambda d: True)
+    monkeypatch.setattr(devices, "host_unified", lambda d: True)
     assert Runtime(dev).unified
     monkeypatch.setenv("COIN_CL_DISCRETE", "1")
     assert Runtime(dev).discrete
@@ -195,8 +195,8 @@ def test_an_accumulator_must_start_at_zero():
 
 
 def test_the_aliasing_path_is_refused_without_host_unified_memory(monkeypatch):
-    from coin_cl.engine import runtime
+    from coin_cl.engine import devices
 
-    monkeypatch.setattr(runtime, "host_unified", lambda d: False)
+    monkeypatch.setattr(devices, "host_unified", lambda d: False)
     with pytest.raises(ValueError, match="no host-unified memory: it runs the discrete path only"):
         Runtime(get_runtime().device, discrete=False)

@@ -58,10 +58,12 @@ def run_doctor(args: argparse.Namespace) -> int:
     none does (with what to install)."""
     from importlib import metadata
 
-    from coin_cl.engine import runtime
+    from coin_cl.engine import devices
+    from coin_cl.engine.errors import NoDeviceError
+    from coin_cl.engine.runtime import get_runtime
 
     if args.working:
-        labels = [runtime.device_label(d) for d in runtime.working_devices()]
+        labels = [devices.device_label(d) for d in devices.working_devices()]
         print("\n".join(labels))
         return 0 if labels else 1
     omp = os.environ.get("OMP_WAIT_POLICY")
@@ -81,22 +83,22 @@ def run_doctor(args: argparse.Namespace) -> int:
         except metadata.PackageNotFoundError:
             print(f"  {pkg}: not installed")
     print(f"OCL_ICD_VENDORS={os.environ.get('OCL_ICD_VENDORS', '(unset)')}")
-    devices = [d for _, d in runtime.all_devices()]
-    if not devices:
-        print(f"OpenCL: no platform found; {runtime._INSTALL_HINT}")
+    visible = [d for _, d in devices.all_devices()]
+    if not visible:
+        print(f"OpenCL: no platform found; {devices.INSTALL_HINT}")
         return 1
     print("OpenCL devices (probe = build and run a tiny kernel):")
     working = []
-    for d in devices:
-        probe = runtime.probe_device(d)
-        rank, why = runtime.default_rank(d)
+    for d in visible:
+        probe = devices.probe_device(d)
+        rank, why = devices.default_rank(d)
         state = f"works ({probe.seconds:.2f} s to build and run)" if probe.ok else f"FAILS: {probe.message}"
-        print(f"  {runtime.device_label(d)}  [{d.version}]")
+        print(f"  {devices.device_label(d)}  [{d.version}]")
         print(f"    probe: {state}")
         if probe.ok:
             working.append((rank, why, d))
             print(
-                f"    float atomics: {runtime.probe_float_atomics(d)}; "
+                f"    float atomics: {devices.probe_float_atomics(d)}; "
                 f"fp64: {'cl_khr_fp64' in d.extensions}; "
                 f"global memory {d.global_mem_size / 2**30:.1f} GiB; compute units {d.max_compute_units}; "
                 f"unified memory {bool(d.host_unified_memory)}"
@@ -105,7 +107,7 @@ def run_doctor(args: argparse.Namespace) -> int:
         print(
             "No OpenCL device can build kernels. On CPUs newer than PoCL's LLVM 14 knows, "
             "`pip install intel-opencl-rt intel-cmplr-lib-rt` gives a working CPU device; "
-            f"{runtime._INSTALL_HINT}"
+            f"{devices.INSTALL_HINT}"
         )
         return 1
     print("2D models (paper model, or the embedded default that replaces it):")
@@ -115,14 +117,14 @@ def run_doctor(args: argparse.Namespace) -> int:
         print(f"  {name}: {'available' if info['available'] else 'not available'} ({info['reason']})")
     request = os.environ.get("COIN_CL_DEVICE")
     try:
-        rt = runtime.get_runtime()
-    except runtime.NoDeviceError as exc:
+        rt = get_runtime()
+    except NoDeviceError as exc:
         print(f"default device: none ({exc})")
         return 1
     if request:
         reason = f"COIN_CL_DEVICE={request!r}"
     else:
-        reason = next(why for _, why, d in working if runtime.device_label(d) == rt.name)
+        reason = next(why for _, why, d in working if devices.device_label(d) == rt.name)
         reason += "; the order is: a GPU, Intel's CPU runtime, PoCL (COIN_CL_DEVICE overrides)"
     print(f"default device: {rt.name} ({reason})")
     return 0

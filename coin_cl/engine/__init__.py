@@ -3,7 +3,8 @@
 rendering   the public API: rasterize = project -> bin_tiles -> rasterize_to_pixels
 ops/        one module per kernel file of kernels/ (thin autograd wrappers)
 reference   pure-torch float64 twins with the same signatures (tests, error columns)
-runtime     device choice and probing, context/queue, program cache, shared buffers
+devices     device listing, probing and choice; where the kernel sources are
+runtime     context/queue, program cache, shared buffers
 icd         registration of pip-installed OpenCL implementations
 constants   every constant, mirrored in kernels/common.h
 geometry    small math the fast path and the twins share

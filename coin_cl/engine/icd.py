@@ -16,7 +16,7 @@ concurrent processes never see half a folder and a current folder is not rewritt
 home falls back to a temporary folder (logged). `COIN_CL_NO_ICD=1` switches all of this off.
 
 It must run before pyopencl first lists platforms (the loader reads the folder once per process):
-`coin_cl.engine.runtime` calls it on import.
+`coin_cl.engine.devices` calls it on import.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ Which limits matter (DESIGN.md section 3, the runtime layer; the renderer of sec
 No kernel uses images, so the image size limits do not apply.
 
 A device whose limits are below the smallest variant gets a `DeviceLimitError` naming the device,
-the limit and what to do; `runtime.default_rank` ranks such a GPU behind the CPU.
+the limit and what to do; `devices.default_rank` ranks such a GPU behind the CPU.
 """
 
 from __future__ import annotations
