@@ -76,7 +76,8 @@ def ghost_of_model(model, scene, depths: dict[int, np.ndarray]) -> float:
 def final_model(run: Path):
     """The final model of a `coin-cl run` folder (the stage eval scored; the last stage that trained
     one when the folder has no eval)."""
-    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CKPT_NAME
 
     manifest = run / "eval" / "manifest.json"
     if manifest.is_file():

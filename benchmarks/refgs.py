@@ -39,9 +39,9 @@ sys.path.insert(0, str(ROOT))
 from common import cpu_model, default_data, git_commit, write_result  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
+from coin_cl.gs.model_kinds import model_from_state  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
 from coin_cl.gs.targets import composite_targets  # noqa: E402
-from coin_cl.gs.trainer import model_from_state  # noqa: E402
 from coin_cl.pipeline.refgs import run_refgs  # noqa: E402
 from coin_cl.pipeline.reprojection import residual_to_reference  # noqa: E402
 from coin_cl.scene.splits import inpainted_targets  # noqa: E402

@@ -32,7 +32,8 @@ def _depth(run: Path, scene, i: int) -> np.ndarray | None:
     if folder is not None:
         import torch
 
-        from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+        from coin_cl.gs.model_kinds import model_from_state
+        from coin_cl.gs.trainer import CKPT_NAME
         from coin_cl.pipeline.stages import load_model
 
         model = load_model(folder, CKPT_NAME, model_from_state)

@@ -114,7 +114,8 @@ def masked_recon_row(syn, scene_dir: Path, out: Path, steps: int) -> dict:
     import torch
 
     from coin_cl.demo import room_baseline
-    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CKPT_NAME
     from coin_cl.metrics import ghost_fraction
     from coin_cl.pipeline.stages import load_model
 

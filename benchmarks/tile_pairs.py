@@ -30,7 +30,8 @@ from common import cpu_model, git_commit  # noqa: E402
 
 from coin_cl.engine import constants as cst  # noqa: E402
 from coin_cl.engine.reference import splat_extents  # noqa: E402
-from coin_cl.gs.trainer import cameras_from_json, model_from_state  # noqa: E402
+from coin_cl.gs.model_kinds import model_from_state  # noqa: E402
+from coin_cl.gs.trainer import cameras_from_json  # noqa: E402
 
 
 def pair_counts(m2: np.ndarray, con: np.ndarray, op: np.ndarray, rad: np.ndarray, w: int, h: int) -> tuple:

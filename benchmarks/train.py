@@ -42,7 +42,8 @@ from common import cpu_model, default_data, git_commit  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
-from coin_cl.gs.trainer import TrainConfig, evaluate_views, make_trainer, scaled_model_config  # noqa: E402
+from coin_cl.gs.model_kinds import scaled_model_config  # noqa: E402
+from coin_cl.gs.trainer import TrainConfig, evaluate_views, make_trainer  # noqa: E402
 from coin_cl.scene.splits import inpainted_targets, split_indices  # noqa: E402
 
 # Steps per second measured over 5-minute runs at 504x284 on the 2-core machine (2026-11-22), used

@@ -201,7 +201,8 @@ def room_baseline(out: Path, scene_dir: Path, steps: int = 400, device=None) -> 
 
     from coin_cl import load_scene
     from coin_cl.evaluation import evaluate_folder
-    from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config
+    from coin_cl.gs.model_kinds import scaled_model_config
+    from coin_cl.gs.trainer import TrainConfig, make_trainer
     from coin_cl.scene.io import to_uint8, write_png
 
     log.info("demo: baseline, 3DGS with the object's pixels left out of the loss (no inpainting)")

@@ -177,7 +177,8 @@ def render_checkpoint(
     "train" or "orbit" (`frames` cameras from `orbit_cameras`). Writes an image and a depth map per
     view under `out_dir/renders/<views>/` (and `renders/orbit.gif` for the orbit); returns the
     number of views and the path written (the folder, or the GIF)."""
-    from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json, model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json
 
     out_dir = Path(out_dir)
     ckpt = out_dir / CKPT_NAME

@@ -11,7 +11,8 @@ import argparse
 from pathlib import Path
 
 import coin_cl
-from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config
+from coin_cl.gs.model_kinds import scaled_model_config
+from coin_cl.gs.trainer import TrainConfig, make_trainer
 from coin_cl.scene.splits import split_indices
 
 

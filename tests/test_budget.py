@@ -122,7 +122,7 @@ def test_ted_is_planned_again_from_refgs_measured_rate():
 def test_standalone_steps_use_the_pipelines_rule():
     """One minute->steps rule: a stage run on its own (`run_refgs(budget_minutes=...)`) gets the
     steps `steps_from_rate` gives that stage for the same minutes at the same probe rate."""
-    from coin_cl.gs.trainer import REFERENCE_ITERS
+    from coin_cl.gs.model_kinds import REFERENCE_ITERS
 
     def probe():
         raise AssertionError("no probe needed")

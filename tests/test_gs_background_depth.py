@@ -124,7 +124,7 @@ def test_bad_settings_are_clear_errors():
 
 
 def _ghost(run: dict, scene, syn) -> float:
-    from coin_cl.gs.trainer import model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
 
     model = model_from_state(torch.load(run["checkpoint"], weights_only=False)["model"])
     vals = []

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from coin_cl.cli import main
+from coin_cl.gs.model_kinds import scaled_strategy
 from coin_cl.gs.synthetic import tiny_scene
-from coin_cl.gs.trainer import scaled_strategy
 from coin_cl.scene import Scene, save_scene
 
 

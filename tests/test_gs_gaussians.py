@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 from coin_cl.gs.gaussians import GaussianConfig, GaussianModel
+from coin_cl.gs.model_kinds import scaled_model_config, scaled_strategy
 from coin_cl.gs.synthetic import tiny_scene
-from coin_cl.gs.trainer import TrainConfig, Trainer, scaled_model_config, scaled_strategy
+from coin_cl.gs.trainer import TrainConfig, Trainer
 
 BACKEND = "opencl"
 

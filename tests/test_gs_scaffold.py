@@ -3,9 +3,10 @@ import pytest
 import torch
 
 from coin_cl.engine.rendering import rasterize
+from coin_cl.gs.model_kinds import scaled_model_config, scaled_strategy
 from coin_cl.gs.scaffold import GRID_HALF_CELLS, ScaffoldConfig, ScaffoldModel, min_voxel_size, voxelize
 from coin_cl.gs.synthetic import tiny_scene
-from coin_cl.gs.trainer import TrainConfig, Trainer, scaled_model_config, scaled_strategy
+from coin_cl.gs.trainer import TrainConfig, Trainer
 
 BACKEND = "opencl"
 

@@ -7,8 +7,7 @@ import torch
 from coin_cl.gs.base import RenderOutput, inverse_sigmoid
 from coin_cl.gs.gaussians import GaussianModel
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel
-from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy, default_strategy
-from coin_cl.gs.trainer import scaled_strategy
+from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy
 
 
 def _model(n: int = 10) -> GaussianModel:
@@ -117,15 +116,6 @@ def test_strategy_state_roundtrip_and_sanity():
     base = Strategy()
     base.initialize(sm)
     assert base.step_post_backward(sm, 0, _fake_render(m, torch.zeros(10, 2), torch.ones(10))) == {}
-
-
-def test_scaled_strategy_matches_the_published_schedule():
-    assert scaled_strategy("3dgs", 30_000) == default_strategy("3dgs") == DefaultStrategy()
-    assert scaled_strategy("scaffold", 60_000) == ScaffoldStrategy()
-    d = scaled_strategy("3dgs", 3000)
-    assert (d.refine_every, d.refine_start, d.refine_stop, d.reset_every) == (20, 100, 1500, 600)
-    s = scaled_strategy("scaffold", 3000)
-    assert (s.update_interval, s.start_stat, s.update_from, s.update_until) == (20, 50, 150, 1500)
 
 
 def test_anchor_growing_and_pruning_counts():

@@ -8,6 +8,7 @@ from torch import Tensor
 
 from coin_cl.gs.gaussians import GaussianConfig
 from coin_cl.gs.losses import LossConfig, photometric_loss
+from coin_cl.gs.model_kinds import build_model
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel
 from coin_cl.gs.strategy import DefaultStrategy
 from coin_cl.gs.synthetic import tiny_scene
@@ -19,7 +20,7 @@ from coin_cl.gs.terms import (
     ViewWeights,
     default_terms,
 )
-from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, Trainer, build_model
+from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, Trainer
 
 EXACT = "torch"
 

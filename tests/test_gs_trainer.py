@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from coin_cl.gs.gaussians import GaussianConfig
+from coin_cl.gs.model_kinds import build_model
 from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.trainer import (
@@ -15,7 +16,6 @@ from coin_cl.gs.trainer import (
     TrainConfig,
     Trainer,
     TrainingDivergedError,
-    build_model,
 )
 
 # Both backends are deterministic (the kernels' backward sums gradient shares in a fixed order),

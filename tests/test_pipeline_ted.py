@@ -7,9 +7,10 @@ import torch
 
 from coin_cl.gs.data import View
 from coin_cl.gs.gaussians import GaussianConfig
+from coin_cl.gs.model_kinds import build_model
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.terms import LossContext
-from coin_cl.gs.trainer import TrainConfig, build_model
+from coin_cl.gs.trainer import TrainConfig
 from coin_cl.pipeline.ted import AdversarialTerm, TEDConfig, patch_size, run_ted
 
 W, H = 64, 48

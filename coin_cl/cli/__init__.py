@@ -1,5 +1,6 @@
 """The `coin-cl` command line: thin parsers over the Python API (`coin_cl.demo`, `coin_cl.evaluation`,
-`coin_cl.gs.trainer`, `coin_cl.prepare`, `coin_cl.render_utils`, `coin_cl.scene`).
+`coin_cl.gs.trainer`, `coin_cl.gs.model_kinds`, `coin_cl.prepare`, `coin_cl.render_utils`,
+`coin_cl.scene`).
 
 A module of this package joins the CLI by defining `add_commands(subparsers)`; the list below names
 them. Nothing outside `coin_cl.cli` imports it.

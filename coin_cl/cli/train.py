@@ -51,7 +51,8 @@ def add_commands(subparsers) -> None:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from coin_cl import load_scene
-    from coin_cl.gs.trainer import TrainConfig, make_trainer, scaled_model_config
+    from coin_cl.gs.model_kinds import scaled_model_config
+    from coin_cl.gs.trainer import TrainConfig, make_trainer
     from coin_cl.scene.splits import inpainted_targets, split_indices
 
     scene = load_scene(args.scene_dir, resolution=args.resolution)

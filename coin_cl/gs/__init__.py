@@ -6,12 +6,14 @@
   `ViewWeights` source, exclusion masks), `ScaleVolumeReg`; the protocol in `coin_cl.gs.terms`;
 - `ShuffledEpochs` (view sampler);
 - `ParamOptimizer` / `ExpSchedule` (per-tensor Adam with schedules and row surgery);
-- `Trainer`, `TrainConfig`, `make_trainer`, `build_model`, `model_from_state`.
+- `build_model`, `scaled_model_config`, `scaled_strategy`, `model_from_state` (the model kinds by name);
+- `Trainer`, `TrainConfig`, `make_trainer` (the training loop).
 """
 
 from coin_cl.gs.data import Camera, View, views_from_scene
 from coin_cl.gs.gaussians import GaussianConfig, GaussianModel
 from coin_cl.gs.losses import LossConfig, photometric_loss, ssim_map
+from coin_cl.gs.model_kinds import build_model, model_from_state, scaled_model_config, scaled_strategy
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
 from coin_cl.gs.sampler import ShuffledEpochs, ViewSampler
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel
@@ -25,16 +27,7 @@ from coin_cl.gs.terms import (
     ViewWeights,
     default_terms,
 )
-from coin_cl.gs.trainer import (
-    TrainConfig,
-    Trainer,
-    TrainingDivergedError,
-    build_model,
-    make_trainer,
-    model_from_state,
-    scaled_model_config,
-    scaled_strategy,
-)
+from coin_cl.gs.trainer import TrainConfig, Trainer, TrainingDivergedError, make_trainer
 
 __all__ = [
     "Camera",

@@ -2,7 +2,8 @@
 
 A `View` is one camera with its target image, an optional exclusion mask and a loss weight. The
 trainer never looks at the scene loader's types; `views_from_scene` duck-types them (anything with
-`cameras[i].K/.viewmat/.width/.height`, `images`, optional `masks`).
+`cameras[i].K/.viewmat/.width/.height`, `images`, optional `masks`); `init_points` gives the
+scene's sparse points and colours a model starts from.
 """
 
 from __future__ import annotations
@@ -90,6 +91,16 @@ def colors_from_views(points: np.ndarray, views: Sequence[View], max_views: int 
         cnt[ok] += 1
     col = torch.where(cnt[:, None] > 0, acc / cnt.clamp_min(1)[:, None], torch.full_like(acc, 0.5))
     return col.numpy()
+
+
+def init_points(scene, views: Sequence[View]) -> tuple[np.ndarray, np.ndarray]:
+    """The scene's sparse points [N, 3] and colours [N, 3] (float32), colouring the points from
+    `views` (`colors_from_views`) when the scene has no colours; a model is built from them."""
+    pts = np.asarray(scene.points, dtype=np.float32)
+    cols = scene.colors
+    if cols is None:
+        cols = colors_from_views(pts, views)
+    return pts, np.asarray(cols, dtype=np.float32)
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:

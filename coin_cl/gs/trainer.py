@@ -1,7 +1,11 @@
 """The training loop: one view per step from a view sampler, a sum of loss terms, a densification
 strategy, periodic held-out evaluation, resumable checkpoints, a NaN guard, PLY export and a JSON
-log. The loop knows no model kind: the recipes beside it (`build_model`, `default_strategy`,
-`default_terms`, `scaled_model_config`, `scaled_strategy`) do.
+log. The loop knows no model kind: `coin_cl.gs.model_kinds` builds the model, scales its schedules
+and rebuilds it from a checkpoint (`model_from_state`); the default strategy and loss terms of a
+kind come from `coin_cl.gs.strategy.default_strategy` and `coin_cl.gs.terms.default_terms`.
+`make_trainer` joins the two over a loaded scene: the standard trainer, model kind from
+`TrainConfig.model`. It lives here rather than beside the kinds because the loop already depends
+on `model_kinds` (checkpoint loading), so the other way round would be an import cycle.
 
 Output folder layout:
     ckpt.pt          last good checkpoint (written to a temporary file, fsynced, then renamed)
@@ -19,7 +23,7 @@ import os
 import resource
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +32,11 @@ import torch
 from torch import Tensor
 
 from coin_cl.gs.base import Model
-from coin_cl.gs.data import Camera, View, colors_from_views, scene_extent
-from coin_cl.gs.gaussians import GaussianConfig, GaussianModel, gaussian_config_from_dict
+from coin_cl.gs.data import Camera, View, init_points, scene_extent
 from coin_cl.gs.losses import LossConfig
+from coin_cl.gs.model_kinds import ModelConfig, build_model, model_from_state, scaled_strategy
 from coin_cl.gs.sampler import ShuffledEpochs, ViewSampler
-from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, scaffold_config_from_dict
-from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy, default_strategy
+from coin_cl.gs.strategy import Strategy, default_strategy
 from coin_cl.gs.terms import LossContext, LossTerm, default_terms
 from coin_cl.scene.io import atomic_write
 
@@ -43,7 +46,6 @@ CKPT_NAME = "ckpt.pt"
 LOG_NAME = "log.json"
 CAMERAS_NAME = "cameras.json"
 PLY_NAME = "point_cloud.ply"
-MODELS = ("scaffold", "3dgs")
 
 
 def ckpt_seconds_default() -> float:
@@ -78,99 +80,6 @@ class TrainConfig:
     # The fused training path (index-gather decode, fused Adam); False: the earlier unfused path,
     # kept so that benchmarks/train.py --throughput measures both in one run. See docs/BENCHMARKS.md.
     fused: bool = True
-
-
-def build_model(
-    kind: str,
-    points: np.ndarray,
-    colors: np.ndarray | None,
-    extent: float,
-    seed: int = 0,
-    model_cfg: GaussianConfig | ScaffoldConfig | None = None,
-) -> Model:
-    """A fresh 'scaffold' or '3dgs' model from points [N, 3] and optional colours [N, 3]."""
-    if kind == "scaffold":
-        return ScaffoldModel(points, colors, extent, model_cfg, seed=seed)
-    if kind == "3dgs":
-        return GaussianModel(points, colors, extent, model_cfg, seed=seed)
-    raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
-
-
-REFERENCE_ITERS = 30_000  # the step counts the published schedules were written for
-
-
-def scaled_model_config(kind: str, iters: int) -> GaussianConfig | ScaffoldConfig:
-    """Default model config with its schedules compressed to a run of `iters` steps.
-
-    Learning rates decay over exactly `iters`; the SH degree steps shrink by iters / 30k (as
-    gsplat's `steps_scaler`), floored at 100. Runs of 30k steps or more get the defaults. The
-    densification schedule is scaled by `scaled_strategy`.
-    """
-    f = min(1.0, iters / REFERENCE_ITERS)
-    if kind == "3dgs":
-        c = GaussianConfig()
-        c.lr_means = replace(c.lr_means, max_steps=iters)
-        c.sh_degree_interval = max(100, round(c.sh_degree_interval * f))
-        return c
-    if kind == "scaffold":
-        c2 = ScaffoldConfig()
-        return replace(
-            c2,
-            lr_offsets=replace(c2.lr_offsets, max_steps=iters),
-            lr_mlp_opacity=replace(c2.lr_mlp_opacity, max_steps=iters),
-            lr_mlp_cov=replace(c2.lr_mlp_cov, max_steps=iters),
-            lr_mlp_color=replace(c2.lr_mlp_color, max_steps=iters),
-        )
-    raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
-
-
-def scaled_strategy(kind: str, iters: int) -> Strategy:
-    """The default densification of `kind` with its schedule compressed to `iters` steps.
-
-    Start/stop/interval shrink by iters / 30k (gsplat's `steps_scaler`), with floors so that
-    statistics still gather over enough views. Runs of 30k steps or more get the defaults.
-    """
-    f = min(1.0, iters / REFERENCE_ITERS)
-    if kind == "3dgs":
-        d = DefaultStrategy()
-        every = max(20, round(d.refine_every * f))
-        return replace(
-            d,
-            refine_every=every,
-            refine_start=max(100, round(d.refine_start * f)),
-            refine_stop=max(200, round(d.refine_stop * f)),
-            reset_every=max(30 * every, round(d.reset_every * f)),
-        )
-    if kind == "scaffold":
-        c = ScaffoldStrategy()
-        every = max(20, round(c.update_interval * f))
-        return replace(
-            c,
-            update_interval=every,
-            start_stat=max(50, round(c.start_stat * f)),
-            update_from=max(every * 2, round(c.update_from * f)),
-            update_until=max(every * 4, round(c.update_until * f)),
-        )
-    raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
-
-
-def model_from_state(sd: dict[str, Any]) -> Model:
-    """Rebuild a model (any size) from its `state_dict`."""
-    params = sd["optimizer"]["params"]
-    if sd["kind"] == "scaffold":
-        cfg = scaffold_config_from_dict(sd["cfg"])
-        # the saved anchors are voxelised at their own (resolved) size; the config stays as given
-        # (0: automatic), so that a checkpoint written after a resume is the same as without one
-        m: Model = ScaffoldModel(params["anchors"].numpy(), None, sd["extent"],
-                                 replace(cfg, voxel_size=sd["voxel_size"]))  # fmt: skip
-        m.cfg = cfg
-    elif sd["kind"] == "3dgs":
-        cfg3 = gaussian_config_from_dict(sd["cfg"])
-        m = GaussianModel(params["means"].numpy(), None, sd["extent"], cfg3)
-    else:
-        raise ValueError(f"checkpoint holds an unknown model kind {sd['kind']!r}")
-    m.load_state_dict(sd)
-    return m
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
@@ -515,15 +424,6 @@ class Trainer:
         self.model.export_gaussians(center).to_ply(path)
 
 
-def init_points(scene, views: Sequence[View]) -> tuple[np.ndarray, np.ndarray | None]:
-    """The scene's sparse points and colours, colouring them from the views when unknown."""
-    pts = np.asarray(scene.points, dtype=np.float32)
-    cols = scene.colors
-    if cols is None:
-        cols = colors_from_views(pts, views)
-    return pts, np.asarray(cols, dtype=np.float32)
-
-
 def make_trainer(
     scene,
     train_idx: Sequence[int],
@@ -531,7 +431,7 @@ def make_trainer(
     cfg: TrainConfig,
     out_dir: str | Path | None = None,
     train_images: Sequence | None = None,
-    model_cfg: GaussianConfig | ScaffoldConfig | None = None,
+    model_cfg: ModelConfig | None = None,
     exclude_masks: bool = False,
     resume: bool = True,
     device=None,

@@ -129,7 +129,7 @@ def standalone_steps(stage: str, minutes: float | None, iters: int | None, probe
     given; else `minutes` of that stage at the rate `probe()` measures (seconds per probe step, see
     `probe_seconds_per_step`), by `stage_steps`, the pipeline's rule (at least 1); else the
     published schedule (`REFERENCE_ITERS`, 30k)."""
-    from coin_cl.gs.trainer import REFERENCE_ITERS
+    from coin_cl.gs.model_kinds import REFERENCE_ITERS
 
     if iters is not None:
         if iters < 1:
@@ -157,15 +157,9 @@ def probe_seconds_per_step(scene: Any, train_idx: list[int], device: Any = None,
     """Seconds per step of a plain Scaffold-GS trained on `scene`'s captured training views (the
     model every GS stage of CoIn trains), measured over PROBE_STEPS steps after PROBE_WARMUP.
     The model is thrown away."""
-    from coin_cl.gs.data import scene_extent, views_from_scene
-    from coin_cl.gs.trainer import (
-        TrainConfig,
-        Trainer,
-        build_model,
-        init_points,
-        scaled_model_config,
-        scaled_strategy,
-    )
+    from coin_cl.gs.data import init_points, scene_extent, views_from_scene
+    from coin_cl.gs.model_kinds import build_model, scaled_model_config, scaled_strategy
+    from coin_cl.gs.trainer import TrainConfig, Trainer
 
     n = PROBE_WARMUP + PROBE_STEPS
     views = views_from_scene(scene, train_idx)

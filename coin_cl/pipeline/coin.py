@@ -390,7 +390,8 @@ def _run(
     stages.append(Stage("eval", stage_eval, ["0_scene", *r, final], {"final": final}))  # 0_refine: the split
     records = run_stages(out, stages, shared, force)
     ev = records["eval"].get("result", {})
-    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CKPT_NAME
 
     model = load_model(out / final, CKPT_NAME, model_from_state)
     return CoInResult(

@@ -17,7 +17,8 @@ if TYPE_CHECKING:
 def stage_eval(ctx: StageContext) -> dict:
     import torch
 
-    from coin_cl.gs.trainer import CKPT_NAME, model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CKPT_NAME
     from coin_cl.scene.io import to_uint8, write_png
 
     scene = ctx.shared["scene"]

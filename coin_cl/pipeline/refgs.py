@@ -42,19 +42,13 @@ import numpy as np
 import torch
 
 from coin_cl.gs.background_depth import background_depths
-from coin_cl.gs.data import Camera, View, scene_extent
+from coin_cl.gs.data import Camera, View, init_points, scene_extent
 from coin_cl.gs.depth_prior import DepthPrior, inpaint_depth, reference_depth_prior
+from coin_cl.gs.model_kinds import build_model, scaled_model_config, scaled_strategy
 from coin_cl.gs.prune import prune_points_in_masks
 from coin_cl.gs.refgs import RefGSConfig, adaptive_weights_of, refgs_terms
 from coin_cl.gs.targets import composite_targets
-from coin_cl.gs.trainer import (
-    TrainConfig,
-    Trainer,
-    build_model,
-    init_points,
-    scaled_model_config,
-    scaled_strategy,
-)
+from coin_cl.gs.trainer import TrainConfig, Trainer
 from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
 from coin_cl.scene.io import view_stem, write_png

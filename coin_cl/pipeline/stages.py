@@ -227,7 +227,8 @@ def stage_ted(ctx: StageContext) -> dict:
     import torch
 
     from coin_cl.gs.data import views_from_scene
-    from coin_cl.gs.trainer import CKPT_NAME, TrainConfig, model_from_state
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CKPT_NAME, TrainConfig
     from coin_cl.pipeline.ted import run_ted
     from coin_cl.scene.io import read_image
 
