@@ -12,6 +12,8 @@ guided image is worse keeps its input, as in a pipeline run). Rows (`CLGConfig` 
     input_sdedit  the sampler starts from I^_n's crop noised half way (strength 0.5), + I^_n's band
     default       CLGConfig(): strength 0.5 + the reference's band where supported, I^_n's elsewhere
     strength_03, strength_07   the default at strength 0.3 / 0.7 (not run unless named in --rows)
+    run           nothing is run: the run's own 3_clg images, scored the same way (`--rows run`
+                  gives a finished run's CLG figures in seconds)
 Per row, over the non-reference views with a mask (a view that kept its input counts with it): the
 residual to the reference of the initial inpaints (in) and of the images the row writes (out)
 (`reprojection.residual_to_reference`: each view's mask pixels lifted with its Ref-GS depth where
@@ -65,6 +67,12 @@ ROWS = {
     "strength_07": CLGConfig(strength=0.7),
 }
 DEFAULT_ROW = "default"
+OWN_ROW = "run"  # the run's own 3_clg, scored without running anything
+
+
+def row_dir(run: Path, out: Path, row: str) -> Path:
+    """The folder holding a row's 3_clg: the run itself for OWN_ROW, else out/<row>."""
+    return run if row == OWN_ROW else out / row
 
 
 def run_row(run: Path, out: Path, cfg: CLGConfig, scene, masks, ref: int, plan: dict) -> tuple[dict, float]:
@@ -143,7 +151,7 @@ def grid(
         stem = view_stem(scene.cameras[i].name, i)
         crop = metrics.bbox_crop(np.asarray(masks[i], bool), pad=8)
         tiles = [read_image(run / "1_inpaint" / "images" / f"{stem}.png")]
-        tiles += [read_image(out / r / "3_clg" / "images" / f"{stem}.png") for r in rows]
+        tiles += [read_image(row_dir(run, out, r) / "3_clg" / "images" / f"{stem}.png") for r in rows]
         lines.append(tile_row([t[crop] for t in tiles], cell))
     return to_uint8(np.concatenate(lines, axis=0))
 
@@ -170,13 +178,19 @@ def main() -> int:
 
     ref = int(json.loads((run / "2_refgs" / "stage.json").read_text())["reference"]["index"])
     rows = [r for r in args.rows.split(",") if r]
-    bad = [r for r in rows if r not in ROWS]
+    bad = [r for r in rows if r not in ROWS and r != OWN_ROW]
     if bad:
-        raise SystemExit(f"unknown rows {bad}: choose from {', '.join(ROWS)}")
+        raise SystemExit(f"unknown rows {bad}: choose from {', '.join(ROWS)}, {OWN_ROW}")
     figs: dict[str, dict] = {}
     for r in rows:
-        res, secs = run_row(run, args.out / r, ROWS[r], scene, masks, ref, plan)
-        figs[r] = score(run, args.out / r, scene, masks, ref, res) | {"minutes": secs / 60}
+        if r == OWN_ROW:
+            man = run / "3_clg" / "manifest.json"
+            if not man.is_file():
+                raise SystemExit(f"{man} not found: the run has no finished CLG stage")
+            res, secs = json.loads(man.read_text())["result"], 0.0
+        else:
+            res, secs = run_row(run, args.out / r, ROWS[r], scene, masks, ref, plan)
+        figs[r] = score(run, row_dir(run, args.out, r), scene, masks, ref, res) | {"minutes": secs / 60}
         print(r, json.dumps(figs[r]), file=sys.stderr, flush=True)
     cam = scene.cameras[ref]
     from coin_cl.engine import get_runtime
