@@ -300,9 +300,11 @@ def test_refgs_pulls_views_towards_the_reference(room, tmp_path):
     reference a plausible fill (the true background, as a good inpaint would be). The paper's Ref-GS
     (weights, pruning, reference depth, attention from mid-run; issue 21's background depth term
     off) ends closer to the reference's content in the other views' masks than plain training.
-    Measured at 300 steps: plain 0.1375, Ref-GS 0.1161. With the background depth term (the
-    default) the pull is weaker but still there (measured 0.1257): holding every mask at its
-    background depth leaves the views' conflicting colours fewer places to go than the reference."""
+    Measured at 300 steps: plain 0.1329, Ref-GS 0.1240; with the background depth term (the default)
+    0.1263: holding every mask at its background depth leaves the views' conflicting colours fewer
+    places to go than the reference. (Plain 0.1375, Ref-GS 0.1161, default 0.1257 while the synthetic
+    "SfM" points also came from the test views: points behind the object that no training view sees
+    gave plain training the truth there. The pull is smaller on the honest scene, so are the margins.)"""
     syn, scene, targets = room
     k = reference.choose_reference(scene)
     targets = list(targets)
@@ -310,8 +312,8 @@ def test_refgs_pulls_views_towards_the_reference(room, tmp_path):
     e_plain, e_ref = _residuals(syn, scene, targets, tmp_path, RefGSConfig(bg_depth=False))
     _, e_default = _residuals(syn, scene, targets, tmp_path / "default", RefGSConfig())
     print(f"residual to the reference: plain {e_plain:.4f}, Ref-GS {e_ref:.4f}, default {e_default:.4f}")
-    assert e_ref < 0.9 * e_plain
-    assert e_default < 0.95 * e_plain
+    assert e_ref < 0.96 * e_plain
+    assert e_default < 0.98 * e_plain
 
 
 @pytest.mark.slow
