@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from coin_cl.scene.masks import (
+    auto_dilation,
     bbox,
     bbox_mask,
     check_mask,
@@ -77,6 +78,22 @@ def test_dilation_matches_spinnerf_kernel():
     b = _blob(rng)
     ref = cv2.dilate(b.astype(np.uint8), np.ones((5, 5), np.uint8), iterations=5) > 0
     np.testing.assert_array_equal(dilate_mask(b), ref)
+
+
+def test_auto_dilation_covers_an_objects_fringe():
+    """The default ring: 8 px at SPIn-NeRF's half size, 2 px (the least) on small images; a 1-px
+    antialiased fringe and a 6-px contact shadow of a 504x284 object lie inside the dilated mask."""
+    sizes = [(504, 284), (1008, 567), (192, 144), (8, 6)]
+    assert [auto_dilation(w, h) for w, h in sizes] == [4, 7, 1, 1]
+    label = np.zeros((284, 504), bool)
+    label[100:180, 200:320] = True
+    fringe = cv2.dilate(label.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~label
+    shadow = np.zeros_like(label)
+    shadow[180:186, 200:320] = True  # below the object, 6 px
+    m = derive_mask(label, "seg", dilate=auto_dilation(504, 284))
+    assert m[fringe].all() and m[shadow].all()
+    assert not derive_mask(label, "seg", dilate=0)[fringe].any()
+    assert m.sum() < 1.5 * label.sum()  # a ring, not a new region
 
 
 def test_scribble_is_seeded_superset():

@@ -276,6 +276,28 @@ def test_coin_lama_path_reruns_stage_1(room, first_run, tmp_path, monkeypatch):
     assert status == {"a": "ran", "a again": "skipped: up to date", "b": "ran"}
 
 
+def test_training_masks_are_dilated_by_default(room, first_run, tmp_path, caplog):
+    """The default dilation is resolved once from the working size, logged, and in stage 0's key;
+    an explicit value is kept and a negative one is a clear error."""
+    import json
+    import logging
+
+    from coin_cl.pipeline.coin import mask_dilation
+    from coin_cl.scene.masks import auto_dilation
+
+    out, _ = first_run
+    scene = load_scene(room)
+    cam = scene.cameras[scene.train_idx[0]]
+    settings = json.loads((out / "0_scene" / "manifest.json").read_text())["settings"]
+    assert settings["dilate"] == auto_dilation(cam.width, cam.height) == 1
+    with caplog.at_level(logging.INFO, logger="coin_cl.pipeline.coin"):
+        assert mask_dilation(scene, CoInConfig()) == 1
+    assert "training masks dilated by 2 px" in caplog.text
+    assert mask_dilation(scene, CoInConfig(mask_dilate=0)) == 0
+    with pytest.raises(ValueError, match="mask_dilate must be >= 0"):
+        inpaint(room, tmp_path / "bad", config=replace(TINY, mask_dilate=-1))
+
+
 def test_removal_holds_every_mask_to_its_background_depth(first_run):
     """Issue 21: Ref-GS saves D_bg of every training view with a mask and trains with the term;
     TE-D keeps the term (both say so in their notes)."""

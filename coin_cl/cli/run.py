@@ -13,6 +13,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mask-kind", choices=("seg", "bbox", "scribble"), default="seg",
                    help="the shape of the object's masks: the scene's segmentation, or its bounding box / "
                         "scribbles derived from it (default seg)")  # fmt: skip
+    p.add_argument("--mask-dilate", type=int, default=None, metavar="N",
+                   help="dilate the training masks N times with a 5x5 kernel (2 px each); default: a "
+                        "ring of 1.4%% of the longer side, as SPIn-NeRF's masks; 0 = the masks as "
+                        "given")  # fmt: skip
     p.add_argument("--inpaint-region", choices=("auto", "input", "refined"), default="auto",
                    help="input: inpaint the whole masks; refined: 3D-first (wide/360 captures, "
                         "removal): inpaint only the mask pixels no other view sees (stage 0_refine); "
@@ -71,6 +75,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path, sd2_mode=args.sd2_mode)
     cfg = CoInConfig(
         resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
+        mask_dilate=args.mask_dilate,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
         inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
     ).with_iters(args.iters)  # fmt: skip

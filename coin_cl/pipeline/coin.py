@@ -73,6 +73,10 @@ STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval
 class CoInConfig:
     """mask_kind: the shape of mask given for the object, "seg" | "bbox" | "scribble" (the latter two
     derived from the scene's segmentation masks).
+    mask_dilate: iterations of a 5x5 dilation of the training masks (2 px each); None (default) = a
+    ring of `scene.masks.MASK_RING_SHARE` (1.4 %) of the longer side at the working size, as
+    SPIn-NeRF's masks (8 px at 504x284): the object's fringe and contact shadow left outside the
+    mask are trained as background (the box's edges stayed as thin lines without it); 0 = as given.
     ref: reference view (index or name); None chooses by `coin_cl.pipeline.reference.choose_reference`.
     prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
     resolution: image scale (0.5 = half); None picks it from the image size
@@ -97,7 +101,7 @@ class CoInConfig:
     carve_cfg: its settings."""
 
     mask_kind: str = "seg"
-    mask_dilate: int = 0
+    mask_dilate: int | None = None
     ref: int | str | None = None
     prompt: str = ""
     budget_minutes: float = 30.0
@@ -158,13 +162,30 @@ def scene_id(scene) -> dict[str, Any]:
     }
 
 
+def mask_dilation(scene, cfg: CoInConfig) -> int:
+    """The training masks' dilation (iterations of a 5x5 kernel): `cfg.mask_dilate`, or when None
+    `scene.masks.auto_dilation` of the working size (logged)."""
+    from coin_cl.scene.masks import MASK_RING_SHARE, auto_dilation
+
+    if cfg.mask_dilate is not None:
+        if cfg.mask_dilate < 0:
+            raise ValueError(f"CoInConfig.mask_dilate must be >= 0 or None (auto), got {cfg.mask_dilate}")
+        return int(cfg.mask_dilate)
+    cam = scene.cameras[scene.train_idx[0]]
+    n = auto_dilation(cam.width, cam.height)
+    log.info("training masks dilated by %d px (%.1f %% of the longer side, as SPIn-NeRF's; --mask-dilate "
+             "overrides)", 2 * n, 100 * MASK_RING_SHARE)  # fmt: skip
+    return n
+
+
 def _train_masks(scene, cfg: CoInConfig) -> list[np.ndarray]:
     from coin_cl.scene.masks import derive_mask
 
+    dilate = mask_dilation(scene, cfg)
     out = []
     for i, m in enumerate(scene.masks):
         if i in scene.train_idx and m.any():
-            out.append(derive_mask(m, cfg.mask_kind, seed=cfg.seed + i, dilate=cfg.mask_dilate))
+            out.append(derive_mask(m, cfg.mask_kind, seed=cfg.seed + i, dilate=dilate))
         else:
             out.append(np.asarray(m, bool))
     return out
@@ -325,6 +346,7 @@ def _run(
 ) -> CoInResult:
     from coin_cl.pipeline.reference import choose_reference
 
+    cfg = replace(cfg, mask_dilate=mask_dilation(scene, cfg))  # resolved once: the stage keys hold it
     masks = _train_masks(scene, cfg)
     if cfg.inpaint_region == "auto":
         cfg = replace(cfg, inpaint_region=_choose_region(scene, masks, cfg))
