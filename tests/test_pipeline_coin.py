@@ -193,12 +193,14 @@ def test_render_takes_a_run_folder(first_run, capsys):
 def test_auto_region_follows_the_visibility_estimate(room, tmp_path, caplog):
     """ "auto" asks the cheap estimate and says what it found; a wide arc takes refined masks."""
     from coin_cl.gs.carve import build_carve, observed_share
-    from coin_cl.pipeline.coin import AUTO_REFINE_SHARE
+    from coin_cl.pipeline.coin import AUTO_REFINE_SHARE, mask_dilation
+    from coin_cl.scene.masks import derive_mask
 
     scene = load_scene(room)
     train = list(scene.train_idx)
-    share, _ = observed_share(build_carve([scene.cameras[i] for i in train], [scene.masks[i] for i in train],
-                                          scene.points))  # fmt: skip
+    n = mask_dilation(scene, TINY)  # the estimate sees the training masks, dilated as the run's
+    masks = [derive_mask(scene.masks[i], "seg", dilate=n) for i in train]
+    share, _ = observed_share(build_carve([scene.cameras[i] for i in train], masks, scene.points))
     with caplog.at_level("INFO", logger="coin_cl.pipeline.coin"):
         res = inpaint(
             room, tmp_path / "auto", config=replace(TINY, inpaint_region="auto", skip=("clg", "ted"))

@@ -18,10 +18,11 @@ from test_diffusion_sd2 import _tiny_pipeline
 
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.clg_config import CLGConfig
-from coin_cl.pipeline.coin import CoInConfig, inpaint
+from coin_cl.pipeline.coin import CoInConfig, inpaint, mask_dilation
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.scene import load_scene, write_synthetic
 from coin_cl.scene.io import read_image
+from coin_cl.scene.masks import derive_mask
 
 SD2_STEPS = 2
 
@@ -70,6 +71,7 @@ def test_reference_only_calls_the_unet_for_the_reference_alone(room, tiny_sd2, t
     out = tmp_path / "run"
     res = inpaint(room, out, config=_config(tiny_sd2, "reference_only"))
     scene = load_scene(room)
+    dilate = mask_dilation(scene, _config(tiny_sd2, "reference_only"))
     k = res.stages["2_refgs"]["result"]["reference"]["index"]
     masked = [i for i in scene.train_idx if scene.masks[i].any()]
     assert k in masked and len(masked) >= 3
@@ -95,7 +97,7 @@ def test_reference_only_calls_the_unet_for_the_reference_alone(room, tiny_sd2, t
             assert rec["kept_because"] and np.array_equal(fill, before)
             continue
         assert rec["status"] == "warped"
-        m = scene.masks[i]
+        m = derive_mask(scene.masks[i], "seg", dilate=dilate)  # the run's training mask
         np.testing.assert_allclose(fill[~m], np.asarray(scene.images[i])[~m], atol=1 / 255 + 1e-6)
         unsupported = rec["hole_px"] - rec["support_px"]
         changed = int((np.abs(fill - before).max(-1) > 1.5 / 255)[m].sum())

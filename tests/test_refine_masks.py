@@ -76,19 +76,25 @@ def _scores(syn, scene, out):
 
 def test_split_finds_the_unseen_core_at_two_coverages(capture, refined, refined90):
     """Measured at these sizes (96x72, 300-step fit), precision / recall of the unseen core: default
-    rule 0.49 / 0.90 on the 90-degree arc, 0.60 / 0.94 on the full circle; view check 0.64 / 0.88
-    and 0.53 / 0.72 (at the demo size, 192x144, 90 degrees: default 0.59 / 0.96, view check
-    0.72 / 0.92). The truly unseen share is 22 % and 17 %."""
+    rule 0.47 / 0.94 on the 90-degree arc, 0.58 / 0.84 on the full circle; view check 0.62 / 0.94
+    and 0.55 / 0.76 (with the synthetic "SfM" points also taken from the test views: 0.49 / 0.90,
+    0.60 / 0.94, 0.64 / 0.88, 0.53 / 0.72; at the demo size, 192x144, 90 degrees, then: default
+    0.59 / 0.96, view check 0.72 / 0.92). The truly unseen share is 22 % and 17 %."""
     syn, scene = capture
     syn90, scene90, out90, _ = refined90
     p360, r360, share360 = _scores(syn, scene, refined[0] / "default")
     p90, r90, share90 = _scores(syn90, scene90, out90 / "default")
-    assert p90 > 0.42 and r90 > 0.85, (p90, r90)
-    assert p360 > 0.5 and r360 > 0.85, (p360, r360)
-    # most of the mask is observed from elsewhere on both
-    assert share360 < 0.45 and share90 < 0.55, (share360, share90)
     vp360, vr360, _ = _scores(syn, scene, refined[0] / "view_check")
     vp90, vr90, _ = _scores(syn90, scene90, out90 / "view_check")
+    print(
+        f"default: 90 deg {p90:.2f} / {r90:.2f}, 360 deg {p360:.2f} / {r360:.2f}; view check: 90 deg "
+        f"{vp90:.2f} / {vr90:.2f}, 360 deg {vp360:.2f} / {vr360:.2f}; observed share {share90:.2f} / "
+        f"{share360:.2f}"
+    )
+    assert p90 > 0.42 and r90 > 0.85, (p90, r90)
+    assert p360 > 0.5 and r360 > 0.8, (p360, r360)
+    # most of the mask is observed from elsewhere on both
+    assert share360 < 0.45 and share90 < 0.55, (share360, share90)
     assert vp90 > 0.55 and vr90 > 0.8, (vp90, vr90)
     assert vp360 > 0.45 and vr360 > 0.6, (vp360, vr360)
     assert vp90 > p90  # the view check's point: fewer observed pixels marked unseen
