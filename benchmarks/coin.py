@@ -153,22 +153,16 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
 
 
 def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
-    """`base` with the resolution, step counts and scene prior seconds of the run folder `run`'s
-    plan.json, TE-D's counts as the run re-planned them from its Ref-GS rate (`budget.replan_ted`
-    on 2_refgs's manifest), given explicitly."""
-    f = run / "plan.json"
-    if not f.is_file():
-        raise SystemExit(f"--steps-from: {f} not found (pass a finished run folder, e.g. OUT/default)")
-    from coin_cl.pipeline.budget import Plan, replan_ted
+    """`base` with the resolution, step counts (`budget.run_steps`: TE-D's as the run re-planned
+    them) and scene prior seconds of the run folder `run`, given explicitly."""
+    from coin_cl.pipeline.budget import PLAN_FILE, run_steps
 
-    plan = json.loads(f.read_text())
-    st = dict(plan["steps"])
-    man = run / "2_refgs" / "manifest.json"
-    if man.is_file():  # TE-D's counts as the run re-planned them from its Ref-GS rate
-        res = json.loads(man.read_text()).get("result", {})
-        seconds = 60.0 * float(res.get("train_minutes", 0.0))
-        st.update(replan_ted(Plan(**plan), int(res.get("steps", 0)), seconds, plan["key"]["budget_minutes"]))
-    print(f"schedule from {f}: {st}, scene prior {plan['prior_seconds']:.0f} s, "
+    try:
+        st = run_steps(run)
+    except FileNotFoundError as exc:
+        raise SystemExit(f"--steps-from: {exc} (pass a finished run folder, e.g. OUT/default)") from None
+    plan = json.loads((run / PLAN_FILE).read_text())
+    print(f"schedule from {run}: {st}, scene prior {plan['prior_seconds']:.0f} s, "
           f"resolution {plan['key']['resolution']}", file=sys.stderr, flush=True)  # fmt: skip
     return replace(base, resolution=plan["key"]["resolution"], iters_refgs=st["refgs"],
                    iters_ted_finetune=st["ted_finetune"], iters_ted_adversarial=st["ted_adversarial"],

@@ -119,6 +119,25 @@ def test_ted_is_planned_again_from_refgs_measured_rate():
     assert B.replan_ted(plan, 0, 0.0, 30) == {k: steps[k] for k in on_plan}  # nothing measured: as planned
 
 
+def test_run_steps_reads_back_what_a_run_trains(tmp_path):
+    """A run folder's counts: plan.json's before Ref-GS ran, TE-D re-planned from 2_refgs's
+    recorded rate after (the same numbers `ted_iters` gives the run)."""
+    key = {"budget_minutes": 30, "size": [64, 48]}
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
+    assert B.run_steps(tmp_path) == plan.steps
+    (tmp_path / "2_refgs").mkdir()
+    slow = 1.5 * 60 * plan.minutes["refgs"]  # Ref-GS overran: TE-D gets fewer steps
+    (tmp_path / "2_refgs" / "manifest.json").write_text(
+        json.dumps({"result": {"steps": plan.steps["refgs"], "train_minutes": slow / 60}})
+    )
+    got = B.run_steps(tmp_path)
+    assert got == {**plan.steps, **B.replan_ted(plan, plan.steps["refgs"], slow, 30)}
+    assert got["ted_finetune"] < plan.steps["ted_finetune"] and got["refgs"] == plan.steps["refgs"]
+    with pytest.raises(FileNotFoundError, match="plan.json"):
+        B.run_steps(tmp_path / "nothing")
+
+
 def test_standalone_steps_use_the_pipelines_rule():
     """One minute->steps rule: a stage run on its own (`run_refgs(budget_minutes=...)`) gets the
     steps `steps_from_rate` gives that stage for the same minutes at the same probe rate."""

@@ -240,8 +240,8 @@ def replan_ted(
     """TE-D's step counts once Ref-GS has run, from its measured seconds per step: TE-D gets its
     share of the budget plus what Ref-GS left unspent of its own (minus its overrun), split by the
     shares, each phase at its measured cost relative to a Ref-GS step (`TED_PER_REFGS_STEP`).
-    Explicit counts in `plan` are kept. Deterministic in its inputs, so the pipeline records the
-    result in plan.json and a rerun reads it back."""
+    Explicit counts in `plan` are kept. Deterministic in its inputs, which 2_refgs's manifest holds,
+    so a rerun gets the same counts (`run_steps` reads them back from a run folder)."""
     out = {k: plan.steps[k] for k in ("ted_finetune", "ted_adversarial")}
     free = [k for k in out if plan.minutes.get(k) is not None]
     if not free or refgs_steps < 1 or not (refgs_train_seconds > 0):
@@ -289,19 +289,38 @@ def explicit_steps(cfg: Any) -> dict[str, int | None]:
     return out
 
 
+def refgs_rate(out: Path) -> tuple[int, float]:
+    """(steps, training seconds) that Ref-GS recorded in OUT/2_refgs/manifest.json; (0, 0.0) when it
+    has not run."""
+    man = Path(out) / "2_refgs" / "manifest.json"
+    if not man.is_file():
+        return 0, 0.0
+    res = json.loads(man.read_text()).get("result", {})
+    return int(res.get("steps", 0)), 60.0 * float(res.get("train_minutes", 0.0))
+
+
+def run_steps(out: Path) -> dict[str, int]:
+    """The step counts a run folder trains: its plan.json's, TE-D's as re-planned from Ref-GS's
+    measured rate (`replan_ted`, as `ted_iters` does during the run)."""
+    path = Path(out) / PLAN_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: not a CoIn run folder (coin-cl run writes it)")
+    plan = Plan(**json.loads(path.read_text()))
+    n, seconds = refgs_rate(out)
+    return {**plan.steps, **replan_ted(plan, n, seconds, plan.key["budget_minutes"])}
+
+
 def ted_iters(out: Path, shared: dict) -> list[int]:
     """TE-D's [fine-tune, adversarial] steps, planned again from Ref-GS's measured rate
     (`budget.replan_ted`; the measurement is in 2_refgs's manifest, so a rerun gets the same counts);
     also sets the phases' time caps. Explicit counts are kept."""
     plan: Plan = shared["plan"]
     cfg = shared["cfg"]
-    man = json.loads((out / "2_refgs" / "manifest.json").read_text())
-    res = man.get("result", {})
-    steps = replan_ted(plan, int(res.get("steps", 0)), 60.0 * float(res.get("train_minutes", 0.0)),
-                       cfg.budget_minutes)  # fmt: skip
+    n, seconds = refgs_rate(out)
+    steps = replan_ted(plan, n, seconds, cfg.budget_minutes)
     caps = {}
-    if res.get("steps"):
-        spp = 60.0 * float(res["train_minutes"]) / int(res["steps"])
+    if n:
+        spp = seconds / n
         for k in steps:
             if plan.minutes.get(k) is not None:
                 caps[k] = CAP_FACTOR * steps[k] * spp * TED_PER_REFGS_STEP[k]
