@@ -104,11 +104,7 @@ def run_doctor(args: argparse.Namespace) -> int:
                 f"unified memory {bool(d.host_unified_memory)}"
             )
     if not working:
-        print(
-            "No OpenCL device can build kernels. On CPUs newer than PoCL's LLVM 14 knows, "
-            "`pip install intel-opencl-rt intel-cmplr-lib-rt` gives a working CPU device; "
-            f"{devices.INSTALL_HINT}"
-        )
+        print(f"No OpenCL device can build kernels. {devices.NO_BUILD_HINT}")
         return 1
     print("2D models (paper model, or the embedded default that replaces it):")
     from coin_cl.diffusion import available_models

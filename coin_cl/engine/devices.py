@@ -43,6 +43,11 @@ INSTALL_HINT = (
     "install an OpenCL driver: `pip install pocl-binary-distribution` gives a CPU device "
     "(GPU vendors ship their own); `coin-cl doctor` lists what is visible"
 )
+# What to do when devices exist but none builds the kernels (PoCL 3.0's LLVM 14 on newer CPUs).
+NO_BUILD_HINT = (
+    "On CPUs newer than PoCL's LLVM knows, `pip install intel-opencl-rt intel-cmplr-lib-rt` gives a "
+    "working CPU device; " + INSTALL_HINT
+)
 
 
 def kernel_dir() -> Path:
@@ -294,10 +299,7 @@ def choose_device(request: str | None):
             return d
         log.warning("OpenCL device %s skipped: it cannot build kernels (%s)", device_label(d), probe.message)
         failures.append(f"{device_label(d)}: {probe.message}")
-    raise NoDeviceError(
-        "no OpenCL device can build kernels (" + "; ".join(failures) + "). On CPUs newer than PoCL's "
-        "LLVM, `pip install intel-opencl-rt` gives a working CPU device; " + INSTALL_HINT
-    )
+    raise NoDeviceError("no OpenCL device can build kernels (" + "; ".join(failures) + "). " + NO_BUILD_HINT)
 
 
 def host_unified(device) -> bool:
