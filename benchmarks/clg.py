@@ -50,8 +50,9 @@ from common import cpu_model, git_commit  # noqa: E402
 from crop_grid import tile_row  # noqa: E402
 
 from coin_cl import metrics  # noqa: E402
-from coin_cl.pipeline.clg import _colour_distance, stage_clg  # noqa: E402
+from coin_cl.pipeline.clg import stage_clg  # noqa: E402
 from coin_cl.pipeline.clg_config import CLGConfig  # noqa: E402
+from coin_cl.pipeline.clg_guard import colour_distance  # noqa: E402
 from coin_cl.pipeline.coin import CoInConfig  # noqa: E402
 from coin_cl.pipeline.reprojection import residual_to_reference  # noqa: E402
 from coin_cl.pipeline.runner import StageContext  # noqa: E402
@@ -128,8 +129,8 @@ def score(run: Path, out: Path, scene, masks, ref: int, res: dict) -> dict:
         outputs[i] = read_image(png)
         tex_in.append(metrics.mask_texture(inputs[i], m))
         tex_out.append(metrics.mask_texture(outputs[i], m))
-        col_in.append(_colour_distance(inputs[i], m))
-        col_out.append(_colour_distance(outputs[i], m))
+        col_in.append(colour_distance(inputs[i], m))
+        col_out.append(colour_distance(outputs[i], m))
     mk = np.asarray(masks[ref], bool)
     r_in = residual_to_reference(scene.cameras, depths, inputs, regions, ref, ref_img, mk)
     r_out = residual_to_reference(scene.cameras, depths, outputs, regions, ref, ref_img, mk)

@@ -195,35 +195,6 @@ def test_stage_clg_reads_the_stage_folders(tmp_path):
     assert not list(inp_dir.glob("scene_prior_*.pt"))  # nothing written into stage 1's folder
 
 
-def _textured(seed=0, h=48, w=64):
-    rng = np.random.default_rng(seed)
-    base = np.stack(np.meshgrid(np.linspace(0, 1, w), np.linspace(0, 1, h)), -1)
-    img = np.concatenate([base, base[..., :1] * 0.5], -1) * 0.5 + 0.25
-    return np.clip(img + 0.08 * rng.standard_normal((h, w, 1)), 0, 1).astype(np.float32)
-
-
-def test_no_worse_names_each_way_an_output_can_be_worse():
-    import cv2
-
-    from coin_cl.pipeline.clg import no_worse
-    from coin_cl.pipeline.clg_config import CLGConfig
-
-    cfg = CLGConfig()
-    inp = _textured()
-    mask = np.zeros(inp.shape[:2], bool)
-    mask[14:34, 20:44] = True
-    assert no_worse(inp, inp.copy(), mask, {"residual_before": 0.1, "residual_after": 0.08}, cfg) == []
-    blur = inp.copy()
-    blur[mask] = cv2.GaussianBlur(inp, (0, 0), 4)[mask]
-    assert any(w.startswith("texture") for w in no_worse(inp, blur, mask, {}, cfg))
-    hue = inp.copy()
-    rng = np.random.default_rng(1)
-    hue[mask] = rng.uniform(0, 1, (int(mask.sum()), 3))  # colour noise of hues the scene lacks
-    assert any(w.startswith("colour") for w in no_worse(inp, hue, mask, {}, cfg))
-    why = no_worse(inp, inp.copy(), mask, {"residual_before": 0.05, "residual_after": 0.09}, cfg)
-    assert why == ["residual to the reference 0.0500 -> 0.0900"]
-
-
 def test_a_view_never_leaves_clg_worse_than_it_came(room, tmp_path):
     """With the guard on, each view either passes the checks or keeps I^_n (its PNG is the input)."""
     from coin_cl.scene.io import read_image, to_uint8

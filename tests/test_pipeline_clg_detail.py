@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from coin_cl.crop import resize_to
-from coin_cl.pipeline.clg_detail import compose_crop, high_band
+from coin_cl.pipeline.clg_detail import compose_crop, high_band, match_colour
 
 
 def _texture(h=96, w=96, seed=0):
@@ -60,3 +60,44 @@ def test_reference_detail_where_supported_input_elsewhere():
         compose_crop(fill, inp, 0, 0, side, "reference")
     with pytest.raises(ValueError, match="detail must be"):
         compose_crop(fill, inp, 0, 0, side, "sharp")
+
+
+def _lab_stats(img, region):
+    import cv2
+
+    lab = cv2.cvtColor(np.clip(img, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)[region]
+    return lab.mean(0), lab.std(0)
+
+
+def test_match_colour_moves_a_cast_to_the_target_and_never_amplifies():
+    target = _texture(64, 64, 0)
+    region = np.zeros((64, 64), bool)
+    region[16:48, 16:48] = True
+    # a purple cast and doubled colour noise: the 64 px sample's failure on the shared scene
+    rng = np.random.default_rng(3)
+    cast = np.clip(target * [1.1, 0.85, 1.15] + 0.1 * rng.standard_normal(target.shape), 0, 1)
+    cast = cast.astype(np.float32)
+    out = match_colour(cast, target, region)
+    (mu_t, sd_t), (mu_c, _), (mu_o, sd_o) = (_lab_stats(a, region) for a in (target, cast, out))
+    assert np.abs(mu_c - mu_t).sum() > 5  # the cast is a real one
+    assert np.abs(mu_o - mu_t).sum() < 1.0 and np.abs(sd_o - sd_t).max() < 1.0
+    # a flat sample is only shifted: the gain cap keeps the match from inventing variation
+    flat = np.full((64, 64, 3), 0.3, np.float32)
+    shifted = match_colour(flat, target, region)
+    assert shifted[region].std(0).max() < 1e-3
+    assert np.abs(_lab_stats(shifted, region)[0] - mu_t).sum() < 1.0
+    np.testing.assert_array_equal(match_colour(cast, target, np.zeros_like(region)), cast)
+
+
+def test_compose_crop_matches_the_low_band_to_the_target_inside_the_hole():
+    side, work = 96, 32
+    inp = _texture(side, side, 0)
+    hole = np.zeros((side, side), bool)
+    hole[24:72, 24:72] = True
+    tinted = resize_to(inp, work, work) * np.array([1.2, 0.8, 1.2], np.float32)  # the sample's cast
+    plain = compose_crop(tinted, inp, 0, 0, side, "input", split=0.5)
+    matched = compose_crop(tinted, inp, 0, 0, side, "input", split=0.5, colour=(inp, hole))
+    err = [np.abs(_lab_stats(a, hole)[0] - _lab_stats(inp, hole)[0]).sum() for a in (plain, matched)]
+    assert err[1] < 0.2 * err[0], err
+    # the detail band is the input's either way: the match acts on the sample's band only
+    np.testing.assert_allclose(high_band(matched, 16, 16)[hole], high_band(plain, 16, 16)[hole], atol=0.05)

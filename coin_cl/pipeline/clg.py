@@ -34,6 +34,7 @@ import numpy as np
 
 from coin_cl.diffusion.sampling import Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
+from coin_cl.pipeline.clg_guard import pick
 from coin_cl.pipeline.clg_view import ReferenceView, sample_view, warp_view
 from coin_cl.scene.io import atomic_write, view_stem, write_png
 
@@ -89,49 +90,6 @@ def _check_sequences(reference: int, views: Sequence[int], cameras: Sequence[Any
     bad = [v for v in views if not 0 <= int(v) < n_views]
     if bad:
         raise ValueError(f"unknown views {bad} (the scene has {n_views})")
-
-
-def _colour_distance(img: np.ndarray, mask: np.ndarray, ring_px: int = 8) -> float:
-    """Distance between the colour statistics (Lab mean and standard deviation per channel) inside
-    `mask` and in a ring of `ring_px` around it: a fill of hues its surroundings do not have scores
-    high. NaN without a ring."""
-    import cv2
-
-    m = np.asarray(mask, bool)
-    ring = cv2.dilate(m.astype(np.uint8), np.ones((2 * ring_px + 1,) * 2, np.uint8)).astype(bool) & ~m
-    if not m.any() or not ring.any():
-        return float("nan")
-    lab = cv2.cvtColor(np.clip(img, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)
-    a, b = lab[m], lab[ring]
-    return float(np.abs(a.mean(0) - b.mean(0)).sum() + np.abs(a.std(0) - b.std(0)).sum())
-
-
-def no_worse(
-    inp: np.ndarray, out: np.ndarray, mask: np.ndarray, rec: dict[str, Any], cfg: CLGConfig
-) -> list[str]:
-    """Why `out` is worse than the input `inp` of a view (empty: it is not), on the measures CLG can
-    compute without ground truth: the consistency residual to the reference (from `rec`), the
-    texture inside the mask (`metrics.mask_texture`) and the colour distance to the surroundings."""
-    from coin_cl.metrics import mask_texture
-
-    why = []
-    rb, ra = rec.get("residual_before"), rec.get("residual_after")
-    if rb is not None and ra is not None and np.isfinite(rb) and np.isfinite(ra) and ra > rb:
-        why.append(f"residual to the reference {rb:.4f} -> {ra:.4f}")
-    # the same residual by the other geometric route (view n's depth lifted into the reference): the
-    # warp through P_k alone can favour detail that only P_k's own geometry aligns
-    lb, la = rec.get("lifted_before"), rec.get("lifted_after")
-    if lb is not None and la is not None and np.isfinite(lb) and np.isfinite(la) and la > lb:
-        why.append(f"residual to the reference lifted with the view's depth {lb:.4f} -> {la:.4f}")
-    t_in, t_out = mask_texture(inp, mask), mask_texture(out, mask)
-    rec["texture_input"], rec["texture_output"] = t_in, t_out
-    if t_out < (1.0 - cfg.texture_tol) * t_in:
-        why.append(f"texture {t_in:.4f} -> {t_out:.4f}")
-    c_in, c_out = _colour_distance(inp, mask), _colour_distance(out, mask)
-    rec["colour_input"], rec["colour_output"] = c_in, c_out
-    if np.isfinite(c_in) and np.isfinite(c_out) and c_out > (1.0 + cfg.colour_tol) * c_in + 1.0:
-        why.append(f"colour distance to the surroundings {c_in:.1f} -> {c_out:.1f}")
-    return why
 
 
 def _write_view(js: Path, png: Path, rec: dict[str, Any], out: np.ndarray) -> None:
@@ -232,19 +190,19 @@ def run_clg(
                 log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
                          "residual %.4f -> %.4f", n, stem, rec["support_px"], rec["hole_px"],
                          rec["residual_before"], rec["residual_after"])  # fmt: skip
+                candidates = [(out, rec)]
             else:
                 assert denoiser is not None and features is not None
-                out, rec = sample_view(n, stem, cam, inp_n, ren_n, depth_n, mask, ref, denoiser, features,
-                                       cfg, device)  # fmt: skip
+                candidates = sample_view(n, stem, cam, inp_n, ren_n, depth_n, mask, ref, denoiser, features,
+                                         cfg, device)  # fmt: skip
+                out, rec = candidates[0]
         except (ValueError, RuntimeError) as exc:  # say which view, whatever failed inside
             raise type(exc)(f"CLG, view {n} ({stem}): {exc}") from exc
         if cfg.keep_if_worse and (cfg.sample or cfg.warp_guard):
-            why = no_worse(inp_n, out, mask, rec, cfg)
-            if why:
-                out = inp_n
-                rec.update(status="kept input", kept_because=why, residual_written=rec.get("residual_before"))
+            out, rec = pick(inp_n, candidates, mask, cfg)
+            if rec["status"] == "kept input":
                 log.info("CLG: view %d (%s) keeps its input I^_n: the %s image is worse (%s)", n, stem,
-                         "guided" if cfg.sample else "warped", "; ".join(why))  # fmt: skip
+                         "guided" if cfg.sample else "warped", "; ".join(rec["kept_because"]))  # fmt: skip
         rec["seconds"] = time.perf_counter() - t0
         _write_view(js, png, rec, out)
         records[stem] = rec

@@ -51,6 +51,10 @@ class CLGConfig:
     detail_split: where the band split lies, as a share of the working size (0.5: the output's
         band above half the working resolution comes from `detail`'s source, below it from the
         guided sample).
+    colour_match: match the Lab mean and deviation of the sample's low band inside the hole to the
+        energy's target (the reference warped through P_k where supported, I^_n elsewhere), the gain
+        capped at 1 (`clg_detail.match_colour`): the 64 px scene prior draws the reference's structure
+        with drifting hues. Not applied with detail "none".
     strength: the share of the trajectory sampled (SDEdit): 1 = from pure noise (paper); below 1
         the sampler starts from the initial inpaint's crop noised to that level, so what guidance
         does not constrain stays near I^_n instead of a fresh draw.
@@ -63,7 +67,7 @@ class CLGConfig:
         without ground truth (issue 22): a larger consistency residual to the reference, less
         texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
         mask's surroundings (more than (1 + colour_tol) x the input's distance). Such a view keeps
-        I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg.no_worse`).
+        I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg_guard.no_worse`).
     warp_guard: keep_if_worse also for the warp-only fill (sample False). Off by default because
         that fill's main use is an edited reference, whose warp adds an object with colours and
         texture its surroundings lack (the colour check would reject exactly what was asked for);
@@ -88,6 +92,7 @@ class CLGConfig:
     sample: bool = True
     detail: str = "reference"
     detail_split: float = 0.5
+    colour_match: bool = True
     strength: float = 0.5
     keep_if_worse: bool = True
     warp_guard: bool = False

@@ -1,7 +1,7 @@
 """The detail band of CLG's output (CoIn paper 4.3; issue 22): the guided sample lives at the sampler's
 working size (64 px for the scene prior, 512 for SD2), while the hole's crop is often several times
 larger, so a sample brought back to the crop has no detail above the working resolution, and the
-guard (`coin_cl.pipeline.clg.no_worse`) then keeps the blurrier input in most views.
+guard (`coin_cl.pipeline.clg_guard.no_worse`) then keeps the blurrier input in most views.
 
 A Laplacian split fixes that: with down = area resize to a side of `split` x work and up = bicubic
 resize back to the crop (how the sample itself is brought back),
@@ -21,6 +21,15 @@ where x is the guided sample (the band the energy can steer) and D the detail so
 `CLGConfig.detail_split` (default 0.5) sets the split; at 1 it is the working resolution itself,
 where the 64 px sample still carries its own noise-like texture into the output (measured: the
 shared scene's images were then further from the reference than the inputs).
+
+The colours of the low band (`CLGConfig.colour_match`, on by default): the scene prior's 64 px
+sample follows the reference's structure but not its colours: on the shared scene its images were
+closer to the reference than the LaMa inputs (residual 0.077 -> 0.053) while their hues drifted
+(a purple cast and 64 px chroma blotches; the Lab distance to the mask's surroundings doubled), so
+the guard kept the input in every view. `match_colour` moves the low band's Lab mean and standard
+deviation inside the hole to those of the energy's own target (`colour_target`: the reference warped
+through P_k where supported, I^_n elsewhere) taken to the same band; the gain on the deviation is
+capped at 1, so the match can damp the sample's blotches but never amplifies what it drew.
 """
 
 from __future__ import annotations
@@ -54,6 +63,34 @@ def reference_detail(ref: Any, cam_n: Any, scale: float, device: Any) -> tuple[n
     return warped, weight > 0
 
 
+def colour_target(ref: Any, cam_n: Any, inp_n: np.ndarray, device: Any) -> np.ndarray:
+    """(H, W, 3): what CLG's RGB term pulls view n toward: the reference image warped through P_k
+    where the warp lands, the initial inpaint I^_n `inp_n` elsewhere."""
+    warped, weight = reference_in_view(ref.image, cam_n, ref.cam, ref.points, ref.depth, device)
+    return np.where((weight > 0)[..., None], warped, inp_n).astype(np.float32)
+
+
+def match_colour(
+    img: np.ndarray, target: np.ndarray, region: np.ndarray, max_gain: float = 1.0
+) -> np.ndarray:
+    """(H, W, 3) float RGB -> (H, W, 3): `img` with its Lab mean and standard deviation per channel
+    inside `region` (H, W) bool moved to `target`'s there: lab' = mean_t + g (lab - mean_i), with
+    g = min(std_t / std_i, max_gain) (a flat img is only shifted). Values outside [0, 1] are
+    clipped for the conversion. `img` unchanged when the region is empty."""
+    import cv2
+
+    region = np.asarray(region, bool)
+    if not region.any():
+        return img
+    lab = cv2.cvtColor(np.clip(img, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)
+    lab_t = cv2.cvtColor(np.clip(target, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)
+    a, b = lab[region], lab_t[region]
+    mu_a, mu_b, sd_a, sd_b = a.mean(0), b.mean(0), a.std(0), b.std(0)
+    gain = np.minimum(sd_b / np.maximum(sd_a, 1e-6), max_gain)
+    out = cv2.cvtColor((mu_b + gain * (lab - mu_a)).astype(np.float32), cv2.COLOR_LAB2RGB)
+    return out.astype(np.float32)
+
+
 def compose_crop(
     fill: np.ndarray,
     inp_n: np.ndarray,
@@ -63,11 +100,14 @@ def compose_crop(
     detail: str,
     ref_detail: tuple[np.ndarray, np.ndarray] | None = None,
     split: float = 1.0,
+    colour: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The crop [side, side, 3] CLG pastes: the sample `fill` [work, work, 3] brought back to the
     crop at (y0, x0) of view n, its low band below `split` x work plus the high band of the detail
     source (module docstring). ref_detail: `reference_detail`'s pair (split at the same scale),
-    required for detail "reference"."""
+    required for detail "reference". colour: (target [H, W, 3], hole [H, W] bool) of view n: the
+    low band's colours are matched to the target's low band inside the hole (`match_colour`); not
+    used by detail "none"."""
     if detail not in DETAILS:
         raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {detail!r}")
     work = fill.shape[0]
@@ -75,6 +115,9 @@ def compose_crop(
     if detail == "none":
         return resize_to(fill, side, side)
     back = resize_to(resize_to(fill, low, low), side, side)  # the sample's band below the split
+    if colour is not None:
+        target, hole = (crop_image(a, y0, x0, side, side) for a in colour)
+        back = match_colour(back, resize_to(resize_to(target, low, low), side, side), hole)
     hi = high_band(crop_image(inp_n, y0, x0, side, side), low, low)
     if detail == "reference":
         if ref_detail is None:

@@ -15,7 +15,7 @@ import torch
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
-from coin_cl.pipeline.clg_detail import compose_crop, reference_detail
+from coin_cl.pipeline.clg_detail import colour_target, compose_crop, reference_detail
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
 from coin_cl.pipeline.reprojection import (
     consistency_residual,
@@ -84,8 +84,10 @@ def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: n
 def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray,
                 depth_n: np.ndarray | None, mask: np.ndarray, ref: ReferenceView, denoiser: Denoiser,
                 features: Callable, cfg: CLGConfig,
-                device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
-    """Guided sampling for view n on its crop, pasted back inside the mask: (output, record)."""
+                device: Any) -> list[tuple[np.ndarray, dict[str, Any]]]:  # fmt: skip
+    """Guided sampling for view n on its crop, pasted back inside the mask: candidate (output
+    [H, W, 3], record) pairs, the colour-matched one first (`CLGConfig.colour_match`), then the
+    unmatched one; `clg_guard.pick` chooses."""
     from tqdm import tqdm
 
     work, n_steps = work_size(denoiser), cfg.num_steps(denoiser)
@@ -123,22 +125,30 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     fill = x[0].permute(1, 2, 0).numpy()
     scale = cfg.detail_split * work / prob.side  # view n's split as a share of its full size
     ref_detail = reference_detail(ref, cam, scale, device) if cfg.detail == "reference" else None
-    back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail, cfg.detail_split)
-    full = inp_n.copy()
-    H, W = mask.shape
-    ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
-    xs = slice(max(prob.x0, 0), min(prob.x0 + prob.side, W))
-    full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
-    out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
-    r_before, r_after, n_sup = residuals(inp_n, out, cam, mask, ref, device)
-    l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
-    rec = {
-        "lifted_before": l_before, "lifted_after": l_after,
+    # with the colour match, the unmatched composite is a candidate too: the match is global over the
+    # hole and can move a well-coloured sample away from the reference where the support is partial
+    colours = [(colour_target(ref, cam, inp_n, device), mask), None] if cfg.colour_match else [None]
+    common = {
         "view": n, "status": "guided" if cfg.sampler.guidance_scale else "unguided", "steps": n_steps,
         "energy_input": e_in, "energy_output": e_out, "energies": res.energies,
-        "residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
         "support_work_px": int(prob.support.sum()), "hole_work_px": int(prob.hole.sum()),
         "n_points": int(len(ref.points)), "crop": [prob.y0, prob.x0, prob.side], "work": work,
         "detail": cfg.detail, "start_step": start,
     }  # fmt: skip
-    return out, rec
+    H, W = mask.shape
+    ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
+    xs = slice(max(prob.x0, 0), min(prob.x0 + prob.side, W))
+    candidates = []
+    for colour in colours:
+        back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail,
+                            cfg.detail_split, colour)  # fmt: skip
+        full = inp_n.copy()
+        full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
+        out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
+        r_before, r_after, n_sup = residuals(inp_n, out, cam, mask, ref, device)
+        l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
+        rec = common | {"residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
+                        "lifted_before": l_before, "lifted_after": l_after,
+                        "colour_match": colour is not None}  # fmt: skip
+        candidates.append((out, rec))
+    return candidates
