@@ -209,6 +209,10 @@ def test_a_view_never_leaves_clg_worse_than_it_came(room, tmp_path):
         else:
             assert rec["residual_after"] <= rec["residual_before"]
             assert rec["texture_output"] >= 0.9 * rec["texture_input"]
+        # both composites were judged (colour-matched first), and a written one passed
+        assert [c["colour_match"] for c in rec["candidates"]] == [True, False]
+        if rec["status"] != "kept input":
+            assert any(not c["worse"] and c["colour_match"] == rec["colour_match"] for c in rec["candidates"])
     assert res["n_kept_input"] + res["n_guided"] == 3
 
 
