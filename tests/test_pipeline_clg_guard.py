@@ -74,6 +74,13 @@ def test_pick_takes_the_passing_candidate_with_the_lowest_residual():
     assert out is inp and kept["status"] == "kept input"
     assert any(w.startswith("colour") for w in kept["kept_because"])
     assert kept["residual_written"] == 0.08
+    # an unmeasured residual (no support) ranks after a measured one, wherever it stands in the list
+    unmeasured = [
+        (inp.copy(), rec | {"residual_after": float("nan")}),
+        (other, rec | {"residual_after": 0.07}),
+    ]
+    out, chosen = pick(inp, unmeasured, mask, cfg)
+    assert out is other and chosen["residual_after"] == 0.07
     # a single candidate records no candidate list
     _, single = pick(inp, [(inp.copy(), rec | {"residual_after": 0.05})], mask, cfg)
     assert "candidates" not in single

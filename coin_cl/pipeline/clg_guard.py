@@ -29,9 +29,12 @@ def colour_distance(img: np.ndarray, mask: np.ndarray, ring_px: int = 8) -> floa
     return float(np.abs(a.mean(0) - b.mean(0)).sum() + np.abs(a.std(0) - b.std(0)).sum())
 
 
+def _finite(x: Any) -> bool:
+    return x is not None and bool(np.isfinite(x))
+
+
 def _rose(before: Any, after: Any) -> bool:
-    return before is not None and after is not None and bool(np.isfinite(before) and np.isfinite(after)) \
-        and after > before  # fmt: skip
+    return _finite(before) and _finite(after) and after > before
 
 
 def no_worse(
@@ -67,13 +70,16 @@ def pick(
     inp: np.ndarray, candidates: list[tuple[np.ndarray, dict[str, Any]]], mask: np.ndarray, cfg: CLGConfig
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """(output, record) for a view: of its candidate (output [H, W, 3], record) pairs, the one that
-    is not worse than `inp` (`no_worse`) with the lowest residual to the reference; when none is,
+    is not worse than `inp` (`no_worse`) with the lowest residual to the reference (an unmeasured one
+    ranks last; ties keep the earlier candidate); when none is,
     `inp` with the first candidate's record marked "kept input" and its reasons. With several
     candidates the record lists each one's residual and reasons under "candidates"."""
     verdicts = [no_worse(inp, out, mask, rec, cfg) for out, rec in candidates]
     ok = [i for i, why in enumerate(verdicts) if not why]
     if ok:
-        best = min(ok, key=lambda i: candidates[i][1].get("residual_after", 0.0))
+        # a residual that could not be measured (no support) ranks after every measured one
+        res = [candidates[i][1].get("residual_after") for i in ok]
+        best = ok[min(range(len(ok)), key=lambda j: res[j] if _finite(res[j]) else np.inf)]
         out, rec = candidates[best]
     else:
         out, rec = inp, candidates[0][1]
