@@ -89,6 +89,31 @@ def test_match_colour_moves_a_cast_to_the_target_and_never_amplifies():
     np.testing.assert_array_equal(match_colour(cast, target, np.zeros_like(region)), cast)
 
 
+def test_match_colour_with_chroma_takes_the_targets_hues_pixel_by_pixel():
+    import cv2
+
+    def lab(a):
+        return cv2.cvtColor(np.clip(a, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)
+
+    target = _texture(64, 64, 1) * np.array([0.9, 1.0, 0.8], np.float32)
+    region = np.zeros((64, 64), bool)
+    region[16:48, 16:48] = True
+    # 8 px hue blotches on the target's lightness: what the global match leaves of a 64 px sample
+    rng = np.random.default_rng(4)
+    blotch = cv2.resize(rng.uniform(0.7, 1.3, (8, 8, 3)).astype(np.float32), (64, 64),
+                        interpolation=cv2.INTER_NEAREST)  # fmt: skip
+    sample = np.clip(target * blotch, 0, 1).astype(np.float32)
+    plain, chroma = match_colour(sample, target, region), match_colour(sample, target, region, chroma=True)
+    err = [np.abs(lab(a)[region][:, 1:] - lab(target)[region][:, 1:]).mean() for a in (plain, chroma)]
+    assert err[0] > 3.0  # the global match keeps the blotches
+    assert err[1] < 0.1 * err[0], err  # the chroma is the target's (up to the RGB round trip)
+    # the lightness is still the sample's, matched to the target's mean
+    assert abs(lab(chroma)[region][:, 0].mean() - lab(target)[region][:, 0].mean()) < 1.0
+    assert np.corrcoef(lab(chroma)[region][:, 0], lab(sample)[region][:, 0])[0, 1] > 0.95
+    # outside the region the two agree: only the region's chroma is replaced
+    np.testing.assert_allclose(chroma[~region], plain[~region], atol=1e-5)
+
+
 def test_compose_crop_matches_the_low_band_to_the_target_inside_the_hole():
     side, work = 96, 32
     inp = _texture(side, side, 0)

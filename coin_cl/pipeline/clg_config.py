@@ -55,6 +55,9 @@ class CLGConfig:
         energy's target (the reference warped through P_k where supported, I^_n elsewhere), the gain
         capped at 1 (`clg_detail.match_colour`): the 64 px scene prior draws the reference's structure
         with drifting hues. Not applied with detail "none".
+    chroma_from_target: with colour_match, the low band's chroma (Lab a, b) inside the hole is the
+        target's own low band's and only its lightness comes from the sample (matched in mean and
+        deviation): the global match left 64 px hue blotches in the accepted views.
     strength: the share of the trajectory sampled (SDEdit): 1 = from pure noise (paper); below 1
         the sampler starts from the initial inpaint's crop noised to that level, so what guidance
         does not constrain stays near I^_n instead of a fresh draw.
@@ -93,6 +96,7 @@ class CLGConfig:
     detail: str = "reference"
     detail_split: float = 0.5
     colour_match: bool = True
+    chroma_from_target: bool = True
     strength: float = 0.5
     keep_if_worse: bool = True
     warp_guard: bool = False

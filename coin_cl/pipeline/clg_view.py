@@ -141,7 +141,7 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     candidates = []
     for colour in colours:
         back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail,
-                            cfg.detail_split, colour)  # fmt: skip
+                            cfg.detail_split, colour, cfg.chroma_from_target)  # fmt: skip
         full = inp_n.copy()
         full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
         out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
@@ -149,6 +149,7 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
         rec = common | {"residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
                         "lifted_before": l_before, "lifted_after": l_after,
-                        "colour_match": colour is not None}  # fmt: skip
+                        "colour_match": colour is not None,
+                        "chroma_from_target": colour is not None and cfg.chroma_from_target}  # fmt: skip
         candidates.append((out, rec))
     return candidates
