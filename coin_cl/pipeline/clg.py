@@ -12,13 +12,14 @@ consistency residual, the sampler-free `warp_fill`) in `coin_cl.pipeline.reproje
 Output: the last step's decoded x0 prediction, clamped, brought back to the crop with its band
 above half the working size replaced by the reference's detail warped through P_k (where P_k
 reaches) or I^_n's (`coin_cl.pipeline.clg_detail`: the 64 px sample alone is blurrier than I^_n),
-the low band's colours matched to the reference warped into the view (`clg_detail.match_colour`;
-the unmatched composite is a second candidate), and pasted into I^_n inside the mask only
-(`diffusion.inpaint2d.paste`, feathered inward), so every pixel outside the mask is bit-identical
-to I^_n; the sampler starts from I^_n's crop noised half way (`CLGConfig.strength`). The no-worse
-guard (`coin_cl.pipeline.clg_guard`) writes the candidate that is not worse than I^_n with the
-lowest residual to the reference, or I^_n, as `images/<stem>.png` with `views/<stem>.json`
-(figures). A view whose PNG exists is not redone (resume). Randomness: view n samples with seed + n.
+the low band's colours matched to the reference warped into the view, its chroma taken from there
+pixel by pixel (`clg_detail.match_colour`; the unmatched composite is a second candidate), and
+pasted into I^_n inside the mask only (`diffusion.inpaint2d.paste`, feathered inward), so every
+pixel outside the mask is bit-identical to I^_n; the sampler starts from I^_n's crop noised half
+way (`CLGConfig.strength`). The no-worse guard (`coin_cl.pipeline.clg_guard`) writes the candidate
+that is not worse than I^_n with the lowest residual to the reference, or I^_n, as
+`images/<stem>.png` with `views/<stem>.json` (figures). A view whose PNG exists is not redone
+(resume). Randomness: view n samples with seed + n.
 
 Before Ref-GS exists, `coin_cl.pipeline.reference.reference_points` builds P_k from any depth map
 of the reference view (GS render, ground truth, ...) with the same margin rule as the Ref-GS stage.
