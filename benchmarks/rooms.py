@@ -17,7 +17,9 @@ TE-D 411 + 499, scene prior 120 s), given explicitly so that a loaded machine ru
 schedule (its timing probe would plan fewer steps).
 
 `--rows ... coin_view_check` adds a row with stage 0_refine's view check
-(`RefineConfig.view_check`). The last line is JSON (room_*, room360_*).
+(`RefineConfig.view_check`); `coin_no_bg_depth` a row without the background depth term
+(`RefGSConfig.bg_depth=False`, Ref-GS and TE-D; stages 0-1 shared with the coin row). `--seed`
+sets `CoInConfig.seed` (the scene stays the same). The last line is JSON (room_*, room360_*).
 """
 
 from __future__ import annotations
@@ -33,12 +35,13 @@ from pathlib import Path
 import numpy as np
 from common import cpu_model, git_commit, write_result
 
+from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
 
 SCENES = {"room": 90, "room360": 360}
-ROWS = ("coin", "naive", "masked_recon", "coin_input", "coin_view_check")
+ROWS = ("coin", "naive", "masked_recon", "coin_input", "coin_view_check", "coin_no_bg_depth")
 # stage 0_refine's precise split (off by default: end to end it scored lower; refine_masks' doc)
 VIEW_CHECK = RefineConfig(view_check=0.05, see_through=0.0, grow_px=0)
 
@@ -147,7 +150,7 @@ def run_scene(name: str, out: Path, args) -> dict:
     scene_dir = out / "scene"
     if not (scene_dir / "views.txt").is_file():
         write_synthetic(scene_dir, syn)
-    cfg = CoInConfig(budget_minutes=args.budget, prior_seconds=args.prior_seconds)
+    cfg = CoInConfig(budget_minutes=args.budget, prior_seconds=args.prior_seconds, seed=args.seed)
     if args.iters:  # explicit steps: the same schedule on a loaded machine as on a quiet one
         cfg = replace(cfg, iters_refgs=args.iters[0], iters_ted_finetune=args.iters[1],
                       iters_ted_adversarial=args.iters[2])  # fmt: skip
@@ -175,6 +178,11 @@ def run_scene(name: str, out: Path, args) -> dict:
         vc = replace(cfg, inpaint_region="refined", refine=VIEW_CHECK)
         rows["coin_view_check"] = coin_row(syn, scene_dir, out / "coin_view_check", vc)
         print(name, "coin_view_check", json.dumps(rows["coin_view_check"]), file=sys.stderr, flush=True)
+    if "coin_no_bg_depth" in args.rows:
+        share_stages(out / "coin", out / "coin_no_bg_depth")
+        nobg = replace(cfg, refgs=RefGSConfig(bg_depth=False))
+        rows["coin_no_bg_depth"] = coin_row(syn, scene_dir, out / "coin_no_bg_depth", nobg)
+        print(name, "coin_no_bg_depth", json.dumps(rows["coin_no_bg_depth"]), file=sys.stderr, flush=True)
     return rows
 
 
@@ -190,6 +198,7 @@ def main() -> int:
                     help="explicit steps (default: the demo's plan on a quiet machine at budget 3; "
                     "0 0 0: the budget plan of this machine)")  # fmt: skip
     ap.add_argument("--prior-seconds", type=float, default=120.0, help="scene prior (demo: 120)")
+    ap.add_argument("--seed", type=int, default=0, help="CoInConfig.seed of the CoIn rows (scene: seed 0)")
     ap.add_argument("--rows", nargs="+", default=list(ROWS[:4]), choices=ROWS,
                     help="rows besides coin (coin_view_check: 0_refine's view check)")  # fmt: skip
     ap.add_argument("--masked-steps", type=int, default=None,
