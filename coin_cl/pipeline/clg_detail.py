@@ -61,20 +61,33 @@ def high_band(img: np.ndarray, w_low: int, h_low: int) -> np.ndarray:
     return (img - low).astype(np.float32)
 
 
-def reference_detail(ref: Any, cam_n: Any, scale: float, device: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The reference's high band (split at `scale` x its size: view n's working scale) warped into
-    view n through P_k: ((H, W, 3) detail, (H, W) bool where the warp supports it)."""
-    Hk, Wk = ref.image.shape[:2]
-    hi_k = high_band(ref.image, round(Wk * scale), round(Hk * scale))
-    warped, weight = reference_in_view(hi_k, cam_n, ref.cam, ref.points, ref.depth, device)
-    return warped, weight > 0
+def reference_warp(
+    ref: Any, cam_n: Any, device: Any, detail_scale: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The reference image warped into view n through P_k in one pass, with its high band (split at
+    `detail_scale` x its size: view n's working scale) as three more channels when a scale is given:
+    ((H, W, 3 or 6), (H, W) weights, 0 where no point lands). One warp serves the colour target, the
+    detail band and every residual of the view (the geometry is the same; the warp is linear in the
+    values it carries)."""
+    img = ref.image[..., :3]
+    if detail_scale is not None:
+        Hk, Wk = img.shape[:2]
+        img = np.concatenate([img, high_band(img, round(Wk * detail_scale), round(Hk * detail_scale))], -1)
+    return reference_in_view(img, cam_n, ref.cam, ref.points, ref.depth, device)
 
 
-def colour_target(ref: Any, cam_n: Any, inp_n: np.ndarray, device: Any) -> np.ndarray:
+def reference_detail(warp: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's high band in view n from `reference_warp(..., detail_scale)`: ((H, W, 3)
+    detail, (H, W) bool where the warp supports it)."""
+    warped, weight = warp
+    return warped[..., 3:6], weight > 0
+
+
+def colour_target(warp: tuple[np.ndarray, np.ndarray], inp_n: np.ndarray) -> np.ndarray:
     """(H, W, 3): what CLG's RGB term pulls view n toward: the reference image warped through P_k
-    where the warp lands, the initial inpaint I^_n `inp_n` elsewhere."""
-    warped, weight = reference_in_view(ref.image, cam_n, ref.cam, ref.points, ref.depth, device)
-    return np.where((weight > 0)[..., None], warped, inp_n).astype(np.float32)
+    (`reference_warp`) where the warp lands, the initial inpaint I^_n `inp_n` elsewhere."""
+    warped, weight = warp
+    return np.where((weight > 0)[..., None], warped[..., :3], inp_n).astype(np.float32)
 
 
 def match_colour(

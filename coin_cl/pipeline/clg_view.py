@@ -15,14 +15,9 @@ import torch
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
-from coin_cl.pipeline.clg_detail import colour_target, compose_crop, reference_detail
+from coin_cl.pipeline.clg_detail import colour_target, compose_crop, reference_detail, reference_warp
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
-from coin_cl.pipeline.reprojection import (
-    consistency_residual,
-    reference_in_view,
-    residual_to_reference,
-    warp_fill,
-)
+from coin_cl.pipeline.reprojection import masked_residual, residual_to_reference, warp_fill
 from coin_cl.scene.io import to_uint8
 
 
@@ -38,32 +33,37 @@ class ReferenceView:
     mask: np.ndarray | None = None  # [Hk, Wk] bool its mask (the lifted residual's target region)
 
 
-def residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray, ref: ReferenceView,
-              device: Any) -> tuple[float, float, int]:  # fmt: skip
-    """Consistency residuals of the input and of what the PNG will hold (uint8), and the support."""
-    r_before, n_sup = consistency_residual(
-        before, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device
-    )
-    written = to_uint8(out).astype(np.float32) / 255  # the residual of what the PNG holds
-    r_after, _ = consistency_residual(written, ref.image, cam, ref.cam, ref.points, mask, ref.depth, device)
-    return r_before, r_after, n_sup
+def written(out: np.ndarray) -> np.ndarray:
+    """What the PNG will hold (uint8) as float: the residuals are of the written image."""
+    return to_uint8(out).astype(np.float32) / 255
 
 
-def lifted_residuals(before: np.ndarray, out: np.ndarray, cam: Any, mask: np.ndarray,
-                     depth_n: np.ndarray | None, ref: ReferenceView) -> tuple[float, float]:  # fmt: skip
+def lifted_residual(img: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.ndarray | None,
+                    ref: ReferenceView) -> float:  # fmt: skip
     """The residual to the reference by the other geometric route (`residual_to_reference`): view n's
-    mask pixels lifted with its own depth and projected into the reference's mask, for the input and
-    for what the PNG will hold; (nan, nan) without a depth or a reference mask."""
+    mask pixels of `img` lifted with its own depth and projected into the reference's mask; nan
+    without a depth or a reference mask."""
     if depth_n is None or ref.mask is None:
-        return float("nan"), float("nan")
+        return float("nan")
     region = np.asarray(mask, bool) & np.isfinite(depth_n)
-    written = to_uint8(out).astype(np.float32) / 255
+    return residual_to_reference([cam, ref.cam], [depth_n, None], [img, None], [region, None], 1,
+                                 ref.image, ref.mask)  # fmt: skip
 
-    def r(img: np.ndarray) -> float:
-        return residual_to_reference([cam, ref.cam], [depth_n, None], [img, None], [region, None], 1,
-                                     ref.image, ref.mask)  # fmt: skip
 
-    return r(before), r(written)
+def input_residuals(inp_n: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.ndarray | None,
+                    ref: ReferenceView, warp: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:  # fmt: skip
+    """The input's residuals by both routes and the support (once per view, shared by its candidates)."""
+    r_before, n_sup = masked_residual(inp_n, *warp, mask)
+    return {"residual_before": r_before, "support_px": n_sup,
+            "lifted_before": lifted_residual(inp_n, cam, mask, depth_n, ref)}  # fmt: skip
+
+
+def output_residuals(out: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.ndarray | None,
+                     ref: ReferenceView, warp: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:  # fmt: skip
+    """A candidate's residuals by both routes, of what its PNG will hold."""
+    w = written(out)
+    return {"residual_after": masked_residual(w, *warp, mask)[0],
+            "lifted_after": lifted_residual(w, cam, mask, depth_n, ref)}  # fmt: skip
 
 
 def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: np.ndarray | None,
@@ -71,13 +71,11 @@ def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: n
               device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """CLG without a sampler for view n: (output [H, W, 3], record). The fill is the reference itself
     (both bands: no band split is needed, the detail comes through the same warp as the colours)."""
-    warped = reference_in_view(ref.image, cam, ref.cam, ref.points, ref.depth, device)
-    out, n_sup = warp_fill(inp_n, ren_n, mask, *warped)
-    r_before, r_after, _ = residuals(inp_n, out, cam, mask, ref, device)
-    l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
-    rec = {"view": n, "status": "warped", "residual_before": r_before, "residual_after": r_after,
-           "lifted_before": l_before, "lifted_after": l_after,
-           "support_px": n_sup, "hole_px": int(mask.sum())}  # fmt: skip
+    warp = reference_warp(ref, cam, device)
+    out, n_sup = warp_fill(inp_n, ren_n, mask, *warp)
+    rec = {"view": n, "status": "warped", **input_residuals(inp_n, cam, mask, depth_n, ref, warp),
+           **output_residuals(out, cam, mask, depth_n, ref, warp), "support_px": n_sup,
+           "hole_px": int(mask.sum())}  # fmt: skip
     return out, rec
 
 
@@ -124,16 +122,17 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         e_in, e_out = float(energy(prob.image)), float(energy(x))
     fill = x[0].permute(1, 2, 0).numpy()
     scale = cfg.detail_split * work / prob.side  # view n's split as a share of its full size
-    ref_detail = reference_detail(ref, cam, scale, device) if cfg.detail == "reference" else None
+    warp = reference_warp(ref, cam, device, scale if cfg.detail == "reference" else None)
+    ref_detail = reference_detail(warp) if cfg.detail == "reference" else None
     # with the colour match, the unmatched composite is a candidate too: the match is global over the
     # hole and can move a well-coloured sample away from the reference where the support is partial
-    colours = [(colour_target(ref, cam, inp_n, device), mask), None] if cfg.colour_match else [None]
+    colours = [(colour_target(warp, inp_n), mask), None] if cfg.colour_match else [None]
     common = {
         "view": n, "status": "guided" if cfg.sampler.guidance_scale else "unguided", "steps": n_steps,
         "energy_input": e_in, "energy_output": e_out, "energies": res.energies,
         "support_work_px": int(prob.support.sum()), "hole_work_px": int(prob.hole.sum()),
         "n_points": int(len(ref.points)), "crop": [prob.y0, prob.x0, prob.side], "work": work,
-        "detail": cfg.detail, "start_step": start,
+        "detail": cfg.detail, "start_step": start, **input_residuals(inp_n, cam, mask, depth_n, ref, warp),
     }  # fmt: skip
     H, W = mask.shape
     ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
@@ -145,11 +144,10 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         full = inp_n.copy()
         full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
         out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
-        r_before, r_after, n_sup = residuals(inp_n, out, cam, mask, ref, device)
-        l_before, l_after = lifted_residuals(inp_n, out, cam, mask, depth_n, ref)
-        rec = common | {"residual_before": r_before, "residual_after": r_after, "support_px": n_sup,
-                        "lifted_before": l_before, "lifted_after": l_after,
-                        "colour_match": colour is not None,
-                        "chroma_from_target": colour is not None and cfg.chroma_from_target}  # fmt: skip
+        rec = common | output_residuals(out, cam, mask, depth_n, ref, warp)
+        rec |= {
+            "colour_match": colour is not None,
+            "chroma_from_target": colour is not None and cfg.chroma_from_target,
+        }
         candidates.append((out, rec))
     return candidates

@@ -58,12 +58,20 @@ def consistency_residual(
 
     Returns (residual, number of supported pixels); (nan, 0) without support.
     """
-    wk, wt = reference_in_view(image_k, cam_n, cam_k, points, depth_k, device)
-    sup = np.asarray(mask_n, bool) & (wt > 0)
+    warped, weight = reference_in_view(image_k, cam_n, cam_k, points, depth_k, device)
+    return masked_residual(image_n, warped, weight, mask_n)
+
+
+def masked_residual(
+    image_n: np.ndarray, warped: np.ndarray, weight: np.ndarray, mask_n: np.ndarray
+) -> tuple[float, int]:
+    """`consistency_residual` given the warp already made (`reference_in_view`'s (H, W, 3) colours
+    and (H, W) weights), so several images of one view are compared against one warp."""
+    sup = np.asarray(mask_n, bool) & (weight > 0)
     n = int(sup.sum())
     if n == 0:
         return float("nan"), 0
-    d = np.abs(np.asarray(image_n, np.float32) - wk).mean(-1)
+    d = np.abs(np.asarray(image_n, np.float32) - warped[..., :3]).mean(-1)
     return float(d[sup].mean()), n
 
 
