@@ -86,7 +86,7 @@ def background_point_flags(cameras: Sequence[Any], masks: Sequence[np.ndarray], 
 
 
 def background_depth(cam: Any, mask: np.ndarray, points: np.ndarray, cell: int | None, dilate_px: int,
-                     object_free: bool = False) -> np.ndarray:  # fmt: skip
+                     object_free: bool = False, planes: bool = False) -> np.ndarray:  # fmt: skip
     """D_bg of one view [H, W] float32 (camera z): the nearest of the sparse `points` [N, 3] per
     `cell` x `cell` cell, filled in 2D (Telea) over the cells without one. cell=None: from the
     density of the points the view sees (`auto_cell`).
@@ -126,7 +126,16 @@ def background_depth(cam: Any, mask: np.ndarray, points: np.ndarray, cell: int |
         cells_in_mask if not object_free else cells_in_mask & (count < MIN_CELL_POINTS)
     )
     filled = inpaint_depth(np.where(hole, np.nan, grid), hole, radius=3)
-    return cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+    depth = cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR)
+    if planes:
+        from coin_cl.gs.surface_planes import continuation_depth
+
+        fit = np.asarray(points, np.float64)
+        if not object_free:  # the object's own points must not make a plane
+            px, seen = cam.pixels(fit)
+            fit = fit[seen & ~grown[px[:, 1], px[:, 0]]]
+        depth = np.minimum(depth, continuation_depth(cam, mask, fit, region=grown))
+    return depth.astype(np.float32)
 
 
 def auto_cell(height: int, width: int, n_points: int, n_pixels: int) -> int:
@@ -138,11 +147,12 @@ def auto_cell(height: int, width: int, n_points: int, n_pixels: int) -> int:
 
 
 def background_depths(cameras: Sequence[Any], masks: Sequence[np.ndarray], points: np.ndarray,
-                      cell: int | None = None, dilate_px: int = 3) -> list[np.ndarray | None]:  # fmt: skip
+                      cell: int | None = None, dilate_px: int = 3,
+                      planes: bool = True) -> list[np.ndarray | None]:  # fmt: skip
     """D_bg [H, W] float32 per view, from the background's sparse points (`background_point_flags`:
-    behind the object too, where other views observed it); None for a view with an empty mask
-    (nothing to hold) or without a sparse point outside its mask (logged: that view goes without
-    the term)."""
+    behind the object too, where other views observed it; `planes`: `background_depth`'s); None
+    for a view with an empty mask (nothing to hold) or without a sparse point outside its mask
+    (logged: that view goes without the term)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(1)]
     bg_pts = pts[background_point_flags(cameras, masks, pts, dilate_px)]
@@ -156,7 +166,7 @@ def background_depths(cameras: Sequence[Any], masks: Sequence[np.ndarray], point
             out.append(None)
             continue
         try:
-            out.append(background_depth(cam, m, bg_pts, cell, dilate_px, object_free=True))
+            out.append(background_depth(cam, m, bg_pts, cell, dilate_px, object_free=True, planes=planes))
         except ValueError as e:
             log.warning("background depth: %s; this view goes without it", e)
             out.append(None)

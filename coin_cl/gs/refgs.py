@@ -80,6 +80,9 @@ class RefGSConfig:
     lambda_bg_depth: float = 3.0
     bg_depth_margin: float = 0.05  # relative band around D_bg left free
     bg_depth_behind: float = 0.1  # weight of the behind side (0: penalise only what is in front)
+    # D_bg continues the planes around each mask (`coin_cl.gs.surface_planes`) where they pass in
+    # front of its 2D fill; False: the 2D fill alone (the code before 2026-11-25)
+    bg_depth_planes: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:

@@ -255,7 +255,9 @@ def run_refgs(
 
     bg = None
     if cfg.bg_depth:
-        bg = background_depths([v.camera for v in views], obj, np.asarray(scene.points))
+        bg = background_depths(
+            [v.camera for v in views], obj, np.asarray(scene.points), planes=cfg.bg_depth_planes
+        )
         _save_bg_depths(out / "bg_depths", scene, train_idx, bg)
         log.info(
             "background depth held in the masks of %d of %d views", sum(d is not None for d in bg), len(bg)
