@@ -20,8 +20,10 @@ would otherwise run on over the gravel beside it).
 can only bring D_bg forward, where the term's weak behind side is what a wrong guess costs.
 Measured in the test views' masks (`python benchmarks/carve.py --scene room|spinnerf --dbg-only`):
 on the demo room the share more than 10 % behind the truth falls from 26 % to 0.1 %, in front 3.9 %
--> 4.6 %; on SPIn-NeRF (against a GS of the object-absent views) behind 25 % -> 14 %, in front
-1.9 % -> 6.6 % (10.9 % without the in-between rule).
+-> 4.6 %, median error 2.2 % -> 0.8 %. On SPIn-NeRF (against a GS of the object-absent views) the
+planes found around the test masks are cut through gravel and a bush, which the slab rule below
+refuses, so D_bg stays the 2D fill's there (1.9 % in front, 25 % behind); without that rule they put
+10.9 % in front (6.6 % with the in-between rule alone), a ghost the term would let stand.
 
 Planes only: curved or cluttered surroundings (a bush) find no patch and keep the 2D fill.
 """
@@ -58,8 +60,9 @@ LINK_SPACINGS = 3.0
 # ... and so are those closer than the mask's size at the ring's depth (a patch bridges the
 # footprint the object hides, not the gap to another surface further away).
 # A pixel is between a patch's points when they lie on both sides of it within this many rows
-# (or columns): the band absorbs the sparsity of SfM points (2 / 4 / 8 px: in-front share on
-# SPIn-NeRF 0.058 / 0.066 / 0.074, behind 0.156 / 0.142 / 0.124; the demo room the same at all).
+# (or columns): the band absorbs the sparsity of SfM points (2 / 4 / 8 px, before the slab rule:
+# in-front share on SPIn-NeRF 0.058 / 0.066 / 0.074, behind 0.156 / 0.142 / 0.124; the demo room
+# the same at all three).
 BETWEEN_BAND_PX = 4
 
 
