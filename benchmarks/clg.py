@@ -12,6 +12,8 @@ guided image is worse keeps its input, as in a pipeline run). Rows (`CLGConfig` 
     input_sdedit  the sampler starts from I^_n's crop noised half way (strength 0.5), + I^_n's band
     default       CLGConfig(): strength 0.5 + the reference's band where supported, I^_n's elsewhere
     strength_03, strength_07   the default at strength 0.3 / 0.7 (not run unless named in --rows)
+    no_topup      the default without the detail band's top-up (detail_gain_max 1; not run unless named)
+    tol0          the default with texture_tol 0: no texture traded for consistency (not run unless named)
     run           nothing is run: the run's own 3_clg images, scored the same way (`--rows run`
                   gives a finished run's CLG figures in seconds)
 Per row, over the non-reference views with a mask (a view that kept its input counts with it): the
@@ -66,6 +68,8 @@ ROWS = {
     "default": CLGConfig(),
     "strength_03": CLGConfig(strength=0.3),
     "strength_07": CLGConfig(strength=0.7),
+    "no_topup": CLGConfig(detail_gain_max=1.0),
+    "tol0": CLGConfig(texture_tol=0.0),
 }
 DEFAULT_ROW = "default"
 OWN_ROW = "run"  # the run's own 3_clg, scored without running anything

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from coin_cl.crop import resize_to
-from coin_cl.pipeline.clg_detail import compose_crop, high_band, match_colour
+from coin_cl.metrics import mask_texture
+from coin_cl.pipeline.clg_detail import compose_crop, high_band, match_colour, texture_gain
 
 
 def _texture(h=96, w=96, seed=0):
@@ -126,3 +127,34 @@ def test_compose_crop_matches_the_low_band_to_the_target_inside_the_hole():
     assert err[1] < 0.2 * err[0], err
     # the detail band is the input's either way: the match acts on the sample's band only
     np.testing.assert_allclose(high_band(matched, 16, 16)[hole], high_band(plain, 16, 16)[hole], atol=0.05)
+
+
+def test_texture_gain_restores_the_inputs_texture_with_the_smallest_gain():
+    side, work = 96, 32
+    inp = _texture(side, side)
+    hole = np.zeros((side, side), bool)
+    hole[24:72, 24:72] = True
+    # a sample whose low band is the input's but whose detail band is half the input's: the texture
+    # lost is what the gain must bring back, and a gain near 2 does
+    fill = resize_to(inp, work, work)
+    weak = compose_crop(fill, 0.5 * inp + 0.5 * resize_to(resize_to(inp, 16, 16), side, side), 0, 0, side,
+                        "input", split=0.5)  # fmt: skip
+    t_in = mask_texture(inp, hole)
+
+    def compose(g):
+        return compose_crop(fill, 0.5 * inp + 0.5 * resize_to(resize_to(inp, 16, 16), side, side), 0, 0, side,
+                            "input", split=0.5, detail_gain=g)  # fmt: skip
+
+    tex = lambda o: mask_texture(o, hole)  # noqa: E731
+    assert tex(weak) < 0.8 * t_in
+    out, g = texture_gain(compose, tex, t_in, max_gain=3.0)
+    assert 1.5 < g < 2.5 and tex(out) >= t_in
+    assert tex(compose(g - 0.05)) < t_in  # the smallest such gain, to the bisection's step
+    np.testing.assert_allclose(out, compose(g), atol=1e-6)
+    # already textured enough, a non-finite target or the top-up off: the output unchanged, gain 1
+    for target, top in ((0.5 * t_in, 3.0), (float("nan"), 3.0), (t_in, 1.0)):
+        out, g = texture_gain(compose, tex, target, max_gain=top)
+        assert g == 1.0 and np.array_equal(out, compose(1.0))
+    # out of reach: the cap, and the output at the cap
+    out, g = texture_gain(compose, tex, 10 * t_in, max_gain=1.25)
+    assert g == 1.25 and np.array_equal(out, compose(1.25))

@@ -343,4 +343,9 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
         res["texture_input"], res["texture_written"] = t_in, t_out
         ctx.note(f"texture in the masks: initial inpaints {t_in:.4f}, CLG's images {t_out:.4f} "
                  f"({res['n_kept_input']} of {len(done)} views kept their input)")  # fmt: skip
+    written_views = [r for r in res["views"].values() if r["status"] != "kept input"]
+    gains = [r["detail_gain"] for r in written_views if "detail_gain" in r]
+    if gains and max(gains) > 1.0:
+        ctx.note(f"detail band topped up to the input's texture in {sum(g > 1.0 for g in gains)} of "
+                 f"{len(gains)} written views (gain up to {max(gains):.3f})")  # fmt: skip
     return res

@@ -71,6 +71,13 @@ class CLGConfig:
         texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
         mask's surroundings (more than (1 + colour_tol) x the input's distance). Such a view keeps
         I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg_guard.no_worse`).
+    detail_gain_max: the detail band's top-up (`clg_detail.texture_gain`): a candidate whose texture
+        inside the mask (`metrics.mask_texture`) falls below the input's gets its high band (the
+        reference's warped detail, I^_n's elsewhere) multiplied by the smallest gain up to this that
+        brings it back to the input's. Why: the warp resamples the reference's detail and loses
+        some of it, and the sample's low band is smoother than I^_n's below the split, so an output
+        closer to the reference came out a little less textured than its input (issue 22: 0.04 % /
+        0.8 % on the shared scene). 1 = off. The gain is recorded per view ("detail_gain").
     warp_guard: keep_if_worse also for the warp-only fill (sample False). Off by default because
         that fill's main use is an edited reference, whose warp adds an object with colours and
         texture its surroundings lack (the colour check would reject exactly what was asked for);
@@ -101,6 +108,7 @@ class CLGConfig:
     keep_if_worse: bool = True
     warp_guard: bool = False
     texture_tol: float = 0.1
+    detail_gain_max: float = 1.5
     colour_tol: float = 0.25
 
     def __post_init__(self) -> None:

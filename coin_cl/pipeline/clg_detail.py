@@ -41,6 +41,7 @@ pixel, and the sample steers the lightness alone. On the shared scene's LaMa inp
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -126,6 +127,7 @@ def compose_crop(
     split: float = 1.0,
     colour: tuple[np.ndarray, np.ndarray] | None = None,
     chroma: bool = False,
+    detail_gain: float = 1.0,
 ) -> np.ndarray:
     """The crop [side, side, 3] CLG pastes: the sample `fill` [work, work, 3] brought back to the
     crop at (y0, x0) of view n, its low band below `split` x work plus the high band of the detail
@@ -151,4 +153,33 @@ def compose_crop(
         warped, sup = ref_detail
         sup_c = crop_image(sup, y0, x0, side, side)
         hi = np.where(sup_c[..., None], crop_image(warped, y0, x0, side, side), hi)
-    return (back + hi).astype(np.float32)
+    return (back + detail_gain * hi).astype(np.float32)
+
+
+def texture_gain(
+    compose: Callable[[float], np.ndarray],
+    texture: Callable[[np.ndarray], float],
+    target: float,
+    max_gain: float,
+    iters: int = 8,
+) -> tuple[np.ndarray, float]:
+    """The detail band's top-up (`CLGConfig.detail_gain_max`): (output, gain) with the smallest gain
+    in [1, max_gain] (bisection, `iters` halvings) at which `texture(compose(gain))` reaches
+    `target`, or max_gain when even that falls short. compose(gain) -> (H, W, 3): the view's output
+    with its high band times gain. Gain 1 (the output unchanged) when that already reaches the
+    target, the target is not finite or max_gain <= 1."""
+    out = compose(1.0)
+    if not np.isfinite(target) or max_gain <= 1.0 or texture(out) >= target:
+        return out, 1.0
+    top = compose(max_gain)
+    if texture(top) < target:
+        return top, float(max_gain)
+    lo, hi, best = 1.0, float(max_gain), top
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        cand = compose(mid)
+        if texture(cand) >= target:
+            hi, best = mid, cand
+        else:
+            lo = mid
+    return best, hi

@@ -14,8 +14,15 @@ import torch
 
 from coin_cl.diffusion.inpaint2d import paste
 from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
+from coin_cl.metrics import mask_texture
 from coin_cl.pipeline.clg_config import CLGConfig
-from coin_cl.pipeline.clg_detail import colour_target, compose_crop, reference_detail, reference_warp
+from coin_cl.pipeline.clg_detail import (
+    colour_target,
+    compose_crop,
+    reference_detail,
+    reference_warp,
+    texture_gain,
+)
 from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
 from coin_cl.pipeline.reprojection import masked_residual, residual_to_reference, warp_fill
 from coin_cl.scene.io import to_uint8
@@ -137,17 +144,29 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     H, W = mask.shape
     ys = slice(max(prob.y0, 0), min(prob.y0 + prob.side, H))
     xs = slice(max(prob.x0, 0), min(prob.x0 + prob.side, W))
-    candidates = []
-    for colour in colours:
+    t_in = mask_texture(inp_n, mask)
+
+    def composite(colour: Any, gain: float) -> np.ndarray:
         back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail,
-                            cfg.detail_split, colour, cfg.chroma_from_target)  # fmt: skip
+                            cfg.detail_split, colour, cfg.chroma_from_target, gain)  # fmt: skip
         full = inp_n.copy()
         full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
-        out = paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
+        return paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
+
+    candidates = []
+    for colour in colours:
+        # the written image's texture is what the guard and TE-D see
+        out, gain = texture_gain(
+            lambda g, c=colour: composite(c, g),
+            lambda o: mask_texture(written(o), mask),
+            t_in,
+            cfg.detail_gain_max if cfg.detail != "none" else 1.0,
+        )
         rec = common | output_residuals(out, cam, mask, depth_n, ref, warp)
         rec |= {
             "colour_match": colour is not None,
             "chroma_from_target": colour is not None and cfg.chroma_from_target,
+            "detail_gain": gain,
         }
         candidates.append((out, rec))
     return candidates
