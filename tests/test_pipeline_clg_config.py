@@ -33,3 +33,10 @@ def test_sampler_defaults_and_steps_by_model():
 def test_sampler_num_steps_is_refused():
     with pytest.raises(ValueError, match="CLGConfig.steps"):
         CLGConfig(sampler=SamplerConfig(num_steps=12))
+
+
+@pytest.mark.parametrize("gain", [0.5, float("nan"), float("inf")])
+def test_detail_gain_below_one_or_not_finite_is_refused(gain):
+    with pytest.raises(ValueError, match="detail_gain_max"):
+        CLGConfig(detail_gain_max=gain)
+    assert CLGConfig(detail_gain_max=1.0).detail_gain_max == 1.0  # 1 = the top-up off

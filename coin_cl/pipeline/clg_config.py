@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 from coin_cl.diffusion.sampling import Denoiser, SamplerConfig
@@ -116,6 +117,10 @@ class CLGConfig:
             raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {self.detail!r}")
         if not 0.0 < self.detail_split <= 1.0:
             raise ValueError(f"CLGConfig.detail_split must be in (0, 1], got {self.detail_split}")
+        if not (math.isfinite(self.detail_gain_max) and self.detail_gain_max >= 1.0):
+            raise ValueError(
+                f"CLGConfig.detail_gain_max must be a finite gain >= 1 (1 = off), got {self.detail_gain_max}"
+            )
         if not 0.0 < self.strength <= 1.0:
             raise ValueError(f"CLGConfig.strength must be in (0, 1], got {self.strength}")
         if self.sampler.num_steps != SamplerConfig().num_steps:
