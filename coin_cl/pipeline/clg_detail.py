@@ -116,7 +116,7 @@ def match_colour(
     return out.astype(np.float32)
 
 
-def compose_crop(
+def crop_bands(
     fill: np.ndarray,
     inp_n: np.ndarray,
     y0: int,
@@ -127,21 +127,23 @@ def compose_crop(
     split: float = 1.0,
     colour: tuple[np.ndarray, np.ndarray] | None = None,
     chroma: bool = False,
-    detail_gain: float = 1.0,
-) -> np.ndarray:
-    """The crop [side, side, 3] CLG pastes: the sample `fill` [work, work, 3] brought back to the
-    crop at (y0, x0) of view n, its low band below `split` x work plus the high band of the detail
-    source (module docstring). ref_detail: `reference_detail`'s pair (split at the same scale),
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two bands of the crop [side, side, 3] CLG pastes, (low, high): the sample `fill`
+    [work, work, 3] brought back to the crop at (y0, x0) of view n, its band below `split` x work,
+    and the high band of the detail source (module docstring; zero for detail "none", whose low band
+    is the whole upsampled sample). ref_detail: `reference_detail`'s pair (split at the same scale),
     required for detail "reference". colour: (target [H, W, 3], hole [H, W] bool) of view n: the
     low band's colours are matched to the target's low band inside the hole (`match_colour`; with
     `chroma` its chroma is the target's low band's, only its lightness is the sample's); not used
-    by detail "none"."""
+    by detail "none". Split from `compose_crop` so the top-up (`texture_gain`) rescales the high
+    band without recomputing either."""
     if detail not in DETAILS:
         raise ValueError(f"CLGConfig.detail must be one of {', '.join(DETAILS)}, got {detail!r}")
     work = fill.shape[0]
     low = max(1, round(work * split))
     if detail == "none":
-        return resize_to(fill, side, side)
+        up = resize_to(fill, side, side)
+        return up, np.zeros_like(up)
     back = resize_to(resize_to(fill, low, low), side, side)  # the sample's band below the split
     if colour is not None:
         target, hole = (crop_image(a, y0, x0, side, side) for a in colour)
@@ -153,6 +155,13 @@ def compose_crop(
         warped, sup = ref_detail
         sup_c = crop_image(sup, y0, x0, side, side)
         hi = np.where(sup_c[..., None], crop_image(warped, y0, x0, side, side), hi)
+    return back, hi
+
+
+def compose_crop(*args: Any, detail_gain: float = 1.0, **kwargs: Any) -> np.ndarray:
+    """The crop [side, side, 3] CLG pastes: low + detail_gain x high of `crop_bands` (same
+    arguments); detail_gain is the top-up's gain on the high band (`texture_gain` picks it)."""
+    back, hi = crop_bands(*args, **kwargs)
     return (back + detail_gain * hi).astype(np.float32)
 
 

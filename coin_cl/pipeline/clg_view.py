@@ -18,7 +18,7 @@ from coin_cl.metrics import mask_texture
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.clg_detail import (
     colour_target,
-    compose_crop,
+    crop_bands,
     reference_detail,
     reference_warp,
     texture_gain,
@@ -146,9 +146,8 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     xs = slice(max(prob.x0, 0), min(prob.x0 + prob.side, W))
     t_in = mask_texture(inp_n, mask)
 
-    def composite(colour: Any, gain: float) -> np.ndarray:
-        back = compose_crop(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail,
-                            cfg.detail_split, colour, cfg.chroma_from_target, gain)  # fmt: skip
+    def composite(bands: tuple[np.ndarray, np.ndarray], gain: float) -> np.ndarray:
+        back = (bands[0] + gain * bands[1]).astype(np.float32)
         full = inp_n.copy()
         full[ys, xs] = back[ys.start - prob.y0 : ys.stop - prob.y0, xs.start - prob.x0 : xs.stop - prob.x0]
         return paste(inp_n, np.clip(full, 0, 1), mask, cfg.feather_px)
@@ -156,8 +155,11 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     candidates = []
     for colour in colours:
         # the written image's texture is what the guard and TE-D see
+        # the bands once per candidate: the top-up only rescales the high one
+        bands = crop_bands(fill, inp_n, prob.y0, prob.x0, prob.side, cfg.detail, ref_detail,
+                           cfg.detail_split, colour, cfg.chroma_from_target)  # fmt: skip
         out, gain = texture_gain(
-            lambda g, c=colour: composite(c, g),
+            lambda g, b=bands: composite(b, g),
             lambda o: mask_texture(written(o), mask),
             t_in,
             cfg.detail_gain_max if cfg.detail != "none" else 1.0,
