@@ -166,6 +166,8 @@ def methods(lama_path: str | None) -> dict:
         "exemplar hf, gain 1.0": ex(ExemplarConfig(mode="hf", hf_gain=1.0)),
         "exemplar hf, gain 1.2": ex(ExemplarConfig(mode="hf", hf_gain=1.2)),
         "exemplar full, patch 9": ex(ExemplarConfig(mode="full", patch=9)),
+        "exemplar mean vote (default before)": ex(ExemplarConfig(vote="mean")),
+        "exemplar sigma 3, texture match 2": ex(ExemplarConfig(hf_sigma=3.0, texture_gain_max=2.0)),
     }
     if lama_path:
         from coin_cl.diffusion.inpaint2d import paste
@@ -267,7 +269,8 @@ def main() -> None:
     }
     results: dict[str, dict[str, dict]] = {k: {} for k in sets}
     outs: dict[str, dict[str, list]] = {k: {} for k in sets}
-    big = ("OpenCV TELEA", "OpenCV FSR_FAST", "embedded (exemplar, default)", "exemplar full synthesis")
+    big = ("OpenCV TELEA", "OpenCV FSR_FAST", "embedded (exemplar, default)", "exemplar full synthesis",
+           "exemplar mean vote (default before)")  # fmt: skip
     for name, fn in methods(args.lama_path).items():
         for k, cases in sets.items():
             if k == "test" and name not in big and not name.startswith("LaMa"):

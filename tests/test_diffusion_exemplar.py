@@ -2,6 +2,7 @@
 periodic texture it must continue, the demo room's textures (exact truth behind the object) against
 OpenCV Telea on GMSD and SWD, determinism, and the degenerate inputs."""
 
+import cv2
 import numpy as np
 import pytest
 from coin_cl.diffusion.exemplar import ExemplarConfig, exemplar_inpaint
@@ -99,3 +100,28 @@ def test_no_dark_holes_where_matches_are_poor():
     for mode in ("full", "hf"):
         out = exemplar_inpaint(img, m, ExemplarConfig(mode=mode), seed=0)
         assert out[m].min() > 0.2, mode
+
+
+def test_texture_gain_matches_the_windows_band_within_its_bounds():
+    from coin_cl.diffusion.exemplar import texture_gain
+
+    rng = np.random.default_rng(0)
+    win = np.clip(0.5 + 0.1 * rng.standard_normal((48, 48, 3)), 0, 1).astype(np.float32)
+    hole = np.zeros((48, 48), bool)
+    hole[16:32, 16:32] = True
+    cfg = ExemplarConfig(texture_gain_max=4.0)
+    band = win - cv2.GaussianBlur(win, (0, 0), cfg.hf_sigma)
+    # a synthesised band of half the window's strength is brought back by a gain of about 2
+    assert texture_gain(win, hole, 0.5 * band, cfg) == pytest.approx(2.0, rel=0.15)
+    # capped, never below hf_gain, off when the cap is not above hf_gain
+    assert texture_gain(win, hole, 0.1 * band, ExemplarConfig(texture_gain_max=2.0)) == 2.0
+    assert texture_gain(win, hole, 3.0 * band, cfg) == cfg.hf_gain
+    assert texture_gain(win, hole, 0.5 * band, ExemplarConfig()) == ExemplarConfig().hf_gain
+    # degenerate: a flat band in the hole, a flat window, an empty hole -> hf_gain, never NaN
+    assert texture_gain(win, hole, 0 * band, cfg) == cfg.hf_gain
+    flat = np.full_like(win, 0.3)
+    assert texture_gain(flat, hole, 0.5 * band, cfg) == cfg.hf_gain
+    assert texture_gain(win, np.zeros_like(hole), band, cfg) == cfg.hf_gain
+    for bad in (dict(vote="median"), dict(texture_gain_max=float("nan"))):
+        with pytest.raises(ValueError):
+            ExemplarConfig(**bad)

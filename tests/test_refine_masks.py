@@ -223,3 +223,29 @@ def test_pipeline_with_refined_masks(capture, tmp_path):
     assert grid.shape[1] == 6 * scene.cameras[t].width + 10  # five tiles + the split's
     with pytest.raises(ValueError, match="removal"):
         inpaint(scene, tmp_path / "x", config=replace(cfg, prompt="a box", sd_path="/nowhere"))
+
+
+def test_warp_from_the_captures_observes_more_with_the_captured_colours(capture, refined, tmp_path):
+    """`RefineConfig.warp_tol` (off by default, observed_warp's doc): on the same fit, every pixel
+    the default split calls observed stays observed, more are added, and in the added pixels
+    that the ray-cast truth says are observed the written image (the other view's capture) is far
+    closer to the object-free truth than the capture of this view (which shows the object)."""
+    syn, scene = capture
+    out, _ = refined
+    shutil.copytree(out / "default" / "gs", tmp_path / "gs")
+    train = list(scene.train_idx)
+    refine_masks(scene, scene.masks, train, tmp_path, RefineConfig(warp_tol=0.03), iters=300)
+    _, base_masks = read_refined(scene, out / "default", train, scene.masks)
+    images, masks = read_refined(scene, tmp_path, train, scene.masks)
+    added = err_new = err_cap = 0.0
+    for i, u in zip(train, truly_unseen(syn, train), strict=True):
+        assert not (masks[i] & ~base_masks[i]).any()  # observed only grows
+        new = base_masks[i] & ~masks[i] & ~u
+        gt = syn.absent[[j for j, c in enumerate(syn.cameras) if c.name == scene.cameras[i].name][0]]
+        added += new.sum()
+        err_new += np.abs(images[i][new] - gt[new]).sum()
+        err_cap += np.abs(scene.images[i][new] - gt[new]).sum()
+    assert added > 0
+    assert err_new < 0.5 * err_cap, (err_new / added, err_cap / added)
+    with pytest.raises(ValueError, match="warp_tol"):
+        RefineConfig(warp_tol=float("nan"))
