@@ -25,6 +25,12 @@ def test_a_failing_kernel_cache_builds_from_source(monkeypatch):
     that variable is set (`coin_cl.engine.devices` sets it empty on import): then a broken cache
     costs a warning, not the device."""
     import pyopencl.cache
+    from pyopencl.characterize import has_src_build_cache
+
+    if has_src_build_cache(get_runtime().device):
+        # PoCL and NVIDIA cache builds themselves, so pyopencl never touches its disk cache there
+        # and no cache failure can reach the device (CI runs this file again on PoCL where it builds).
+        pytest.skip(f"pyopencl keeps no disk cache for {get_runtime().device.platform.name}")
 
     def broken(*a, **kw):
         raise OSError("simulated: the cache entry is being written by another process")
