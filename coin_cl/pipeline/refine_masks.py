@@ -60,6 +60,10 @@ from coin_cl.scene.io import to_uint8, write_png
 
 log = logging.getLogger(__name__)
 
+# Per view: (R^rmv_n (H, W, 3), fixed-scale alpha (H, W), G^rmv's expected depth (H, W), the
+# captured surface's depth (H, W), 0 where none, R^rmv_n's own alpha (H, W)); `fit_renders`.
+Renders = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+
 
 @dataclass
 class RefineConfig:
@@ -112,15 +116,117 @@ def refine_masks(
     A view with an empty input mask keeps an empty refined mask. `also`: further views (the
     object-absent test views) whose masks are split the same way, against the training views, into
     observed/ and unseen/ only (for the evaluation's grids and per-part scores)."""
-    from coin_cl.gs.base import splat
-    from coin_cl.gs.prune import in_masks
     from coin_cl.scene.masks import write_mask
 
     out_dir = Path(out_dir)
     n_iters = int(cfg.iters if cfg.iters is not None else iters)
+    renders, n_gauss, n_removed = fit_renders(
+        scene, masks, train, out_dir / "gs", cfg, n_iters, seed, device, also
+    )
+    cams = {i: scene.cameras[i] for i in train}
+    areas = {}
+    for i in list(train) + list(also):
+        stem = Path(scene.cameras[i].name).stem
+        mask = np.asarray(masks[i], bool)
+        refined, warped, found = split_view(scene, masks, renders, i, train, cfg)
+        render = renders[i][0]
+        write_mask(out_dir / "observed" / f"{stem}.png", mask & ~refined)
+        write_mask(out_dir / "unseen" / f"{stem}.png", refined)
+        if i not in cams:
+            continue
+        target = render if warped is None else np.where(found[..., None], warped, render)
+        base = np.where((mask & ~refined)[..., None], target, scene.images[i]).astype(np.float32)
+        write_png(out_dir / "renders" / f"{stem}.png", to_uint8(render))
+        write_png(out_dir / "images" / f"{stem}.png", to_uint8(base))
+        write_mask(out_dir / "masks" / f"{stem}.png", refined)
+        areas[stem] = {"input_px": int(mask.sum()), "refined_px": int(refined.sum())}
+        log.info("refine masks: view %s: %d -> %d px (%.0f%%)", stem, mask.sum(), refined.sum(),
+                 100 * refined.sum() / max(1, mask.sum()))  # fmt: skip
+    (out_dir / "areas.json").write_text(json.dumps(areas, indent=1, sort_keys=True))
+    tot_in = sum(a["input_px"] for a in areas.values())
+    tot_ref = sum(a["refined_px"] for a in areas.values())
+    return {
+        "iters": n_iters,
+        "model": cfg.model,
+        "n_gaussians": n_gauss,
+        "n_removed": n_removed,
+        "splat_px": cfg.splat_px,
+        "input_px": tot_in,
+        "refined_px": tot_ref,
+        # refined over input mask area over all training views (1 = nothing gained; 0 with empty masks)
+        "refined_ratio": tot_ref / tot_in if tot_in else 0.0,
+        "areas": areas,
+    }
+
+
+def split_view(
+    scene: Any,
+    masks: list[np.ndarray],
+    renders: Renders,
+    i: int,
+    train: list[int],
+    cfg: RefineConfig,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Step 3 for view i: its input mask split by the rules of `cfg` against the training views
+    `train`, from `fit_renders`' `renders`. Returns (M^rmv_n (H, W) bool, the unseen core; the
+    observed part's colours from the captures (H, W, 3), None without `cfg.warp_tol`; the pixels
+    those colours cover (H, W) bool)."""
+    mask = np.asarray(masks[i], bool)
+    alpha, d = renders[i][1], renders[i][2]
+    cams = {j: scene.cameras[j] for j in train}
+    covered = mask & (alpha >= cfg.alpha_thresh)
+    if cfg.view_check > 0:
+        # Covered is not enough: through the hole the object leaves, G^rmv may show a surface
+        # that lies behind one nobody saw (the floor under the table under the object). A
+        # covered pixel counts as observed only where its rendered surface point is seen by
+        # another view, outside that view's mask, at the depth that view renders.
+        srcs = {**cams, i: scene.cameras[i]}  # a test view is judged by the training views
+        covered &= seen_elsewhere(srcs, masks, renders, i, covered, cfg.view_check, cfg.alpha_thresh,
+                                  cfg.ray_samples, cfg.min_fraction)  # fmt: skip
+    refined = mask & ~covered
+    if cfg.warp_tol > 0 and mask.any():
+        # The observed part's colours from the captures (observed_warp's doc).
+        srcs = {j: scene.cameras[j] for j in train if j != i}
+        warped, found, _ = warp_observed(
+            srcs, {j: scene.images[j] for j in srcs}, {j: masks[j] for j in srcs}, d,
+            {j: renders[j][3] for j in srcs}, scene.cameras[i], mask, cfg.warp_tol,
+        )  # fmt: skip
+    else:
+        warped, found = None, np.zeros_like(mask)
+    if mask.any() and not mask.all() and cfg.see_through > 0:
+        # The older rule: deeper than the surroundings' depth carried inward (misfires where
+        # the mask spans a depth edge, e.g. a wall behind a table; measured in the module doc).
+        from coin_cl.gs.depth_prior import inpaint_depth
+
+        refined |= mask & (d > (1 + cfg.see_through) * inpaint_depth(d, mask))
+    if cfg.grow_px > 0 and refined.any():
+        ker = np.ones((2 * cfg.grow_px + 1,) * 2, np.uint8)
+        refined = cv2.dilate(refined.astype(np.uint8), ker).astype(bool) & mask
+    # A pixel whose surface another view captured, unoccluded and outside its mask, is
+    # observed: the see-through rule and the growth (guesses from the render) yield to it.
+    refined &= ~found
+    return refined, warped, found
+
+
+def fit_renders(
+    scene: Any,
+    masks: list[np.ndarray],
+    train: list[int],
+    gs_dir: Path,
+    cfg: RefineConfig,
+    iters: int,
+    seed: int = 0,
+    device: Any = None,
+    also: list[int] | tuple[int, ...] = (),
+) -> tuple[Renders, int, int]:
+    """Steps 1-3 of the module doc up to the renders: the object-present fit (`iters` steps,
+    resumable in `gs_dir`), G^rmv, and per view of `train` + `also` the tuple of `Renders`
+    (G^rmv's depth in float64). Returns (renders, Gaussians fitted, Gaussians removed)."""
+    from coin_cl.gs.base import splat
+    from coin_cl.gs.prune import in_masks
     from coin_cl.pipeline.refgs import fit_captured
 
-    tr = fit_captured(scene, train, cfg.model, n_iters, seed, "opencl", device, out_dir / "gs")
+    tr = fit_captured(scene, train, cfg.model, iters, seed, "opencl", device, Path(gs_dir))
     model, views = tr.model, tr.train_views
     centre = torch.stack([v.camera.center_t for v in views]).mean(0)
     with torch.no_grad():
@@ -150,84 +256,22 @@ def refine_masks(
         z = (m @ V[:3, :3].T + V[:3, 3])[:, 2].clamp_min(1e-6)
         fixed = (cfg.splat_px * z / K[0, 0])[:, None].expand(-1, 3).contiguous()
         with torch.no_grad():
-            img, _, depth, _ = splat(cam_v, m, q, s_own, op, rgb, backend="opencl", background=None,
+            img, a_own, depth, _ = splat(cam_v, m, q, s_own, op, rgb, backend="opencl", background=None,
                                      return_depth=True, training=False, device=device)  # fmt: skip
             _, alpha, _, _ = splat(cam_v, m, q, fixed, op, rgb, backend="opencl", background=None,
                                    return_depth=False, training=False, device=device)  # fmt: skip
             _, a_full, d_full, _ = splat(cam_v, *full, backend="opencl", background=None, return_depth=True,
                                          training=False, device=device)  # fmt: skip
         d_cap = np.where(a_full.numpy() > 0.5, d_full.numpy(), 0.0)  # the captured surface (object included)
-        renders[i] = (img.clamp(0, 1).numpy(), alpha.numpy(), depth.numpy().astype(np.float64), d_cap)
-    cams = {i: scene.cameras[i] for i in train}
-    areas = {}
-    for i in list(train) + list(also):
-        stem = Path(scene.cameras[i].name).stem
-        mask = np.asarray(masks[i], bool)
-        render, alpha, d, _ = renders[i]
-        covered = mask & (alpha >= cfg.alpha_thresh)
-        if cfg.view_check > 0:
-            # Covered is not enough: through the hole the object leaves, G^rmv may show a surface
-            # that lies behind one nobody saw (the floor under the table under the object). A
-            # covered pixel counts as observed only where its rendered surface point is seen by
-            # another view, outside that view's mask, at the depth that view renders.
-            srcs = {**cams, i: scene.cameras[i]}  # a test view is judged by the training views
-            covered &= seen_elsewhere(srcs, masks, renders, i, covered, cfg.view_check, cfg.alpha_thresh,
-                                      cfg.ray_samples, cfg.min_fraction)  # fmt: skip
-        refined = mask & ~covered
-        if cfg.warp_tol > 0 and mask.any():
-            # The observed part's colours from the captures (observed_warp's doc).
-            srcs = {j: scene.cameras[j] for j in train if j != i}
-            warped, found, _ = warp_observed(
-                srcs, {j: scene.images[j] for j in srcs}, {j: masks[j] for j in srcs}, d,
-                {j: renders[j][3] for j in srcs}, scene.cameras[i], mask, cfg.warp_tol,
-            )  # fmt: skip
-        else:
-            warped, found = None, np.zeros_like(mask)
-        if mask.any() and not mask.all() and cfg.see_through > 0:
-            # The older rule: deeper than the surroundings' depth carried inward (misfires where
-            # the mask spans a depth edge, e.g. a wall behind a table; measured in the module doc).
-            from coin_cl.gs.depth_prior import inpaint_depth
-
-            refined |= mask & (d > (1 + cfg.see_through) * inpaint_depth(d, mask))
-        if cfg.grow_px > 0 and refined.any():
-            ker = np.ones((2 * cfg.grow_px + 1,) * 2, np.uint8)
-            refined = cv2.dilate(refined.astype(np.uint8), ker).astype(bool) & mask
-        # A pixel whose surface another view captured, unoccluded and outside its mask, is
-        # observed: the see-through rule and the growth (guesses from the render) yield to it.
-        refined &= ~found
-        write_mask(out_dir / "observed" / f"{stem}.png", mask & ~refined)
-        write_mask(out_dir / "unseen" / f"{stem}.png", refined)
-        if i not in cams:
-            continue
-        target = render if warped is None else np.where(found[..., None], warped, render)
-        base = np.where((mask & ~refined)[..., None], target, scene.images[i]).astype(np.float32)
-        write_png(out_dir / "renders" / f"{stem}.png", to_uint8(render))
-        write_png(out_dir / "images" / f"{stem}.png", to_uint8(base))
-        write_mask(out_dir / "masks" / f"{stem}.png", refined)
-        areas[stem] = {"input_px": int(mask.sum()), "refined_px": int(refined.sum())}
-        log.info("refine masks: view %s: %d -> %d px (%.0f%%)", stem, mask.sum(), refined.sum(),
-                 100 * refined.sum() / max(1, mask.sum()))  # fmt: skip
-    (out_dir / "areas.json").write_text(json.dumps(areas, indent=1, sort_keys=True))
-    tot_in = sum(a["input_px"] for a in areas.values())
-    tot_ref = sum(a["refined_px"] for a in areas.values())
-    return {
-        "iters": n_iters,
-        "model": cfg.model,
-        "n_gaussians": int(len(means)),
-        "n_removed": n_removed,
-        "splat_px": cfg.splat_px,
-        "input_px": tot_in,
-        "refined_px": tot_ref,
-        # refined over input mask area over all training views (1 = nothing gained; 0 with empty masks)
-        "refined_ratio": tot_ref / tot_in if tot_in else 0.0,
-        "areas": areas,
-    }
+        renders[i] = (img.clamp(0, 1).numpy(), alpha.numpy(), depth.numpy().astype(np.float64), d_cap,
+                      a_own.numpy())  # fmt: skip
+    return renders, int(len(means)), n_removed
 
 
 def seen_elsewhere(
     cams: dict[int, Any],
     masks: list[np.ndarray],
-    renders: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    renders: Renders,
     n: int,
     pixels: np.ndarray,
     tol: float,
@@ -244,8 +288,8 @@ def seen_elsewhere(
     `hull_fraction` of the views that see it: the object is removed), or in front of the surface
     another view renders, outside its mask (that view sees through it). A ray that crosses
     unknown space (the table under the object) may show a surface behind one nobody saw.
-    `renders[i]` = (image (H, W, 3), alpha (H, W), expected depth of the object-free model
-    (H, W), depth of the captured surface (H, W), 0 where none). Returns (H, W) bool, a subset
+    `renders`: `fit_renders`' (`Renders`; the fixed-scale alpha, the expected depth of the
+    object-free model and the captured surface's depth are read). Returns (H, W) bool, a subset
     of `pixels`."""
     ys, xs = np.nonzero(pixels)
     out = np.zeros(np.shape(pixels), bool)
