@@ -19,7 +19,9 @@ schedule (its timing probe would plan fewer steps).
 `--rows ... coin_view_check` adds a row with stage 0_refine's view check
 (`RefineConfig.view_check`); `coin_no_bg_depth` a row without the background depth term
 (`RefGSConfig.bg_depth=False`, Ref-GS and TE-D; stages 0-1 shared with the coin row). `--seed`
-sets `CoInConfig.seed` (the scene stays the same). The last line is JSON (room_*, room360_*).
+sets `CoInConfig.seed` (the scene stays the same); `--refine-vote` / `--refine-grow` set stage
+0_refine's removal vote and growth (`RefineConfig.min_fraction`, `grow_px`; docs/RESULTS.md "Why
+the split inpaints what other views saw"). The last line is JSON (room_*, room360_*).
 """
 
 from __future__ import annotations
@@ -151,6 +153,10 @@ def run_scene(name: str, out: Path, args) -> dict:
     if not (scene_dir / "views.txt").is_file():
         write_synthetic(scene_dir, syn)
     cfg = CoInConfig(budget_minutes=args.budget, prior_seconds=args.prior_seconds, seed=args.seed)
+    refine = {
+        k: v for k, v in (("min_fraction", args.refine_vote), ("grow_px", args.refine_grow)) if v is not None
+    }
+    cfg = replace(cfg, refine=replace(cfg.refine, **refine))  # the split of the coin row (issue 21)
     if args.iters:  # explicit steps: the same schedule on a loaded machine as on a quiet one
         cfg = replace(cfg, iters_refgs=args.iters[0], iters_ted_finetune=args.iters[1],
                       iters_ted_adversarial=args.iters[2])  # fmt: skip
@@ -201,6 +207,10 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0, help="CoInConfig.seed of the CoIn rows (scene: seed 0)")
     ap.add_argument("--rows", nargs="+", default=list(ROWS[:4]), choices=ROWS,
                     help="rows besides coin (coin_view_check: 0_refine's view check)")  # fmt: skip
+    ap.add_argument("--refine-vote", type=float, default=None,
+                    help="RefineConfig.min_fraction of the CoIn rows (default: the config's)")  # fmt: skip
+    ap.add_argument("--refine-grow", type=int, default=None,
+                    help="RefineConfig.grow_px of the CoIn rows (default: the config's)")  # fmt: skip
     ap.add_argument("--masked-steps", type=int, default=None,
                     help="masked reconstruction's 3DGS steps (default: Ref-GS + TE-D's)")  # fmt: skip
     args = ap.parse_args()

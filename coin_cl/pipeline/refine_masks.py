@@ -9,7 +9,12 @@ of what the object hides from some other view. Here:
 2. its Gaussians are exported (`export_gaussians`; a Scaffold model is decoded at the mean camera
    centre) and those whose centre projects inside the mask in at least `min_fraction` of the
    training views that see it are removed (`prune_points_in_masks`' vote: the object is inside the
-   mask from every view, background behind it only from some), leaving G^rmv;
+   mask from every view, background behind it only from some), leaving G^rmv. The vote is
+   unanimous by default: background just behind the object lies inside the masks of most views,
+   and a point that a single view sees outside its mask is background (a majority vote deleted it,
+   and the split then inpainted what that view saw; measured below). It relies on the masks
+   covering the object's fringe in every view, which the pipeline's default dilation does
+   (`CoInConfig.mask_dilate`); on tight masks a lower vote is safer;
 3. G^rmv is rendered with fixed scales: every Gaussian an isotropic disk of `splat_px` pixels
    (its world radius set from its camera z in that view, so near and far surfaces are judged
    alike), so that coverage means a surface point nearby, not one large Gaussian smeared over the
@@ -32,8 +37,18 @@ where the mask spans a depth edge, the table top in front and the wall behind), 
 growth, 1.9 from coverage (coverage alone: recall 0.46). The view check marks 10.7 % (precision
 0.72, recall 0.92; without the ray test 6.5 % but recall 0.73). Yet end to end (CoIn at the demo's
 steps, docs/RESULTS.md) the view check scored 0.63 dB m-PSNR lower (21.46 against 22.09), on the
-observed part of the test masks too (25.49 against 25.84; single runs). Why is open (a guess: the
-band the default rule inpaints is where the object-free render is weakest). So the default stays.
+observed part of the test masks too (25.49 against 25.84; single runs). Why, measured later
+(`benchmarks/refine_split.py`, docs/RESULTS.md "Why the split inpaints what other views saw"): the
+pixels the see-through rule and the growth took from the observed part were where R^rmv_n was
+wrong (scored on the pixels each rule marks observed: 27.1 dB under that rule, 25.5 under the view
+check, 21.6 with neither), because the majority vote then used in step 2 deleted the background
+just behind the object, and G^rmv showed a hole there. With the unanimous vote and no growth (the
+defaults since): precision 0.46 -> 0.75 at recall 0.96 -> 0.94, observed share 0.52 -> 0.71 (exact
+0.77), the observed target 27.1 -> 26.3 dB on that larger part; end to end (single runs) the
+360-degree room gains m-PSNR 21.89 -> 21.96, HF ratio 0.77 -> 0.83, bbox GMSD 0.169 -> 0.159,
+and the demo room 21.45 -> 21.87 (HF 0.76 -> 0.73, GMSD 0.179 -> 0.181). A 0.9 vote (17 of 18
+views) cost the 360-degree room 0.65 dB instead; why one view's vote matters that much there is
+not isolated.
 
 The later stages then inpaint M^rmv_n only, with R^rmv_n outside it in the mask. Files (stage folder):
 masks/<stem>.png (M^rmv_n), images/<stem>.png (the capture, R^rmv_n in the input mask),
@@ -68,7 +83,8 @@ Renders = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.nda
 @dataclass
 class RefineConfig:
     """iters: steps of the object-present fit (None: the pipeline's Ref-GS step count). model:
-    "3dgs" or "scaffold". min_fraction: removal vote (step 2). splat_px: the fixed render scale in
+    "3dgs" or "scaffold". min_fraction: removal vote (step 2; 1.0: inside the masks of every view
+    that sees it). splat_px: the fixed render scale in
     pixels (step 3; about the spacing of a fitted GS's Gaussians on a surface). alpha_thresh:
     coverage below which a mask pixel is unseen. grow_px: dilation of M^rmv_n inside the input
     mask. see_through: a covered pixel whose rendered depth exceeds the surroundings' (inpainted
@@ -85,10 +101,10 @@ class RefineConfig:
 
     iters: int | None = None
     model: str = "3dgs"
-    min_fraction: float = 0.5
+    min_fraction: float = 1.0
     splat_px: float = 1.5
     alpha_thresh: float = 0.5
-    grow_px: int = 1
+    grow_px: int = 0
     see_through: float = 0.15
     view_check: float = 0.0
     ray_samples: int = 24
