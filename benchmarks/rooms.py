@@ -57,20 +57,29 @@ def observed_from(syn, n: int, sources: list[int], tol: float = 0.02) -> np.ndar
 
 
 def split_scores(syn, run: Path) -> dict:
-    """The split of `run`'s stage 0_refine against the ray-cast truth on the training views:
-    observed share (found), exact observed share, precision / recall of the unseen core, and the
-    share of exactly observed pixels it marks unseen."""
+    """The split of `run`'s stage 0_refine against the ray-cast truth on the training views
+    (`split_counts`); {} where the run has no split."""
     from coin_cl.scene.masks import read_mask
-    from coin_cl.scene.synthetic import truly_unseen
 
     train = [j for j, t in enumerate(syn.is_test) if not t]
+    paths = {n: run / "0_refine" / "unseen" / (Path(syn.cameras[n].name).stem + ".png") for n in train}
+    if not all(p.is_file() for p in paths.values()):
+        return {}
+    return split_counts(syn, {n: read_mask(p, syn.masks[n].shape) for n, p in paths.items()})
+
+
+def split_counts(syn, unseen_found: dict[int, np.ndarray], truth: list[np.ndarray] | None = None) -> dict:
+    """A split ({training view: (H, W) bool unseen core found}) against the ray-cast truth
+    (`truly_unseen` of those views, or `truth` in their order when given): observed share (found),
+    exact observed share, precision / recall of the unseen core, and the share of exactly observed
+    pixels it marks unseen."""
+    from coin_cl.scene.synthetic import truly_unseen
+
+    views = list(unseen_found)
+    truth = truly_unseen(syn, views) if truth is None else truth
     tp = marked = unseen = obs = obs_marked = area = 0
-    for n, u in zip(train, truly_unseen(syn, train), strict=True):
-        p = run / "0_refine" / "unseen" / (Path(syn.cameras[n].name).stem + ".png")
-        if not p.is_file():
-            return {}
-        r = read_mask(p, u.shape)
-        m = syn.masks[n]
+    for n, u in zip(views, truth, strict=True):
+        r, m = unseen_found[n], syn.masks[n]
         tp, marked, unseen = tp + (r & u).sum(), marked + r.sum(), unseen + u.sum()
         obs, obs_marked, area = obs + (m & ~u).sum(), obs_marked + (m & ~u & r).sum(), area + m.sum()
     return {

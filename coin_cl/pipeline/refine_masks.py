@@ -76,8 +76,8 @@ from coin_cl.scene.io import to_uint8, write_png
 log = logging.getLogger(__name__)
 
 # Per view: (R^rmv_n (H, W, 3), fixed-scale alpha (H, W), G^rmv's expected depth (H, W), the
-# captured surface's depth (H, W), 0 where none, R^rmv_n's own alpha (H, W)); `fit_renders`.
-Renders = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+# captured surface's depth (H, W), 0 where none); `fit_renders`.
+Renders = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
 
 
 @dataclass
@@ -272,15 +272,14 @@ def fit_renders(
         z = (m @ V[:3, :3].T + V[:3, 3])[:, 2].clamp_min(1e-6)
         fixed = (cfg.splat_px * z / K[0, 0])[:, None].expand(-1, 3).contiguous()
         with torch.no_grad():
-            img, a_own, depth, _ = splat(cam_v, m, q, s_own, op, rgb, backend="opencl", background=None,
+            img, _, depth, _ = splat(cam_v, m, q, s_own, op, rgb, backend="opencl", background=None,
                                      return_depth=True, training=False, device=device)  # fmt: skip
             _, alpha, _, _ = splat(cam_v, m, q, fixed, op, rgb, backend="opencl", background=None,
                                    return_depth=False, training=False, device=device)  # fmt: skip
             _, a_full, d_full, _ = splat(cam_v, *full, backend="opencl", background=None, return_depth=True,
                                          training=False, device=device)  # fmt: skip
         d_cap = np.where(a_full.numpy() > 0.5, d_full.numpy(), 0.0)  # the captured surface (object included)
-        renders[i] = (img.clamp(0, 1).numpy(), alpha.numpy(), depth.numpy().astype(np.float64), d_cap,
-                      a_own.numpy())  # fmt: skip
+        renders[i] = (img.clamp(0, 1).numpy(), alpha.numpy(), depth.numpy().astype(np.float64), d_cap)
     return renders, int(len(means)), n_removed
 
 
