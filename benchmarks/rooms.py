@@ -1,8 +1,9 @@
 """Removal geometry on the synthetic rooms (issue 21): CoIn's default (inpaint region "auto": the
 observed / unseen split of stage 0_refine), CoIn with the input masks, the naive baseline (plain
-Scaffold-GS on CoIn's stage-1 inpaints, CoIn's Ref-GS step count) and masked reconstruction (3DGS
-on the captured views with the object's pixels left out of the loss, as many steps as CoIn's Ref-GS
-and TE-D together), on the demo room (90-degree arc, `coin-cl demo`'s scene) and a 360-degree room.
+Scaffold-GS on CoIn's stage-1 inpaints) and masked reconstruction (3DGS on the captured views with
+the object's pixels left out of the loss), both at CoIn's budget (as many steps as CoIn's Ref-GS and
+TE-D together, `coin_cl.demo.baseline_steps`), on the demo room (90-degree arc, `coin-cl demo`'s
+scene) and a 360-degree room.
 
 Columns: PSNR, m-PSNR, m-PSNR on the test masks' observed / unseen parts (against the ray-cast
 visibility from the training views, `coin_cl.scene.synthetic`), HF ratio, bbox GMSD, the ghost
@@ -37,6 +38,7 @@ from pathlib import Path
 import numpy as np
 from common import cpu_model, git_commit, write_result
 
+from coin_cl.demo import baseline_config, baseline_steps
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.refine_masks import RefineConfig
@@ -175,11 +177,11 @@ def run_scene(name: str, out: Path, args) -> dict:
     plan = json.loads((out / "coin" / "plan.json").read_text())["steps"]
     if "naive" in args.rows:
         share_stages(out / "coin", out / "naive")
-        naive = replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=plan["refgs"])
+        naive = baseline_config(cfg, plan)
         rows["naive"] = coin_row(syn, scene_dir, out / "naive", naive)
         print(name, "naive", json.dumps(rows["naive"]), file=sys.stderr, flush=True)
     if "masked_recon" in args.rows:
-        steps = args.masked_steps or plan["refgs"] + plan["ted_finetune"] + plan["ted_adversarial"]
+        steps = args.masked_steps or baseline_steps(plan)
         rows["masked_recon"] = masked_recon_row(syn, scene_dir, out / "masked_recon", steps)
         print(name, "masked_recon", json.dumps(rows["masked_recon"]), file=sys.stderr, flush=True)
     if "coin_input" in args.rows:

@@ -57,3 +57,12 @@ def test_room_rows_and_table_report_the_metrics_as_measured():
     base = next(ln for ln in lines if ln.startswith("| baseline |"))
     assert base.split(" | ")[1:3] == ["9.00", "n/a"]
     assert lines.index(coin) < lines.index(base) and "embedded exemplar" in md
+
+
+def test_baselines_train_coins_gs_steps():
+    """Same budget: the baselines get Ref-GS's and TE-D's steps of CoIn's plan together (a missing
+    stage counts 0, the scene prior's seconds are not steps)."""
+    from coin_cl.demo import baseline_steps
+
+    assert baseline_steps({"refgs": 591, "ted_finetune": 411, "ted_adversarial": 499}) == 1501
+    assert baseline_steps({"refgs": 12, "prior_seconds": 30}) == 12

@@ -3,6 +3,7 @@ room, reruns skip what is up to date, a changed setting reruns only the stages i
 input gives clear errors."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -312,3 +313,42 @@ def test_removal_holds_every_mask_to_its_background_depth(first_run):
     assert d.shape == np.asarray(scene.masks[with_mask[0]]).shape and np.isfinite(d).all() and (d > 0).all()
     assert any("background depth" in n for n in res.stages["2_refgs"]["notes"])
     assert any("keeps the background depth term" in n for n in res.stages["4_ted"]["notes"])
+
+
+def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_path, monkeypatch):
+    """CoInConfig.observed "captures": Ref-GS and TE-D train with the observed part of every refined
+    mask (0_refine/observed) left out of view n's loss; "target" (the default) leaves nothing out."""
+    import coin_cl.pipeline.refgs as refgs_mod
+    import coin_cl.pipeline.ted as ted_mod
+    from coin_cl.scene.masks import read_mask
+
+    seen: dict[str, list] = {}
+    real_refgs, real_ted = refgs_mod.run_refgs, ted_mod.run_ted
+
+    def refgs_spy(*a, **k):
+        seen.setdefault("refgs", []).append(k.get("exclude"))
+        return real_refgs(*a, **k)
+
+    def ted_spy(model, views, *a, **k):
+        seen.setdefault("ted", []).append([None if v.exclude is None else v.exclude.numpy() for v in views])
+        return real_ted(model, views, *a, **k)
+
+    monkeypatch.setattr(refgs_mod, "run_refgs", refgs_spy)
+    monkeypatch.setattr(ted_mod, "run_ted", ted_spy)
+    cfg = replace(TINY, inpaint_region="refined", skip=("clg",))
+    inpaint(room, tmp_path / "target", config=cfg)
+    assert seen["refgs"] == [None] and all(e is None for e in seen["ted"][0])
+    out = tmp_path / "captures"
+    inpaint(room, out, config=replace(cfg, observed="captures"))
+    scene = load_scene(room)
+    train = list(scene.train_idx)
+    ex_refgs, ex_ted = seen["refgs"][1], seen["ted"][1]
+    n_out = 0
+    for j, i in enumerate(train):
+        stem = Path(scene.cameras[i].name).stem
+        want = read_mask(out / "0_refine" / "observed" / f"{stem}.png", ex_ted[j].shape)
+        assert np.array_equal(ex_refgs[i], want) and np.array_equal(ex_ted[j], want)
+        n_out += int(want.sum())
+    assert n_out > 0  # the wide arc's masks have an observed part: something was left out
+    with pytest.raises(ValueError, match="observed must be"):
+        inpaint(room, tmp_path / "bad", config=replace(cfg, observed="render"))

@@ -23,7 +23,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
         "--iters", type=int, default=None, help="steps of each CoIn training stage (overrides --budget)"
     )
     p.add_argument("--prior-seconds", type=float, default=None, help="scene prior training (smoke runs)")
-    p.add_argument("--steps", type=int, default=400, help="steps of the masked-reconstruction baseline")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="steps of the masked-reconstruction baseline (default: CoIn's GS steps, same budget)",
+    )
     p.add_argument("--render-only", action="store_true", help="only the turntable (seconds)")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
     p.set_defaults(func=run_demo)

@@ -159,6 +159,7 @@ def run_refgs(
     seed_points: tuple[np.ndarray, np.ndarray] | None = None,
     known_depth: np.ndarray | None = None,
     object_masks: Sequence[np.ndarray] | None = None,
+    exclude: Sequence[np.ndarray | None] | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
 
@@ -183,6 +184,9 @@ def run_refgs(
             pruned by them and the background depth term holds the depth in them (default the
             scene's masks; the pipeline passes the input masks when refined masks narrow what is
             inpainted).
+        exclude: [H, W] bool or None per scene view, pixels left out of the photometric loss (the
+            observed part of a refined mask with `CoInConfig.observed` "captures": other views'
+            captures teach it, as in masked reconstruction); default none.
     Returns:
         JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
     """
@@ -217,7 +221,8 @@ def run_refgs(
     views = []
     for j, i in enumerate(train_idx):
         cam = Camera.from_any(scene.cameras[i], name=str(i))
-        views.append(View(cam, torch.as_tensor(np.ascontiguousarray(tgt[j][..., :3]))))
+        ex = None if exclude is None or exclude[i] is None else torch.as_tensor(np.asarray(exclude[i], bool))
+        views.append(View(cam, torch.as_tensor(np.ascontiguousarray(tgt[j][..., :3])), ex))
 
     # Points: pruned inside the object's masks before the anchors are built.
     pts, cols = init_points(scene, views)

@@ -179,7 +179,23 @@ def stage_refgs(ctx: StageContext) -> dict:
                      max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
-                     object_masks=ctx.shared["masks"] if "0_refine" in ctx.inputs else None)  # fmt: skip
+                     object_masks=ctx.shared["masks"] if "0_refine" in ctx.inputs else None,
+                     exclude=_observed_excluded(ctx, scene))  # fmt: skip
+
+
+def _observed_excluded(ctx: StageContext, scene) -> list[np.ndarray | None] | None:
+    """Per scene view, the observed part of the refined split (0_refine/observed) when the run leaves
+    it out of the photometric loss (`CoInConfig.observed` "captures"), else None."""
+    cfg: CoInConfig = ctx.shared["cfg"]
+    if cfg.observed != "captures" or "0_refine" not in ctx.inputs:
+        return None
+    from coin_cl.scene.masks import read_mask
+
+    out: list[np.ndarray | None] = [None] * len(scene)
+    for i in scene.train_idx:
+        p = ctx.inputs["0_refine"] / "observed" / (Path(scene.cameras[i].name).stem + ".png")
+        out[i] = read_mask(p, np.asarray(ctx.shared["masks"][i]).shape) if p.is_file() else None
+    return out
 
 
 def carves(cfg: CoInConfig, edited: Any) -> bool:
@@ -244,8 +260,11 @@ def stage_ted(ctx: StageContext) -> dict:
     else:
         ctx.note("w/o CLG: TE-D fine-tunes on the initial inpaints I^_n")
     views = views_from_scene(scene, train, [guided.get(i, scene.images[i]) for i in range(len(scene))])
+    excluded = _observed_excluded(ctx, scene)
     for v, i in zip(views, train, strict=True):
         v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i])
+        if excluded is not None and excluded[i] is not None:
+            v.exclude = torch.as_tensor(excluded[i])
     model = load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
     model.device = cfg.device
     it = ctx.shared["iters"]
