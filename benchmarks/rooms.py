@@ -40,6 +40,7 @@ from common import cpu_model, git_commit, write_result
 
 from coin_cl.demo import baseline_config, baseline_steps
 from coin_cl.gs.refgs import RefGSConfig
+from coin_cl.pipeline.budget import run_steps
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
@@ -174,7 +175,7 @@ def run_scene(name: str, out: Path, args) -> dict:
     rows = {}
     rows["coin"] = coin_row(syn, scene_dir, out / "coin", cfg)
     print(name, "coin", json.dumps(rows["coin"]), file=sys.stderr, flush=True)
-    plan = json.loads((out / "coin" / "plan.json").read_text())["steps"]
+    plan = run_steps(out / "coin")  # the steps CoIn trained (TE-D re-planned from Ref-GS's rate)
     if "naive" in args.rows:
         share_stages(out / "coin", out / "naive")
         naive = baseline_config(cfg, plan)

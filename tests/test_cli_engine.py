@@ -34,6 +34,10 @@ def test_demo_room_runs_coin_and_baselines(tmp_path, capsys):
     log = json.loads((tmp_path / "room" / "inpaint_then_gs" / "log.json").read_text())
     assert log["stages"]["1_inpaint"]["status"] == "skipped: up to date"
     assert log["stages"]["2_refgs"]["status"] == "ran"
+    # same budget: the naive row trains CoIn's GS steps (3 Ref-GS + 3 + 3 TE-D), masked reconstruction
+    # the `--steps` given
+    assert "Scaffold-GS, 9 steps" in room["methods"]["inpaint_then_gs"]["what"]
+    assert "3DGS, 30 steps" in room["methods"]["masked_recon"]["what"]
 
 
 def test_doctor_lists_the_device(capsys):
