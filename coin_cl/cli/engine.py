@@ -27,7 +27,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
         "--steps",
         type=int,
         default=None,
-        help="steps of the masked-reconstruction baseline (default: CoIn's GS steps, same budget)",
+        help="steps of the masked-reconstruction baseline (default: CoIn's GS steps, stopped at --budget "
+        "minutes of training)",
     )
     p.add_argument("--render-only", action="store_true", help="only the turntable (seconds)")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
