@@ -9,6 +9,10 @@ import math
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the pipeline is imported where it runs: `coin-cl demo --render-only` needs none of it
+    from coin_cl.pipeline.coin import CoInConfig
 
 log = logging.getLogger("coin_cl.demo")
 
@@ -141,7 +145,7 @@ def room(
     share_stages(out / "coin", naive)
     log.info("demo: baseline, plain Scaffold-GS on the same stage-1 inpaints")
     t = time.perf_counter()
-    # Same budget: each baseline trains as many GS steps as CoIn's plan gave Ref-GS and TE-D together
+    # Same budget: each baseline trains as many GS steps as CoIn's run gave Ref-GS and TE-D together
     # (the naive row on the same stage-1 inpaints and masks as CoIn's).
     from coin_cl.pipeline.budget import run_steps
 
@@ -204,13 +208,13 @@ def room_markdown(table: dict) -> str:
 def baseline_steps(plan_steps: dict[str, int]) -> int:
     """The baselines' step count at CoIn's budget: the GS steps CoIn's run trained (Ref-GS, TE-D's
     fine-tuning and adversarial phases; `coin_cl.pipeline.budget.run_steps`, TE-D's as re-planned
-    from Ref-GS's measured rate) together. Measured at 400 steps
-    (the demo's figure before), masked reconstruction scored 2.1 dB m-PSNR below its own figure at
-    CoIn's 1501 (docs/RESULTS.md, "The baselines at CoIn's budget")."""
+    from Ref-GS's measured rate) together. At 400 steps (the demo's figure before) masked
+    reconstruction scored 2.1 dB m-PSNR below its own figure at CoIn's 1501 on the demo room
+    (docs/RESULTS.md, "The baselines at CoIn's budget")."""
     return int(sum(plan_steps.get(k, 0) for k in ("refgs", "ted_finetune", "ted_adversarial")))
 
 
-def baseline_config(cfg, plan_steps: dict[str, int]):
+def baseline_config(cfg: CoInConfig, plan_steps: dict[str, int]) -> CoInConfig:
     """The naive row's `CoInConfig` beside CoIn's `cfg`: Scaffold-GS alone (no Ref-GS, CLG, TE-D)
     for `baseline_steps`, on CoIn's very stages 0-1 (the refined split's fit stays at CoIn's Ref-GS
     step count, so the runner reuses CoIn's folders instead of fitting again)."""

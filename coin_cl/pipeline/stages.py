@@ -194,7 +194,9 @@ def _observed_excluded(ctx: StageContext, scene) -> list[np.ndarray | None] | No
     out: list[np.ndarray | None] = [None] * len(scene)
     for i in scene.train_idx:
         p = ctx.inputs["0_refine"] / "observed" / (Path(scene.cameras[i].name).stem + ".png")
-        out[i] = read_mask(p, np.asarray(ctx.shared["masks"][i]).shape) if p.is_file() else None
+        if not p.is_file():  # 0_refine writes one for every training view: a damaged run folder
+            raise FileNotFoundError(f"{p} is missing: rerun stage 0_refine (--force 0_refine)")
+        out[i] = read_mask(p, np.asarray(ctx.shared["masks"][i]).shape)
     return out
 
 
