@@ -180,24 +180,20 @@ def stage_refgs(ctx: StageContext) -> dict:
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
                      object_masks=ctx.shared["masks"] if "0_refine" in ctx.inputs else None,
-                     exclude=_observed_excluded(ctx, scene))  # fmt: skip
+                     exclude=_observed_excluded(ctx, masks))  # fmt: skip
 
 
-def _observed_excluded(ctx: StageContext, scene) -> list[np.ndarray | None] | None:
-    """Per scene view, the observed part of the refined split (0_refine/observed) when the run leaves
-    it out of the photometric loss (`CoInConfig.observed` "captures"), else None."""
+def _observed_excluded(ctx: StageContext, refined: list[np.ndarray]) -> list[np.ndarray | None] | None:
+    """Per scene view, the observed part of the refined split (the input mask less M^rmv_n, as
+    0_refine/observed holds it) when the run leaves it out of the photometric loss
+    (`CoInConfig.observed` "captures"), else None. `refined`: the stage's masks (`_scene_views`)."""
     cfg: CoInConfig = ctx.shared["cfg"]
     if cfg.observed != "captures" or "0_refine" not in ctx.inputs:
         return None
-    from coin_cl.scene.masks import read_mask
-
-    out: list[np.ndarray | None] = [None] * len(scene)
-    for i in scene.train_idx:
-        p = ctx.inputs["0_refine"] / "observed" / (Path(scene.cameras[i].name).stem + ".png")
-        if not p.is_file():  # 0_refine writes one for every training view: a damaged run folder
-            raise FileNotFoundError(f"{p} is missing: rerun stage 0_refine (--force 0_refine)")
-        out[i] = read_mask(p, np.asarray(ctx.shared["masks"][i]).shape)
-    return out
+    scene, given = ctx.shared["scene"], ctx.shared["masks"]
+    train = set(scene.train_idx)
+    return [np.asarray(given[i], bool) & ~np.asarray(refined[i], bool) if i in train else None
+            for i in range(len(scene))]  # fmt: skip
 
 
 def carves(cfg: CoInConfig, edited: Any) -> bool:
@@ -262,7 +258,7 @@ def stage_ted(ctx: StageContext) -> dict:
     else:
         ctx.note("w/o CLG: TE-D fine-tunes on the initial inpaints I^_n")
     views = views_from_scene(scene, train, [guided.get(i, scene.images[i]) for i in range(len(scene))])
-    excluded = _observed_excluded(ctx, scene)
+    excluded = _observed_excluded(ctx, masks)
     for v, i in zip(views, train, strict=True):
         v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i])
         if excluded is not None and excluded[i] is not None:
