@@ -6,9 +6,11 @@ folders, and the stage runner keeps exactly those whose settings and inputs matc
 work without any row-specific bookkeeping):
     default      exactly what a user's first command does: `coin-cl run DATA --out DIR`, no other flag
                  (working resolution, timing probe and plan chosen by coin-cl; issue 20)
-    default_baseline  the naive baseline at the default row's resolution and Ref-GS step count
+    default_baseline  the naive baseline at the default row's resolution and budget: as many
+                 Scaffold-GS steps as the default row trained (Ref-GS + TE-D; `demo.baseline_config`)
     coin         the full pipeline, seg masks, the dataset's LaMa inpaints as initial 2D results
-    baseline     naive: plain Scaffold-GS on the same initial inpaints (no Ref-GS, CLG, TE-D)
+    baseline     naive: plain Scaffold-GS on the same initial inpaints (no Ref-GS, CLG, TE-D), as many
+                 steps as the coin row trained (Ref-GS + TE-D) when that row ran first
     no_refgs     w/o Ref-GS (plain Scaffold-GS in stage 2, then CLG and TE-D)
     no_weights   w/o the adaptive view weights of Ref-GS
     no_attn      w/o the anchor feature attention of Ref-GS
@@ -60,7 +62,9 @@ sys.path.insert(0, str(ROOT))
 from common import cpu_model, default_data, git_commit, mean_std, other_references, write_result  # noqa: E402
 
 from coin_cl import load_scene  # noqa: E402
+from coin_cl.demo import baseline_config  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
+from coin_cl.pipeline.budget import run_steps  # noqa: E402
 from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint  # noqa: E402
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
 from coin_cl.pipeline.runner import share_stages  # noqa: E402
@@ -123,7 +127,8 @@ def run_row(name: str, data: Path, out: Path, cfg: CoInConfig) -> dict:
 def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
     """The `default` row (the CLI with no flag but --budget when it is not the default 30) and the
     `default_baseline` row: plain Scaffold-GS on the same initial inpaints, at the default row's
-    resolution and Ref-GS steps (from its plan.json), sharing its stages 0 and 1."""
+    resolution and budget (as many GS steps as it trained, `demo.baseline_config`), sharing its
+    stages 0 and 1 (0_refine too where the default ran it)."""
     import subprocess
 
     row_out = out / "default"
@@ -144,10 +149,10 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
                         "cost_minutes": sum(cost.values()), "stage_cost_minutes": cost,
                         "status": {k: r["status"] for k, r in logd.items()}, "plan": plan,
                         "resolution": plan["key"]["resolution"]}}  # fmt: skip
-    cfg = CoInConfig(budget_minutes=budget, resolution=plan["key"]["resolution"],
-                     iters_refgs=plan["steps"]["refgs"], iters_ted_finetune=0, iters_ted_adversarial=0,
-                     **ROWS["baseline"])  # fmt: skip
-    share_stages(row_out, out / "default_baseline", ("0_scene", "1_inpaint"))
+    # The default run's own config (what the CLI resolved), so stages 0-1 are reused as they are.
+    cfg = baseline_config(CoInConfig(budget_minutes=budget, resolution=plan["key"]["resolution"]),
+                          run_steps(row_out))  # fmt: skip
+    share_stages(row_out, out / "default_baseline", ("0_scene", "0_refine", "1_inpaint"))
     rows["default_baseline"] = run_row("default_baseline", data, out, cfg)
     return rows
 
@@ -283,7 +288,10 @@ def main() -> int:
             if "default" not in rows:
                 rows.update(run_default(args.data, args.out, args.budget))
             continue
-        rows[name] = run_row(name, args.data, args.out, replace(base, **ROWS[name]))
+        cfg = replace(base, **ROWS[name])
+        if name == "baseline" and "coin" in rows:  # the same budget: the coin row's GS steps
+            cfg = replace(baseline_config(base, run_steps(args.out / "coin")), **ROWS[name])
+        rows[name] = run_row(name, args.data, args.out, cfg)
         print(name, json.dumps(rows[name], default=str), file=sys.stderr, flush=True)
     ref_rows = reference_rows(args, base, rows) if args.refs else {}
 
