@@ -147,11 +147,11 @@ def room(
     t = time.perf_counter()
     # Same budget: each baseline trains as many GS steps as CoIn's run gave Ref-GS and TE-D together
     # (the naive row on the same stage-1 inpaints and masks as CoIn's).
-    from coin_cl.pipeline.budget import run_steps
+    from coin_cl.pipeline.budget import run_steps, trained_steps
 
-    plan = run_steps(out / "coin")  # TE-D's counts as re-planned from Ref-GS's measured rate
-    total = baseline_steps(plan)
-    naive_cfg = baseline_config(cfg, plan)
+    # what CoIn trained (a stage stopped at its time cap trained fewer steps than planned)
+    total = baseline_steps(trained_steps(out / "coin"))
+    naive_cfg = baseline_config(cfg, run_steps(out / "coin"), total)
     res = inpaint(scene_dir, naive, config=naive_cfg, device=device)
     what = f"plain Scaffold-GS, {total} steps, on the same stage-1 inpaints (no Ref-GS, CLG, TE-D)"
     rows["inpaint_then_gs"] = _row(res.metrics, time.perf_counter() - t, what)
@@ -207,19 +207,20 @@ def room_markdown(table: dict) -> str:
 
 def baseline_steps(plan_steps: dict[str, int]) -> int:
     """The baselines' step count at CoIn's budget: the GS steps CoIn's run trained (Ref-GS, TE-D's
-    fine-tuning and adversarial phases; `coin_cl.pipeline.budget.run_steps`, TE-D's as re-planned
-    from Ref-GS's measured rate) together. At 400 steps (the demo's figure before) masked
-    reconstruction scored 2.1 dB m-PSNR below its own figure at CoIn's 1501 on the demo room
-    (docs/RESULTS.md, "The baselines at CoIn's budget")."""
+    fine-tuning and adversarial phases; `coin_cl.pipeline.budget.trained_steps`) together. At 400
+    steps (the demo's figure before) masked reconstruction scored 2.1 dB m-PSNR below its own
+    figure at CoIn's 1501 on the demo room (docs/RESULTS.md, "The baselines at CoIn's budget")."""
     return int(sum(plan_steps.get(k, 0) for k in ("refgs", "ted_finetune", "ted_adversarial")))
 
 
-def baseline_config(cfg: CoInConfig, plan_steps: dict[str, int]) -> CoInConfig:
+def baseline_config(cfg: CoInConfig, plan_steps: dict[str, int], steps: int | None = None) -> CoInConfig:
     """The naive row's `CoInConfig` beside CoIn's `cfg`: Scaffold-GS alone (no Ref-GS, CLG, TE-D)
-    for `baseline_steps`, on CoIn's very stages 0-1 (the refined split's fit stays at CoIn's Ref-GS
-    step count, so the runner reuses CoIn's folders instead of fitting again)."""
+    for `steps` (default `baseline_steps(plan_steps)`), on CoIn's very stages 0-1: the refined
+    split's fit stays at CoIn's planned Ref-GS count (`plan_steps`, `budget.run_steps`: the count
+    stage 0_refine is keyed by), so the runner reuses CoIn's folders instead of fitting again."""
     fit = cfg.refine.iters if cfg.refine.iters is not None else plan_steps["refgs"]
-    return replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=baseline_steps(plan_steps),
+    n = baseline_steps(plan_steps) if steps is None else int(steps)
+    return replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=n,
                    refine=replace(cfg.refine, iters=fit))  # fmt: skip
 
 

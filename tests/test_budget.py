@@ -138,6 +138,24 @@ def test_run_steps_reads_back_what_a_run_trains(tmp_path):
         B.run_steps(tmp_path / "nothing")
 
 
+def test_trained_steps_count_what_stopped_at_a_cap(tmp_path):
+    """The baselines' budget (`demo.baseline_steps`) is what CoIn trained: a TE-D phase stopped at
+    its time cap recorded fewer steps than `run_steps` plans, and that count is taken; a stage
+    with no manifest keeps the planned count."""
+    key = {"budget_minutes": 30, "size": [64, 48]}
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
+    assert B.trained_steps(tmp_path) == B.run_steps(tmp_path) == plan.steps
+    planned = 60 * plan.minutes["refgs"]
+    for stage, result in (("2_refgs", {"steps": plan.steps["refgs"], "train_minutes": planned / 60}),
+                          ("4_ted", {"finetune": {"step": 7}, "adversarial": {"step": 5}})):  # fmt: skip
+        (tmp_path / stage).mkdir()
+        (tmp_path / stage / "manifest.json").write_text(json.dumps({"result": result}))
+    got = B.trained_steps(tmp_path)
+    assert got == {"refgs": plan.steps["refgs"], "ted_finetune": 7, "ted_adversarial": 5}
+    assert B.run_steps(tmp_path)["ted_adversarial"] > 5  # the plan still says what was planned
+
+
 def test_standalone_steps_use_the_pipelines_rule():
     """One minute->steps rule: a stage run on its own (`run_refgs(budget_minutes=...)`) gets the
     steps `steps_from_rate` gives that stage for the same minutes at the same probe rate."""

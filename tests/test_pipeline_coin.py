@@ -279,24 +279,41 @@ def test_coin_lama_path_reruns_stage_1(room, first_run, tmp_path, monkeypatch):
     assert status == {"a": "ran", "a again": "skipped: up to date", "b": "ran"}
 
 
-def test_training_masks_are_dilated_by_default(room, first_run, tmp_path, caplog):
-    """The default dilation is resolved once from the working size, logged, and in stage 0's key;
-    an explicit value is kept and a negative one is a clear error."""
+def test_training_masks_are_dilated_unless_declared_exact(room, first_run, tmp_path, caplog):
+    """The default dilation is resolved once, logged, and in stage 0's key: none for a scene that
+    declares its masks exact (the synthetic room's scene_info.json), the ring of the working size
+    for one that does not; an explicit value is kept, a negative one and an unreadable
+    scene_info.json are clear errors."""
     import json
     import logging
+    import shutil
 
     from coin_cl.pipeline.coin import mask_dilation
     from coin_cl.scene.masks import auto_dilation
 
     out, _ = first_run
     scene = load_scene(room)
-    cam = scene.cameras[scene.train_idx[0]]
+    assert scene.meta["masks"] == "exact"
     settings = json.loads((out / "0_scene" / "manifest.json").read_text())["settings"]
-    assert settings["dilate"] == auto_dilation(cam.width, cam.height) == 1
+    assert settings["dilate"] == 0
     with caplog.at_level(logging.INFO, logger="coin_cl.pipeline.coin"):
-        assert mask_dilation(scene, CoInConfig()) == 1
+        assert mask_dilation(scene, CoInConfig()) == 0
+    assert "training masks kept as given: the scene declares them exact" in caplog.text
+    given = Path(shutil.copytree(room, tmp_path / "given"))
+    info = json.loads((given / "scene_info.json").read_text())
+    (given / "scene_info.json").write_text(json.dumps({k: v for k, v in info.items() if k != "masks"}))
+    plain = load_scene(given)
+    cam = plain.cameras[plain.train_idx[0]]
+    with caplog.at_level(logging.INFO, logger="coin_cl.pipeline.coin"):
+        assert mask_dilation(plain, CoInConfig()) == auto_dilation(cam.width, cam.height) == 1
     assert "training masks dilated by 2 px" in caplog.text
-    assert mask_dilation(scene, CoInConfig(mask_dilate=0)) == 0
+    assert (
+        mask_dilation(scene, CoInConfig(mask_dilate=2)) == 2
+        and mask_dilation(plain, CoInConfig(mask_dilate=0)) == 0
+    )
+    (given / "scene_info.json").write_text("[1, 2")
+    with pytest.raises(ValueError, match="scene_info.json: not a JSON object"):
+        load_scene(given)
     with pytest.raises(ValueError, match="mask_dilate must be >= 0"):
         inpaint(room, tmp_path / "bad", config=replace(TINY, mask_dilate=-1))
 

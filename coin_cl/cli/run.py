@@ -16,7 +16,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mask-dilate", type=int, default=None, metavar="N",
                    help="dilate the training masks N times with a 5x5 kernel (2 px each); default: a "
                         "ring of 1.4%% of the longer side, as SPIn-NeRF's masks; 0 = the masks as "
-                        "given")  # fmt: skip
+                        "given, for exact masks (the refined split's removal vote still uses the "
+                        "ring)")  # fmt: skip
     p.add_argument("--inpaint-region", choices=("auto", "input", "refined"), default="auto",
                    help="input: inpaint the whole masks; refined: 3D-first (wide/360 captures, "
                         "removal): inpaint only the mask pixels no other view sees (stage 0_refine); "

@@ -310,6 +310,26 @@ def run_steps(out: Path) -> dict[str, int]:
     return {**plan.steps, **replan_ted(plan, n, seconds, plan.key["budget_minutes"])}
 
 
+def trained_steps(out: Path) -> dict[str, int]:
+    """The GS steps a finished run folder really trained: Ref-GS's and TE-D's phases as their
+    manifests recorded them (a phase stopped at its time cap trained fewer than `run_steps` says),
+    `run_steps`' count for a stage that recorded none (not run yet, or skipped: 0 then)."""
+    out = Path(out)
+    got = dict(run_steps(out))
+
+    def result(stage: str) -> dict | None:
+        man = out / stage / "manifest.json"
+        return json.loads(man.read_text()).get("result") if man.is_file() else None
+
+    refgs, ted = result("2_refgs"), result("4_ted")
+    if refgs is not None and "steps" in refgs:
+        got["refgs"] = int(refgs["steps"])
+    for phase in ("finetune", "adversarial"):
+        if ted is not None and isinstance(ted.get(phase), dict) and "step" in ted[phase]:
+            got[f"ted_{phase}"] = int(ted[phase]["step"])
+    return got
+
+
 def ted_iters(out: Path, shared: dict) -> list[int]:
     """TE-D's [fine-tune, adversarial] steps, planned again from Ref-GS's measured rate
     (`budget.replan_ted`; the measurement is in 2_refgs's manifest, so a rerun gets the same counts);

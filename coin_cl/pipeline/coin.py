@@ -46,7 +46,7 @@ from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.insert import InsertConfig
-from coin_cl.pipeline.refine_masks import RefineConfig
+from coin_cl.pipeline.refine_masks import RefineConfig, vote_ring
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
 from coin_cl.pipeline.stages import (
     carves,
@@ -76,7 +76,11 @@ class CoInConfig:
     mask_dilate: iterations of a 5x5 dilation of the training masks (2 px each); None (default) = a
     ring of `scene.masks.MASK_RING_SHARE` (1.4 %) of the longer side at the working size, as
     SPIn-NeRF's masks (8 px at 504x284): the object's fringe and contact shadow left outside the
-    mask are trained as background (the box's edges stayed as thin lines without it); 0 = as given.
+    mask are trained as background (the box's edges stayed as thin lines without it); but none
+    for a scene whose scene_info.json declares its masks exact (the synthetic rooms: there the
+    ring cost the part of the masks other views saw 1 dB, docs/RESULTS.md "Where the rooms'
+    m-PSNR is decided"); 0 = as given. Below the ring, the refined split's removal vote still
+    takes the ring (`refine_masks.vote_ring`).
     ref: reference view (index or name); None chooses by `coin_cl.pipeline.reference.choose_reference`.
     prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
     resolution: image scale (0.5 = half); None picks it from the image size
@@ -171,6 +175,7 @@ def scene_id(scene) -> dict[str, Any]:
 
 def mask_dilation(scene, cfg: CoInConfig) -> int:
     """The training masks' dilation (iterations of a 5x5 kernel): `cfg.mask_dilate`, or when None
+    0 for a scene that declares its masks exact (`scene.meta["masks"]`, the synthetic rooms), else
     `scene.masks.auto_dilation` of the working size (logged)."""
     from coin_cl.scene.masks import MASK_RING_SHARE, auto_dilation
 
@@ -178,6 +183,10 @@ def mask_dilation(scene, cfg: CoInConfig) -> int:
         if cfg.mask_dilate < 0:
             raise ValueError(f"CoInConfig.mask_dilate must be >= 0 or None (auto), got {cfg.mask_dilate}")
         return int(cfg.mask_dilate)
+    if scene.meta.get("masks") == "exact":
+        log.info("training masks kept as given: the scene declares them exact (scene_info.json); "
+                 "--mask-dilate N overrides")  # fmt: skip
+        return 0
     cam = scene.cameras[scene.train_idx[0]]
     n = auto_dilation(cam.width, cam.height)
     log.info("training masks dilated by %d px (%.1f %% of the longer side, as SPIn-NeRF's; --mask-dilate "
@@ -398,13 +407,15 @@ def _run(
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     # only a non-default choice enters the keys: runs made before the option keep their stages
     observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}
+    ring = vote_ring(cam.width, cam.height, cfg.mask_dilate)  # 0 with the default dilation
     stages = [
         Stage("0_scene", stage_scene, settings=base),
         # keyed by the fit's effective steps: a baseline that trains longer (the naive row at CoIn's
         # budget) but fixes the fit at CoIn's Ref-GS count reuses CoIn's split
         *([Stage("0_refine", stage_refine, ["0_scene"],
                  {"cfg": jsonable(replace(cfg.refine, iters=None)),
-                  "iters": iters["refgs"] if cfg.refine.iters is None else cfg.refine.iters})]
+                  "iters": iters["refgs"] if cfg.refine.iters is None else cfg.refine.iters,
+                  **({"vote_ring": ring} if ring else {})})]
           if refined else []),
         Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
               {**inpaint_key(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,

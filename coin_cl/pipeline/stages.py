@@ -83,12 +83,19 @@ def _scene_views(ctx: StageContext):
 
 def stage_refine(ctx: StageContext) -> dict:
     from coin_cl.pipeline.refine_masks import refine_masks
+    from coin_cl.scene.masks import dilate_mask
 
     scene, masks = ctx.shared["scene"], ctx.shared["masks"]
     cfg: CoInConfig = ctx.shared["cfg"]
     tests = [i for i in scene.test_idx if np.asarray(masks[i]).any()]  # their split: for the eval
+    ring = ctx.settings.get("vote_ring", 0)
+    vote = None
+    if ring:
+        log.info("refine masks: the removal vote on the training masks dilated %d px more (tighter than the "
+                 "default ring: the vote needs the object's fringe inside every mask)", 2 * ring)  # fmt: skip
+        vote = [dilate_mask(m, iterations=ring) if i in scene.train_idx else m for i, m in enumerate(masks)]
     res = refine_masks(scene, masks, list(scene.train_idx), ctx.out, cfg.refine, ctx.settings["iters"],
-                       cfg.seed, cfg.device, also=tests)  # fmt: skip
+                       cfg.seed, cfg.device, also=tests, vote_masks=vote)  # fmt: skip
     ctx.note(f"refined masks: {res['refined_px']} of {res['input_px']} mask px left to inpaint "
              f"({res['refined_ratio']:.0%}); per view in 0_refine/areas.json")  # fmt: skip
     return res

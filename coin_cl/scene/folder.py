@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -505,8 +506,23 @@ def _load_image_folder(
             "split": split_source,
             "undistorted": bool(poses.undistort),
             "view_index": folder.vindex,
+            **masks_declared(folder.root),
         },
     )
+
+
+def masks_declared(root: Path) -> dict[str, str]:
+    """{"masks": value} when the folder's scene_info.json declares how its masks were made (the
+    embedded synthetic rooms write "exact": every pixel outside a mask shows the background alone,
+    no fringe, no shadow), else {}. Read by `CoInConfig.mask_dilate`'s default."""
+    path = Path(root) / "scene_info.json"
+    if not path.is_file():
+        return {}
+    try:
+        value = json.loads(path.read_text()).get("masks")
+    except (json.JSONDecodeError, AttributeError) as exc:
+        raise ValueError(f"{path}: not a JSON object ({exc}); fix or delete the file") from None
+    return {"masks": str(value)} if value is not None else {}
 
 
 def load_spinnerf_folder(folder: ImageFolder, **opts) -> Scene:

@@ -514,6 +514,10 @@ def write_synthetic(out_dir: str | Path, scene: SyntheticScene | None = None, **
         "generator": "coin_cl.scene.synthetic",
         "n_test": n_test,
         "object_center": s.boxes[-1].center.tolist(),
+        # A mask is any object coverage of the supersampled rays and nothing casts a shadow, so
+        # every pixel outside it shows the background alone: the pipeline keeps such masks as
+        # given (`CoInConfig.mask_dilate`).
+        "masks": "exact",
     }
     write_text(root / "scene_info.json", json.dumps(info, indent=1))
     log.info("synthetic scene (%d views, %d test) written to %s", len(s.cameras), n_test, root)
