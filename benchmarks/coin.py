@@ -62,9 +62,8 @@ sys.path.insert(0, str(ROOT))
 from common import cpu_model, default_data, git_commit, mean_std, other_references, write_result  # noqa: E402
 
 from coin_cl import load_scene  # noqa: E402
-from coin_cl.demo import baseline_config, baseline_steps  # noqa: E402
+from coin_cl.demo import baseline_config  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
-from coin_cl.pipeline.budget import run_steps, trained_steps  # noqa: E402
 from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint  # noqa: E402
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
 from coin_cl.pipeline.runner import share_stages  # noqa: E402
@@ -150,8 +149,7 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
                         "status": {k: r["status"] for k, r in logd.items()}, "plan": plan,
                         "resolution": plan["key"]["resolution"]}}  # fmt: skip
     # The default run's own config (what the CLI resolved), so stages 0-1 are reused as they are.
-    cfg = baseline_config(CoInConfig(budget_minutes=budget, resolution=plan["key"]["resolution"]),
-                          run_steps(row_out), baseline_steps(trained_steps(row_out)))  # fmt: skip
+    cfg = baseline_config(CoInConfig(budget_minutes=budget, resolution=plan["key"]["resolution"]), row_out)
     share_stages(row_out, out / "default_baseline", ("0_scene", "0_refine", "1_inpaint"))
     rows["default_baseline"] = run_row("default_baseline", data, out, cfg)
     return rows
@@ -290,9 +288,7 @@ def main() -> int:
             continue
         cfg = replace(base, **ROWS[name])
         if name == "baseline" and "coin" in rows:  # the same budget: the coin row's GS steps
-            coin = args.out / "coin"
-            steps = baseline_steps(trained_steps(coin))
-            cfg = replace(baseline_config(base, run_steps(coin), steps), **ROWS[name])
+            cfg = replace(baseline_config(base, args.out / "coin"), **ROWS[name])
         rows[name] = run_row(name, args.data, args.out, cfg)
         print(name, json.dumps(rows[name], default=str), file=sys.stderr, flush=True)
     ref_rows = reference_rows(args, base, rows) if args.refs else {}

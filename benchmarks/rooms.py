@@ -39,9 +39,8 @@ from pathlib import Path
 import numpy as np
 from common import cpu_model, git_commit, write_result
 
-from coin_cl.demo import baseline_config, baseline_steps
+from coin_cl.demo import baseline_config
 from coin_cl.gs.refgs import RefGSConfig
-from coin_cl.pipeline.budget import run_steps, trained_steps
 from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
@@ -177,15 +176,13 @@ def run_scene(name: str, out: Path, args) -> dict:
     rows = {}
     rows["coin"] = coin_row(syn, scene_dir, out / "coin", cfg)
     print(name, "coin", json.dumps(rows["coin"]), file=sys.stderr, flush=True)
-    plan = run_steps(out / "coin")  # CoIn's planned steps (TE-D re-planned from Ref-GS's rate)
-    total = baseline_steps(trained_steps(out / "coin"))  # and what it trained (caps: fewer)
+    naive = baseline_config(cfg, out / "coin")  # CoIn's budget: the GS steps it trained
     if "naive" in args.rows:
         share_stages(out / "coin", out / "naive")
-        naive = baseline_config(cfg, plan, total)
         rows["naive"] = coin_row(syn, scene_dir, out / "naive", naive)
         print(name, "naive", json.dumps(rows["naive"]), file=sys.stderr, flush=True)
     if "masked_recon" in args.rows:
-        steps = args.masked_steps or total
+        steps = args.masked_steps or naive.iters_refgs
         rows["masked_recon"] = masked_recon_row(syn, scene_dir, out / "masked_recon", steps)
         print(name, "masked_recon", json.dumps(rows["masked_recon"]), file=sys.stderr, flush=True)
     if "coin_input" in args.rows:

@@ -147,11 +147,8 @@ def room(
     t = time.perf_counter()
     # Same budget: each baseline trains as many GS steps as CoIn's run gave Ref-GS and TE-D together
     # (the naive row on the same stage-1 inpaints and masks as CoIn's).
-    from coin_cl.pipeline.budget import run_steps, trained_steps
-
-    # what CoIn trained (a stage stopped at its time cap trained fewer steps than planned)
-    total = baseline_steps(trained_steps(out / "coin"))
-    naive_cfg = baseline_config(cfg, run_steps(out / "coin"), total)
+    naive_cfg = baseline_config(cfg, out / "coin")
+    total = naive_cfg.iters_refgs
     res = inpaint(scene_dir, naive, config=naive_cfg, device=device)
     what = f"plain Scaffold-GS, {total} steps, on the same stage-1 inpaints (no Ref-GS, CLG, TE-D)"
     rows["inpaint_then_gs"] = _row(res.metrics, time.perf_counter() - t, what)
@@ -213,14 +210,17 @@ def baseline_steps(plan_steps: dict[str, int]) -> int:
     return int(sum(plan_steps.get(k, 0) for k in ("refgs", "ted_finetune", "ted_adversarial")))
 
 
-def baseline_config(cfg: CoInConfig, plan_steps: dict[str, int], steps: int | None = None) -> CoInConfig:
-    """The naive row's `CoInConfig` beside CoIn's `cfg`: Scaffold-GS alone (no Ref-GS, CLG, TE-D)
-    for `steps` (default `baseline_steps(plan_steps)`), on CoIn's very stages 0-1: the refined
-    split's fit stays at CoIn's planned Ref-GS count (`plan_steps`, `budget.run_steps`: the count
-    stage 0_refine is keyed by), so the runner reuses CoIn's folders instead of fitting again."""
-    fit = cfg.refine.iters if cfg.refine.iters is not None else plan_steps["refgs"]
-    n = baseline_steps(plan_steps) if steps is None else int(steps)
-    return replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=n,
+def baseline_config(cfg: CoInConfig, run: Path) -> CoInConfig:
+    """The naive row's `CoInConfig` beside CoIn's `cfg` and its finished run folder `run`:
+    Scaffold-GS alone (no Ref-GS, CLG, TE-D) for the GS steps that run really trained
+    (`baseline_steps` of `budget.trained_steps`: a stage stopped at its time cap counts what it
+    did), on CoIn's very stages 0-1: the refined split's fit stays at CoIn's planned Ref-GS count
+    (`budget.run_steps`, what stage 0_refine is keyed by), so the runner reuses CoIn's folders
+    instead of fitting again. The step count is the result's `iters_refgs`."""
+    from coin_cl.pipeline.budget import run_steps, trained_steps
+
+    fit = cfg.refine.iters if cfg.refine.iters is not None else run_steps(run)["refgs"]
+    return replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=baseline_steps(trained_steps(run)),
                    refine=replace(cfg.refine, iters=fit))  # fmt: skip
 
 
