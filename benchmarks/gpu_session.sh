@@ -7,6 +7,7 @@
 #   bash benchmarks/gpu_session.sh gsplat    # ... gsplat (CUDA) on the same scenes (JIT build first)
 #   bash benchmarks/gpu_session.sh warp      # ... benchmarks/warp.py --quick
 #   bash benchmarks/gpu_session.sh train     # ... training throughput, SPIn-NeRF at 504x284
+#   bash benchmarks/gpu_session.sh session   # ... all of the above in one call of at most ~9 minutes
 # Several steps may follow each other in one call: `... check suite`. Every step's log goes to
 # $OUT/<step>.log (the device tool brings $OUT back). The GPU machine has no network: everything it
 # lacks (pyopencl and its needs, plyfile, gsplat) travels as wheels in .whl/, the data in .gpudata/.
@@ -102,6 +103,29 @@ suite() {
     tests/test_devices.py tests/test_transfers.py
 }
 
+# What the driver answers about each kernel the engine launches with a work-group size (the
+# narrowing rule of Runtime._fit_local once read CL_KERNEL_LOCAL_MEM_SIZE / COMPILE_WORK_GROUP_SIZE).
+kernel_info() {
+  python3 - <<'EOF'
+import pyopencl as cl
+from coin_cl.engine.runtime import get_runtime
+
+rt = get_runtime()
+info = cl.kernel_work_group_info
+for f, k, d in [("bin.cl", "bin_rects", None), ("project.cl", "project_fwd", None),
+                ("project.cl", "project_bwd", None), ("reduce.cl", "reduce_grads", {"NUM_CHANNELS": 3}),
+                ("rasterize_gpu.cl", "rasterize_fwd", {"NUM_CHANNELS": 3, "GROUP": 256})]:
+    try:
+        kern = rt.kernel(f, k, d)
+        vals = {n: kern.get_work_group_info(getattr(info, n), rt.device) for n in
+                ("WORK_GROUP_SIZE", "LOCAL_MEM_SIZE", "COMPILE_WORK_GROUP_SIZE", "PRIVATE_MEM_SIZE",
+                 "PREFERRED_WORK_GROUP_SIZE_MULTIPLE")}
+        print(f, k, vals)
+    except Exception as e:  # a name or define this sketch got wrong: say so, go on
+        print(f, k, "ERROR", type(e).__name__, str(e)[:200])
+EOF
+}
+
 # shellcheck disable=SC2086
 raster() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" ${RASTER_ARGS:-}); }
 
@@ -109,14 +133,58 @@ gsplat() {
   # gsplat's wheel compiles its CUDA code at its first call, the benchmark's first warm-up (minutes on
   # 16 cores; built for Hopper only, the card here).
   export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
-  (cd benchmarks && python3 raster_gsplat.py)
+  # shellcheck disable=SC2086
+  (cd benchmarks && python3 raster_gsplat.py ${GSPLAT_ARGS:-})
 }
 
 warp() { (cd benchmarks && python3 warp.py --quick); }
 
+split() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" --split --scenes 100k,500k --runs 3); }
+
 train() {
   (cd benchmarks && python3 train.py --throughput --data "$COIN_DATA/scene_half" --resolution 1.0 \
-    --steps "${STEPS:-50}" --warmup 5 --models scaffold,3dgs --paths new --out "$OUT/train")
+    --steps "${STEPS:-50}" --warmup 5 --models scaffold,3dgs --paths new --out /tmp/coin-cl-train) &&
+    cp /tmp/coin-cl-train/throughput.json "$OUT/train.json"
+}
+
+gsplat_build() {
+  # Only the JIT build of gsplat's CUDA code (-O3, as its users get it), so that `session` can run it
+  # beside the kernel suite and time gsplat afterwards on a quiet machine.
+  export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
+  python3 -c "import time; t = time.time(); from gsplat.cuda._backend import _C; assert _C is not None, 'no CUDA toolkit'; print(f'gsplat built in {time.time() - t:.0f} s')"
+}
+
+# One device call of the whole GPU part, for a session lent ~15 minutes of device time in all:
+# the build of gsplat runs in the background (8 of the 16 cores) beside `check` and the kernel
+# suite (correctness only: no timing then); the timed steps run after the build has ended or been
+# given up, each under a cap, and every log lands in $OUT as it goes, so a call cut short still
+# brings back what it did. Caps in seconds: SUITE_S, RASTER_S, WARP_S, TRAIN_S, BUILD_S, GSPLAT_S.
+session() {
+  local t0=$SECONDS
+  MAX_JOBS=${MAX_JOBS:-14} timeout "${BUILD_S:-270}" bash "$0" gsplat_build >/dev/null 2>&1 &
+  local build=$!
+  if [ -n "${NO_OPENCL:-}" ]; then
+    # No NVIDIA OpenCL here (setup said why): the CUDA peer alone, against the card's limits.
+    wait "$build"; echo "== build exit $?: $(tail -n 1 "$OUT/gsplat_build.log")"
+    GSPLAT_ARGS="--scenes 10k,100k,500k --runs 5 --no-compare" timeout "${GSPLAT_S:-60}" bash "$0" gsplat \
+      >/dev/null 2>&1
+    echo "== gsplat exit $? (+$((SECONDS - t0)) s)"
+    return
+  fi
+  for step in check suite; do
+    echo "== $step (+$((SECONDS - t0)) s)"
+    timeout "${SUITE_S:-200}" bash "$0" "$step" >/dev/null 2>&1
+    echo "   exit $?; tail: $(tail -n 1 "$OUT/$step.log")"
+  done
+  echo "== waiting for the gsplat build (+$((SECONDS - t0)) s)"
+  wait "$build"; echo "   build exit $? (124: not done in ${BUILD_S:-270} s): $(tail -n 1 "$OUT/gsplat_build.log")"
+  RASTER_ARGS=${RASTER_ARGS:---scenes 100k,500k --runs 5} timeout "${RASTER_S:-100}" bash "$0" raster >/dev/null 2>&1
+  echo "== raster exit $? (+$((SECONDS - t0)) s)"
+  timeout "${WARP_S:-40}" bash "$0" warp >/dev/null 2>&1; echo "== warp exit $? (+$((SECONDS - t0)) s)"
+  STEPS=${STEPS:-20} timeout "${TRAIN_S:-90}" bash "$0" train >/dev/null 2>&1
+  echo "== train exit $? (+$((SECONDS - t0)) s)"
+  GSPLAT_ARGS=${GSPLAT_ARGS:---scenes 100k,500k --runs 5} timeout "${GSPLAT_S:-60}" bash "$0" gsplat >/dev/null 2>&1
+  echo "== gsplat exit $? (+$((SECONDS - t0)) s)"
 }
 
 [ $# -ge 1 ] || { sed -n 2,12p "$0"; exit 2; }
@@ -124,7 +192,12 @@ status=0
 for step in "$@"; do
   case "$step" in
   prepare) prepare 2>&1 | tee "$OUT/prepare.log" || status=1 ;;
-  check | suite | raster | gsplat | warp | train)
+  session)
+    setup
+    case $? in 0) ;; 3) export NO_OPENCL=1 ;; *) exit 1 ;; esac
+    session
+    ;;
+  check | suite | raster | gsplat | gsplat_build | warp | train | kernel_info | split)
     setup || exit $?
     echo "== $step ($(date -u +%H:%M:%S))"
     "$step" 2>&1 | tee "$OUT/$step.log" || status=1

@@ -30,6 +30,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import statistics  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -177,6 +178,11 @@ def main() -> None:
     ap.add_argument("--device", default=None, help="device name substring, or 'all' (default: the default)")
     ap.add_argument("--discrete", action="store_true", help="device-only buffers and counted copies")
     ap.add_argument("--scenes", default=None, help="comma-separated scene names (default: all, or --quick's)")
+    ap.add_argument(
+        "--split",
+        action="store_true",
+        help="only: where one fwd+bwd's time goes (kernels by name, copies, host) per scene",
+    )
     args = ap.parse_args()
     if args.discrete:  # before the first runtime is made
         os.environ["COIN_CL_DISCRETE"] = "1"
@@ -187,6 +193,9 @@ def main() -> None:
         f"{time.strftime('%Y-%m-%d %H:%M')}"
     )
     runtimes = devices(args.device)
+    if args.split:
+        print(json.dumps([split_device(rt, args, points) for rt in runtimes]))
+        return
     summaries = [run_device(rt, args, points) for rt in runtimes]
     if len(summaries) == 1:
         print(json.dumps(summaries[0]))
@@ -201,6 +210,61 @@ def main() -> None:
         print(f"| {s['device']} | " + " | ".join(f"{s[k]:.3g}" for k in keys) + " |")
     print()
     print(json.dumps({"cpu": cpu_model(), "commit": git_commit(), "devices": summaries}))
+
+
+def split_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) -> dict:
+    """Where a forward+backward's wall time goes on one device: each kernel's device time and the
+    copies' (OpenCL event profiling; every launch then waits for its event, so the wall time is
+    that of a serialised step), the rest being host work (torch, numpy, Python, launches); then the
+    host functions that take most of it (cProfile, own time). Medians over --runs after a warm-up."""
+    import cProfile
+    import pstats
+
+    rt = Runtime(rt.device, discrete=rt.discrete)
+    rt.profile = True  # the queue already profiles on the discrete path; on unified memory:
+    if not rt.discrete:
+        import pyopencl as cl
+
+        rt.queue = cl.CommandQueue(rt.context, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    path = "discrete" if rt.discrete else "unified"
+    print(f"\n## {rt.name}: where one fwd+bwd goes ({path} memory path)\n")
+    out: dict = {"device": rt.name}
+    scenes = [s for s in SCENES if not args.scenes or s[0] in args.scenes.split(",")]
+    for name, n, W, H in scenes:
+        case = Case(n, W, H, points, rt)
+        case.fwd_bwd()
+        walls, kernels, copies = [], {}, []
+        for _ in range(args.runs):
+            rt.kernel_times.clear()
+            before = rt.transfers.snapshot()
+            t0 = time.perf_counter()
+            case.fwd_bwd()
+            walls.append(time.perf_counter() - t0)
+            copies.append(rt.transfers.delta(rt.transfers.snapshot(), before)["seconds"])
+            for k, ts in rt.kernel_times.items():
+                kernels.setdefault(k, []).append(sum(ts))
+        wall = statistics.median(walls)
+        kern = {k: statistics.median(v) for k, v in kernels.items()}
+        copy = statistics.median(copies)
+        host = wall - sum(kern.values()) - copy
+        print(f"### {name} ({W}x{H}): {wall * 1e3:.1f} ms serialised\n")
+        print("| part | ms | share |\n|---|---|---|")
+        for k, t in sorted(kern.items(), key=lambda kv: -kv[1]):
+            print(f"| kernel {k} | {t * 1e3:.2f} | {t / wall:.0%} |")
+        print(f"| copies | {copy * 1e3:.2f} | {copy / wall:.0%} |")
+        print(f"| host (rest) | {host * 1e3:.2f} | {host / wall:.0%} |\n")
+        rt.profile = False  # launches no longer wait: the host's own time, not the device's
+        prof = cProfile.Profile()
+        prof.enable()
+        case.fwd_bwd()
+        prof.disable()
+        print("host functions, own time of one fwd+bwd (cProfile):\n```")
+        pstats.Stats(prof).sort_stats("tottime").print_stats(12)
+        print("```")
+        rt.profile = True
+        out[name] = {"wall_ms": wall * 1e3, "kernels_ms": {k: t * 1e3 for k, t in kern.items()},
+                     "copies_ms": copy * 1e3, "host_ms": host * 1e3}  # fmt: skip
+    return out
 
 
 def run_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) -> dict:

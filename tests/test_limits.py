@@ -9,7 +9,7 @@ import pytest
 import torch
 from conftest import small_mode
 
-from coin_cl.engine import ops, reference
+from coin_cl.engine import ops, reference, runtime
 from coin_cl.engine.errors import DeviceLimitError
 from coin_cl.engine.limits import RASTER_GPU_GROUPS, query_limits, raster_gpu_local_bytes
 from coin_cl.engine.runtime import Runtime, get_runtime
@@ -163,6 +163,19 @@ def test_per_item_kernels_narrow_their_work_group_and_give_the_same_result():
         outs.append([m2, rad, img, alpha, s])
     for a, b in zip(*outs):
         assert torch.equal(a, b)
+
+
+def test_narrowing_follows_the_source_not_the_drivers_local_memory_figure(monkeypatch):
+    """NVIDIA's OpenCL (H200, driver 580.159) reported figures that made every per-item kernel look
+    bound to its 64-wide group; whether a kernel may run narrower is read from its source."""
+    assert runtime.group_bound("rasterize_gpu.cl")
+    for f in ("bin.cl", "project.cl", "reduce.cl", "decode.cl", "ssim.cl", "warp.cl", "rasterize_cpu.cl"):
+        assert not runtime.group_bound(f), f
+    rt = _limited(raster="cpu", max_work_group_size=16)
+    wg_and_local = rt.kernel_limits
+    monkeypatch.setattr(rt, "kernel_limits", lambda *a: (wg_and_local(*a)[0], 1024))
+    assert rt._fit_local("bin.cl", "bin_rects", None, (64,)) == (16,)
+    assert rt._fit_local("project.cl", "project_fwd", None, (64,)) == (16,)
 
 
 def test_a_kernel_fixed_to_a_width_above_the_limit_is_a_clear_error():

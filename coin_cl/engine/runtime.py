@@ -15,8 +15,10 @@ buffer against the device's largest allocation (`coin_cl.engine.limits`).
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
+import re
 import threading
 import warnings
 from dataclasses import dataclass, field
@@ -109,11 +111,10 @@ class Runtime:
 
     def _fit_local(self, filename: str, name: str, defines, local_size):
         """The work-group size to launch with: `local_size` where it fits the device and the
-        kernel; narrower (halved) for kernels that use no local memory and fix no work-group size
-        (their global sizes are multiples of 64, so every halving still divides them);
-        `DeviceLimitError` where a kernel needs exactly `local_size` and it does not fit."""
-        import pyopencl as cl
-
+        kernel; narrower (the largest power of two that fits) for kernels whose source does not
+        depend on the work-group (`group_bound`; their global sizes are multiples of 64, so every
+        power of two below still divides them); `DeviceLimitError` where a kernel needs exactly
+        `local_size` and it does not fit."""
         if local_size is None:
             return None
         key = (filename, name, tuple(sorted((defines or {}).items())), tuple(local_size))
@@ -122,15 +123,11 @@ class Runtime:
             want = 1
             for s in local_size:
                 want *= int(s)
-            wg, local_bytes = self.kernel_limits(filename, name, defines)
+            wg, _ = self.kernel_limits(filename, name, defines)
             limit = min(wg, self.limits.max_work_group_size)
-            k = self.kernel(filename, name, defines)
-            fixed = tuple(
-                k.get_work_group_info(cl.kernel_work_group_info.COMPILE_WORK_GROUP_SIZE, self.device)
-            )
             if want <= limit:
                 fit = tuple(local_size)
-            elif any(fixed) or local_bytes or len(local_size) != 1:
+            elif group_bound(filename) or len(local_size) != 1:
                 raise DeviceLimitError(
                     describe(self.name, f"the work-group size {name} ({filename}) can be launched with",
                              limit, want, "this kernel has no narrower variant; choose another device with "
@@ -323,6 +320,29 @@ class Runtime:
         self.queue.finish()
         self.transfers.settle()
         del in_flight  # released only once the queue has drained
+
+
+# What makes a kernel's result depend on its work-group: local arrays, barriers, a required size,
+# or reading the group's geometry. Decided from the source because the driver's answers differ:
+# NVIDIA's OpenCL reports a non-zero CL_KERNEL_LOCAL_MEM_SIZE or COMPILE_WORK_GROUP_SIZE for
+# kernels that declare neither (seen on an H200, driver 580.159), which made every per-item kernel
+# look unnarrowable there.
+_GROUP_BOUND = re.compile(
+    r"__local\b|\blocal\s+\w+\s*\*|barrier\s*\(|reqd_work_group_size|get_local_id|get_local_size"
+    r"|get_group_id|get_num_groups|work_group_"
+)
+
+
+@functools.cache
+def group_bound(filename: str) -> bool:
+    """Whether kernels/<filename> (with the headers it includes from kernels/) has any kernel whose
+    result depends on the work-group size, so it can only run at the size it was written for."""
+    d = devices.kernel_dir()
+    src = (d / filename).read_text()
+    for inc in re.findall(r'#include\s+"([^"]+)"', src):
+        if (d / inc).is_file():
+            src += (d / inc).read_text()
+    return bool(_GROUP_BOUND.search(src))
 
 
 def _env_flag(name: str) -> bool:
