@@ -53,9 +53,43 @@ STEPS_PER_SECOND = 133 / 120
 CKPT_SECONDS = float(os.environ.get("COIN_CKPT_SECONDS", 60.0))
 
 
-def steps_for_seconds(seconds: float) -> int:
-    """The step count that takes about `seconds` on 2 cores at the default size (at least 1)."""
-    return max(1, round(seconds * STEPS_PER_SECOND))
+def steps_for_seconds(seconds: float, seconds_per_step: float | None = None) -> int:
+    """The step count that takes about `seconds` (at least 1): at `seconds_per_step` where measured
+    on this machine (`probe_seconds_per_step`), else at the 2-core rate `STEPS_PER_SECOND`."""
+    if seconds_per_step is None:
+        return max(1, round(seconds * STEPS_PER_SECOND))
+    if not math.isfinite(seconds_per_step) or seconds_per_step <= 0:
+        raise ValueError(f"scene prior seconds per step must be a positive number, got {seconds_per_step}")
+    return max(1, round(seconds / seconds_per_step))
+
+
+def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 2, warmup: int = 1) -> float:
+    """Seconds one training step of the prior `cfg` takes on this machine: `warmup` + `steps`
+    optimizer steps on random patches of its size and batch (a step's cost depends on the network,
+    the patch and the batch, not on the pixels), mean of the timed ones. The plan turns the prior's
+    seconds into steps with it (STEPS_PER_SECOND was measured on one machine; a slower one ran 1.5x
+    over its share)."""
+    cfg = cfg or ScenePriorConfig()
+    g = torch.Generator().manual_seed(0)
+    net = InpaintUNet(cfg.base)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=0.0)
+    acp = alphas_cumprod(cfg.schedule)
+    shape = (cfg.batch, 3, cfg.patch, cfg.patch)
+    x0 = torch.rand(shape, generator=g) * 2 - 1
+    hole = (torch.rand((cfg.batch, 1, cfg.patch, cfg.patch), generator=g) < 0.3).float()
+    w = 1 + (cfg.hole_weight - 1) * hole
+    times = []
+    for i in range(warmup + steps):
+        t0 = time.perf_counter()
+        t = torch.randint(1, cfg.schedule.num_train_steps, (cfg.batch,), generator=g)
+        loss = denoising_loss(net, x0, hole, w, t, torch.randn(shape, generator=g), acp, cfg.prediction_type)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        if i >= warmup:
+            times.append(time.perf_counter() - t0)
+    return float(sum(times) / len(times))
 
 
 @dataclass

@@ -90,6 +90,55 @@ def test_explicit_counts_need_no_probe_and_have_no_cap(tmp_path):
     assert q.steps["refgs"] == 7 and q.minutes["refgs"] is None and q.steps["ted_finetune"] > 0
 
 
+def test_scene_prior_steps_follow_its_own_probe(tmp_path):
+    """The prior's seconds become steps at the rate measured here: a machine twice as slow trains
+    half the steps (the fixed 2-core rate had a slower machine run 1.5x over its share)."""
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    fast = B.plan_run(tmp_path / "a", {"k": 1}, 10, none, 120.0, lambda: 0.2, lambda: 0.9)
+    slow = B.plan_run(tmp_path / "b", {"k": 1}, 10, none, 120.0, lambda: 0.2, lambda: 1.8)
+    assert (fast.prior_steps, slow.prior_steps) == (133, 67)  # explicit seconds: as asked
+    # from the budget (60 min: 540 s): steps at the measured rate, never under the minimum's steps
+    big = B.plan_run(tmp_path / "e", {"k": 1}, 60, none, None, lambda: 0.2, lambda: 1.8)
+    small = B.plan_run(tmp_path / "f", {"k": 1}, 3, none, None, lambda: 0.2, lambda: 1.8)
+    assert big.prior_seconds == 540 and big.prior_steps == 300
+    assert small.prior_seconds == B.PRIOR_MIN_SECONDS and small.prior_steps == 133
+    assert fast.prior_seconds_per_step == 0.9 and "(133 steps)" in fast.describe()
+    assert B.plan_run(tmp_path / "a", {"k": 1}, 10, none, 120.0, lambda: 0.2, lambda: 5.0) == fast  # reused
+
+    def never():
+        raise AssertionError("no prior probe for explicit counts")
+
+    counts = {"refgs": 7, "ted_finetune": 2, "ted_adversarial": 0}
+    p = B.plan_run(tmp_path / "c", {"k": 2}, 10, counts, 120.0, never, never)
+    assert p.prior_steps is None  # explicit: the fixed rate, the same prior on any machine
+    with pytest.raises(ValueError, match="scene prior seconds per step"):
+        B.plan_run(tmp_path / "d", {"k": 3}, 10, none, 120.0, lambda: 0.2, lambda: float("nan"))
+    # a plan written before the prior had its probe reads back without one
+    old = json.loads((tmp_path / "a" / B.PLAN_FILE).read_text())
+    del old["prior_steps"], old["prior_seconds_per_step"]
+    (tmp_path / "a" / B.PLAN_FILE).write_text(json.dumps(old))
+    assert B.plan_run(tmp_path / "a", {"k": 1}, 10, none, 120.0, lambda: 0.2, never).prior_steps is None
+
+
+def test_effective_prior_steps_come_from_the_plan():
+    from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds
+
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config
+
+    cfg = Inpaint2DConfig()
+    assert effective_config(cfg, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 67
+    assert effective_config(cfg, 120.0, 0, 192, 144).prior.train_steps == steps_for_seconds(120.0)
+    fixed = Inpaint2DConfig(prior=ScenePriorConfig(train_steps=5))
+    assert effective_config(fixed, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 5
+
+
+def test_scene_prior_probe_measures_a_positive_rate():
+    from coin_cl.diffusion.scene_prior import ScenePriorConfig, probe_seconds_per_step
+
+    spp = probe_seconds_per_step(ScenePriorConfig(base=8, batch=2, patch=16), steps=1)
+    assert math.isfinite(spp) and 0 < spp < 10
+
+
 def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
     from coin_cl.scene import load_scene, write_synthetic
 

@@ -17,7 +17,9 @@ cores, so a run is planned from `--budget` minutes on the machine at hand:
    machine much slower than its probe (another job starting) cannot run far over the budget.
 
 The scene prior (CLG's denoiser) takes its share as seconds of training, never below
-`PRIOR_MIN_SECONDS` (measured: below it, its fills are noise).
+`PRIOR_MIN_SECONDS` (measured: below it, its fills are noise); its own probe (a few optimizer steps
+of the prior, ~4 s) turns the seconds into steps on this machine, never fewer than the minimum's
+steps at the rate it was measured at.
 """
 
 from __future__ import annotations
@@ -78,7 +80,9 @@ class Plan:
     minutes: the planned minutes of each (None where counts were given explicitly); prior_seconds:
     the scene prior's training; probe_seconds_per_step: the probe's figure (None: no probe);
     source: "probe" or "explicit"; key: the settings the plan was made for (a rerun with the same
-    key reuses it)."""
+    key reuses it); prior_steps: the scene prior's step count, from `prior_seconds` at the rate its
+    own probe measured on this machine (`prior_seconds_per_step`; None: no probe, the fixed 2-core
+    rate of `diffusion.scene_prior.steps_for_seconds` applies)."""
 
     steps: dict[str, int]
     minutes: dict[str, float | None]
@@ -86,6 +90,8 @@ class Plan:
     probe_seconds_per_step: float | None
     source: str
     key: dict[str, Any]
+    prior_steps: int | None = None
+    prior_seconds_per_step: float | None = None
 
     def cap_seconds(self, stage: str) -> float:
         """The safety cap of a GS stage (0: none, for explicit step counts)."""
@@ -97,7 +103,8 @@ class Plan:
         for k, n in self.steps.items():
             m = self.minutes.get(k)
             parts.append(f"{k} {n} steps" + ("" if m is None else f" (~{m:.1f} min)"))
-        return ", ".join(parts) + f", scene prior {self.prior_seconds:.0f} s"
+        prior = "" if self.prior_steps is None else f" ({self.prior_steps} steps)"
+        return ", ".join(parts) + f", scene prior {self.prior_seconds:.0f} s{prior}"
 
 
 def steps_from_rate(
@@ -188,11 +195,14 @@ def plan_run(
     explicit: dict[str, int | None],
     explicit_prior_seconds: float | None,
     probe: Any,
+    prior_probe: Any = None,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
 
-    explicit: {stage: steps or None}; a number replaces the probe's figure for that stage."""
+    explicit: {stage: steps or None}; a number replaces the probe's figure for that stage.
+    prior_probe: () -> seconds per scene-prior step on this machine, called when the GS probe runs
+    (the prior's seconds become `prior_steps`); None where no prior is trained or its steps are fixed."""
     path = Path(out) / PLAN_FILE
     try:
         have = json.loads(path.read_text())
@@ -215,22 +225,35 @@ def plan_run(
         steps = {k: int(explicit[k]) if explicit.get(k) is not None else auto[k] for k in auto}
         minutes = {k: None if explicit.get(k) is not None else auto_min[k] for k in auto}
         source = "probe"
+    secs = explicit_prior_seconds if explicit_prior_seconds is not None else prior_seconds(budget_minutes)
+    prior_spp = prior_steps = None
+    if source == "probe" and prior_probe is not None:
+        from coin_cl.diffusion.scene_prior import steps_for_seconds
+
+        prior_spp = float(prior_probe())
+        prior_steps = steps_for_seconds(secs, prior_spp)
+        if explicit_prior_seconds is None:
+            # The measured minimum is a step count (PRIOR_MIN_SECONDS at the 2-core rate it was
+            # measured at): a slower machine spends longer on it rather than train a noisier prior.
+            prior_steps = max(prior_steps, steps_for_seconds(PRIOR_MIN_SECONDS))
     plan = Plan(
         steps=steps,
         minutes=minutes,
-        prior_seconds=explicit_prior_seconds
-        if explicit_prior_seconds is not None
-        else prior_seconds(budget_minutes),
+        prior_seconds=secs,
         probe_seconds_per_step=spp,
         source=source,
         key=json.loads(json.dumps(key, default=str)),
+        prior_steps=prior_steps,
+        prior_seconds_per_step=prior_spp,
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".tmp-{path.name}")
     tmp.write_text(json.dumps(asdict(plan), indent=2, sort_keys=True))
     tmp.replace(path)
-    log.info("plan (%s%s): %s; written to %s", source,
-             "" if spp is None else f", probe {spp:.3f} s/step", plan.describe(), path)  # fmt: skip
+    log.info("plan (%s%s%s): %s; written to %s", source,
+             "" if spp is None else f", probe {spp:.3f} s/step",
+             "" if prior_spp is None else f", scene prior {prior_spp:.2f} s/step",
+             plan.describe(), path)  # fmt: skip
     return plan
 
 
@@ -272,7 +295,21 @@ def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
            "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
-                    lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed))  # fmt: skip
+                    lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
+                    prior_probe(cfg, cam.width, cam.height))  # fmt: skip
+
+
+def prior_probe(cfg: Any, width: int, height: int) -> Any:
+    """The scene prior's timing probe for a CoIn run (`cfg` a `CoInConfig`, views `width` x `height`):
+    a callable -> seconds per step of the prior stage 1 and CLG will train; None where no prior is
+    trained (SD2 given) or its step count is fixed (`ScenePriorConfig.train_steps`)."""
+    if cfg.sd_path or cfg.inpaint2d.prior.train_steps is not None:
+        return None
+    from coin_cl.diffusion.scene_prior import probe_seconds_per_step as prior_rate
+    from coin_cl.pipeline.inpaint2d import effective_config
+
+    prior_cfg = effective_config(cfg.inpaint2d, PRIOR_MIN_SECONDS, cfg.seed, width, height).prior
+    return lambda: prior_rate(prior_cfg)
 
 
 def explicit_steps(cfg: Any) -> dict[str, int | None]:

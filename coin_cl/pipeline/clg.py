@@ -263,7 +263,7 @@ def _stage_denoiser(ctx: Any, scene: Any, masks: list[np.ndarray], train: list[i
     """Stable Diffusion 2 when configured, else the scene prior of stage 1 (trained here when its
     cache is not in 1_inpaint: never written into an earlier stage's folder)."""
     from coin_cl.diffusion.scene_prior import cache_key
-    from coin_cl.pipeline.inpaint2d import effective_config, stage_prior
+    from coin_cl.pipeline.inpaint2d import planned_config, stage_prior
     from coin_cl.pipeline.models import sd2_denoiser
 
     ccfg = ctx.shared["cfg"]
@@ -271,9 +271,7 @@ def _stage_denoiser(ctx: Any, scene: Any, masks: list[np.ndarray], train: list[i
     if sd2 is not None:
         return sd2
     cam = scene.cameras[train[0]]
-    icfg = effective_config(
-        ccfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], ccfg.seed, cam.width, cam.height
-    )
+    icfg = planned_config(ccfg.inpaint2d, ctx.shared["iters"], ccfg.seed, cam.width, cam.height)
     folder = ctx.inputs["1_inpaint"]
     key = cache_key([scene.images[i] for i in train], [masks[i] for i in train], icfg.prior)
     if not (folder / f"scene_prior_{key}.pt").is_file():

@@ -380,7 +380,7 @@ def _run(
         ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
     plan = plan_for(scene, out, cfg, train)
-    iters = {"prior_seconds": plan.prior_seconds, **plan.steps}
+    iters = {"prior_seconds": plan.prior_seconds, "prior_steps": plan.prior_steps, **plan.steps}
     if iters["prior_seconds"] < PRIOR_MIN_SECONDS and not cfg.sd_path:
         log.warning(
             "the scene prior gets %.0f s of training (prior_seconds); below %.0f s it is measured to be "
@@ -419,6 +419,8 @@ def _run(
           if refined else []),
         Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
               {**inpaint_key(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
+               # the measured step count (plans made before it have none: their key is unchanged)
+               **({"prior_steps": iters["prior_steps"]} if iters["prior_steps"] is not None else {}),
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
         Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
               {"cfg": jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,

@@ -108,10 +108,16 @@ def neighbour_views(i: int, views: list[int], k: int) -> list[int]:
 
 
 def effective_config(
-    cfg: Inpaint2DConfig, prior_seconds: float, seed: int, width: int, height: int
+    cfg: Inpaint2DConfig,
+    prior_seconds: float,
+    seed: int,
+    width: int,
+    height: int,
+    prior_steps: int | None = None,
 ) -> Inpaint2DConfig:
     """The settings stage 1 really uses (and CLG must repeat to find its cached prior): the
-    pipeline's time budget (as a step count, `steps_for_seconds`) and seed, and a working patch no
+    pipeline's time budget as a step count (`prior_steps`, the plan's figure measured on this
+    machine, else `steps_for_seconds` at the fixed 2-core rate) and seed, and a working patch no
     larger than the images (the largest multiple of 8 that fits, at least 16)."""
     patch = max(16, min(cfg.prior.patch, (min(width, height) // 8) * 8))
     if patch != cfg.prior.patch:
@@ -120,10 +126,18 @@ def effective_config(
         )
     # A step count, not the seconds themselves: the same prior on any machine, and a killed run
     # resumes to it (an explicit `prior.train_steps` wins).
-    steps = cfg.prior.train_steps if cfg.prior.train_steps is not None else steps_for_seconds(prior_seconds)
+    steps = cfg.prior.train_steps
+    if steps is None:
+        steps = prior_steps if prior_steps is not None else steps_for_seconds(prior_seconds)
     prior = replace(cfg.prior, train_seconds=prior_seconds, train_steps=steps, seed=seed, patch=patch)
     # The run's seed reaches stage 1's sampling too: `cfg.seed` is an offset to it.
     return replace(cfg, prior=prior, seed=seed + cfg.seed)
+
+
+def planned_config(cfg: Inpaint2DConfig, iters: dict, seed: int, width: int, height: int) -> Inpaint2DConfig:
+    """`effective_config` with the run's plan (`iters`: prior_seconds and, where measured,
+    prior_steps), the one stage 1 and CLG both build (CLG must find the prior stage 1 trained)."""
+    return effective_config(cfg, iters["prior_seconds"], seed, width, height, iters.get("prior_steps"))
 
 
 def stage_prior(scene, masks: list[np.ndarray], views: list[int], cfg: Inpaint2DConfig, folder: Path):

@@ -49,8 +49,10 @@ def run_report(res: Any) -> str:
         plan = json.loads(plan_path.read_text())
         given = ", ".join(f"{k} {n}" for k, n in plan["steps"].items())
         probe = plan.get("probe_seconds_per_step")
-        lines += ["", f"  plan ({plan['source']}{'' if probe is None else f', probe {probe:.3f} s/step'}): "
-                      f"{given} steps; scene prior {plan['prior_seconds']:.0f} s (plan.json)"]  # fmt: skip
+        prior = "" if plan.get("prior_steps") is None else f", {plan['prior_steps']} steps"
+        probe = "" if probe is None else f", probe {probe:.3f} s/step"
+        lines += ["", f"  plan ({plan['source']}{probe}): {given} steps; "
+                      f"scene prior {plan['prior_seconds']:.0f} s{prior} (plan.json)"]  # fmt: skip
     if res.metrics:
         lines += ["", "Metrics, mean over the ground-truth test views (object absent):"]
         lines += metric_table(res.metrics)

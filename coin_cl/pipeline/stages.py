@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from coin_cl.pipeline.budget import CAP_FACTOR
-from coin_cl.pipeline.inpaint2d import effective_config, read_inpaints, run_inpaint2d
+from coin_cl.pipeline.inpaint2d import planned_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.models import sd2_denoiser, sd2_mode_for
 from coin_cl.pipeline.runner import StageContext, jsonable
 
@@ -112,9 +112,7 @@ def stage_inpaint(ctx: StageContext) -> dict:
         ctx.note(f"initial images: {res['source']}; {res['views_without_object']} views without the object")
         return res
     cam = scene.cameras[train[0]]
-    icfg = effective_config(
-        cfg.inpaint2d, ctx.shared["iters"]["prior_seconds"], cfg.seed, cam.width, cam.height
-    )
+    icfg = planned_config(cfg.inpaint2d, ctx.shared["iters"], cfg.seed, cam.width, cam.height)
     sd2, only, why = sd2_denoiser(cfg.sd_path), None, ""
     if sd2 is not None:  # SD2 on every view, or on the reference only (CPU-practical mode, issue 22)
         mode, why = sd2_mode_for(cfg, sd2, sum(bool(masks[i].any()) for i in train))
