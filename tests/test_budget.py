@@ -120,25 +120,6 @@ def test_scene_prior_steps_follow_its_own_probe(tmp_path):
     assert B.plan_run(tmp_path / "a", {"k": 1}, 10, none, 120.0, lambda: 0.2, never).prior_steps is None
 
 
-def test_effective_prior_steps_come_from_the_plan():
-    from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds
-
-    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config
-
-    cfg = Inpaint2DConfig()
-    assert effective_config(cfg, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 67
-    assert effective_config(cfg, 120.0, 0, 192, 144).prior.train_steps == steps_for_seconds(120.0)
-    fixed = Inpaint2DConfig(prior=ScenePriorConfig(train_steps=5))
-    assert effective_config(fixed, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 5
-
-
-def test_scene_prior_probe_measures_a_positive_rate():
-    from coin_cl.diffusion.scene_prior import ScenePriorConfig, probe_seconds_per_step
-
-    spp = probe_seconds_per_step(ScenePriorConfig(base=8, batch=2, patch=16), steps=1)
-    assert math.isfinite(spp) and 0 < spp < 10
-
-
 def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
     from coin_cl.scene import load_scene, write_synthetic
 

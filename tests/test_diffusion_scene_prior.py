@@ -175,3 +175,16 @@ def test_steps_for_seconds_matches_the_measured_rate():
     from coin_cl.diffusion.scene_prior import steps_for_seconds
 
     assert steps_for_seconds(120) == 133 and steps_for_seconds(0) == 1
+
+
+def test_scene_prior_probe_measures_a_positive_rate():
+    """The plan's probe of the prior's step time: finite and positive on a tiny network, with bad
+    rates refused where they are turned into steps."""
+    from coin_cl.diffusion.scene_prior import ScenePriorConfig, probe_seconds_per_step, steps_for_seconds
+
+    spp = probe_seconds_per_step(ScenePriorConfig(base=8, batch=2, patch=16), steps=1)
+    assert np.isfinite(spp) and 0 < spp < 10
+    assert steps_for_seconds(120.0, 0.9) == 133 and steps_for_seconds(0.1, 5.0) == 1
+    for bad in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="seconds per step"):
+            steps_for_seconds(120.0, bad)

@@ -174,3 +174,16 @@ def test_killed_between_views_resumes_with_every_source_recorded(scene, tmp_path
     assert (tmp_path / "run" / "sources.json").read_text() == (tmp_path / "ref" / "sources.json").read_text()
     for p in (tmp_path / "ref" / "images").iterdir():
         assert (tmp_path / "run" / "images" / p.name).read_bytes() == p.read_bytes(), p.name
+
+
+def test_effective_prior_steps_come_from_the_plan():
+    """The plan's measured prior step count reaches stage 1 (and CLG), unless the config fixes one."""
+    from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds
+
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig, effective_config
+
+    cfg = Inpaint2DConfig()
+    assert effective_config(cfg, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 67
+    assert effective_config(cfg, 120.0, 0, 192, 144).prior.train_steps == steps_for_seconds(120.0)
+    fixed = Inpaint2DConfig(prior=ScenePriorConfig(train_steps=5))
+    assert effective_config(fixed, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 5

@@ -324,9 +324,8 @@ class Runtime:
 
 # What makes a kernel's result depend on its work-group: local arrays, barriers, a required size,
 # or reading the group's geometry. Decided from the source because the driver's answers differ:
-# NVIDIA's OpenCL reports a non-zero CL_KERNEL_LOCAL_MEM_SIZE or COMPILE_WORK_GROUP_SIZE for
-# kernels that declare neither (seen on an H200, driver 580.159), which made every per-item kernel
-# look unnarrowable there.
+# NVIDIA's OpenCL reports CL_KERNEL_LOCAL_MEM_SIZE = 1 byte for kernels that declare no local
+# memory (seen on an H200, driver 580.159), which made every per-item kernel look unnarrowable.
 _GROUP_BOUND = re.compile(
     r"__local\b|\blocal\s+\w+\s*\*|barrier\s*\(|reqd_work_group_size|get_local_id|get_local_size"
     r"|get_group_id|get_num_groups|work_group_"
