@@ -120,6 +120,33 @@ def test_scene_prior_steps_follow_its_own_probe(tmp_path):
     assert B.plan_run(tmp_path / "a", {"k": 1}, 10, none, 120.0, lambda: 0.2, never).prior_steps is None
 
 
+def test_adversarial_steps_add_the_discriminators_measured_cost(tmp_path):
+    """With the discriminator's cost measured, an adversarial step is a fine-tune step plus it: on
+    small images (a cheap GS step) that is several fine-tune steps, as the 192x144 room measured."""
+    steps, minutes = B.steps_from_rate(3, 0.1)
+    ratio = B.Plan(steps, minutes, 120.0, 0.1, "probe", {})
+    measured = B.Plan(steps, minutes, 120.0, 0.1, "probe", {}, disc_seconds_per_step=0.25)
+    spp = 0.16  # Ref-GS's measured seconds per step
+    assert B.ted_step_seconds(measured, "ted_adversarial", spp) == pytest.approx(spp * 69 / 84 + 0.25)
+    assert B.ted_step_seconds(ratio, "ted_adversarial", spp) == pytest.approx(spp * 69 / 68)
+    for plan in (ratio, measured):
+        assert B.ted_step_seconds(plan, "ted_finetune", spp) == pytest.approx(spp * 69 / 84)
+    a, b = (B.replan_ted(p, 300, 300 * spp, 3) for p in (ratio, measured))
+    assert a["ted_finetune"] == b["ted_finetune"] and b["ted_adversarial"] < a["ted_adversarial"] / 2
+    # the plan measures it when the GS probe runs, unless the adversarial count is given
+    calls = []
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    p1 = B.plan_run(
+        tmp_path / "a", {"k": 1}, 3, none, None, lambda: 0.1, None, lambda: calls.append(1) or 0.25
+    )
+    assert calls == [1] and p1.disc_seconds_per_step == 0.25
+    p2 = B.plan_run(tmp_path / "b", {"k": 1}, 3, {**none, "ted_adversarial": 5}, None, lambda: 0.1, None,
+                    lambda: calls.append(1) or 0.25)  # fmt: skip
+    assert calls == [1] and p2.disc_seconds_per_step is None
+    with pytest.raises(ValueError, match="discriminator seconds per step"):
+        B.plan_run(tmp_path / "c", {"k": 1}, 3, none, None, lambda: 0.1, None, lambda: float("nan"))
+
+
 def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
     from coin_cl.scene import load_scene, write_synthetic
 

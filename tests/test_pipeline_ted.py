@@ -116,3 +116,11 @@ def test_adversarial_phase_changes_the_result_and_resumes(scene, tmp_path):
     _, again = run_ted(_model(scene), views, [], tmp_path / "full", cfg, tc)
     for k, v in _params(full).items():
         assert torch.equal(v, _params(again)[k]), k
+
+
+def test_discriminator_probe_measures_a_positive_cost_that_grows_with_the_patch():
+    from coin_cl.pipeline.ted import TEDConfig, probe_discriminator_seconds
+
+    small = probe_discriminator_seconds(TEDConfig(patch=32, n_patches=1), 48, 48, steps=2)
+    large = probe_discriminator_seconds(TEDConfig(patch=64, n_patches=8), 144, 192, steps=2)
+    assert np.isfinite(small) and 0 < small < large < 30

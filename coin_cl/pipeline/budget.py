@@ -82,7 +82,9 @@ class Plan:
     source: "probe" or "explicit"; key: the settings the plan was made for (a rerun with the same
     key reuses it); prior_steps: the scene prior's step count, from `prior_seconds` at the rate its
     own probe measured on this machine (`prior_seconds_per_step`; None: no probe, the fixed 2-core
-    rate of `diffusion.scene_prior.steps_for_seconds` applies)."""
+    rate of `diffusion.scene_prior.steps_for_seconds` applies); disc_seconds_per_step: what TE-D's
+    discriminator adds to an adversarial step here (`ted.probe_discriminator_seconds`; None: the
+    fixed ratio `TED_PER_REFGS_STEP` applies)."""
 
     steps: dict[str, int]
     minutes: dict[str, float | None]
@@ -92,6 +94,7 @@ class Plan:
     key: dict[str, Any]
     prior_steps: int | None = None
     prior_seconds_per_step: float | None = None
+    disc_seconds_per_step: float | None = None
 
     def cap_seconds(self, stage: str) -> float:
         """The safety cap of a GS stage (0: none, for explicit step counts)."""
@@ -196,13 +199,16 @@ def plan_run(
     explicit_prior_seconds: float | None,
     probe: Any,
     prior_probe: Any = None,
+    disc_probe: Any = None,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
 
     explicit: {stage: steps or None}; a number replaces the probe's figure for that stage.
     prior_probe: () -> seconds per scene-prior step on this machine, called when the GS probe runs
-    (the prior's seconds become `prior_steps`); None where no prior is trained or its steps are fixed."""
+    (the prior's seconds become `prior_steps`); None where no prior is trained or its steps are fixed.
+    disc_probe: () -> seconds TE-D's discriminator adds to an adversarial step, called likewise
+    unless the adversarial count is explicit."""
     path = Path(out) / PLAN_FILE
     try:
         have = json.loads(path.read_text())
@@ -236,6 +242,11 @@ def plan_run(
             # The measured minimum is a step count (PRIOR_MIN_SECONDS at the 2-core rate it was
             # measured at): a slower machine spends longer on it rather than train a noisier prior.
             prior_steps = max(prior_steps, steps_for_seconds(PRIOR_MIN_SECONDS))
+    disc = None
+    if source == "probe" and disc_probe is not None and explicit.get("ted_adversarial") is None:
+        disc = float(disc_probe())
+        if not math.isfinite(disc) or disc < 0:
+            raise ValueError(f"discriminator seconds per step must be a non-negative number, got {disc}")
     plan = Plan(
         steps=steps,
         minutes=minutes,
@@ -245,14 +256,16 @@ def plan_run(
         key=json.loads(json.dumps(key, default=str)),
         prior_steps=prior_steps,
         prior_seconds_per_step=prior_spp,
+        disc_seconds_per_step=disc,
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".tmp-{path.name}")
     tmp.write_text(json.dumps(asdict(plan), indent=2, sort_keys=True))
     tmp.replace(path)
-    log.info("plan (%s%s%s): %s; written to %s", source,
+    log.info("plan (%s%s%s%s): %s; written to %s", source,
              "" if spp is None else f", probe {spp:.3f} s/step",
              "" if prior_spp is None else f", scene prior {prior_spp:.2f} s/step",
+             "" if disc is None else f", discriminator {disc:.3f} s/step",
              plan.describe(), path)  # fmt: skip
     return plan
 
@@ -278,8 +291,21 @@ def replan_ted(
     total_share = sum(BUDGET_SHARES[k] for k in free)
     for k in free:
         seconds = max(0.0, pool * BUDGET_SHARES[k] / total_share)
-        out[k] = int(seconds / (spp * TED_PER_REFGS_STEP[k]))
+        out[k] = int(seconds / ted_step_seconds(plan, k, spp))
     return out
+
+
+def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> float:
+    """Seconds a TE-D step of `phase` ("ted_finetune", "ted_adversarial") takes, from Ref-GS's
+    measured seconds per step: a fine-tune step costs a fixed share of a Ref-GS step (the same
+    renders and losses); an adversarial step that plus the discriminator's cost where the plan
+    measured it (`Plan.disc_seconds_per_step`), else the fixed ratio `TED_PER_REFGS_STEP`."""
+    finetune = refgs_seconds_per_step * TED_PER_REFGS_STEP["ted_finetune"]
+    if phase == "ted_finetune":
+        return finetune
+    if plan.disc_seconds_per_step is not None:
+        return finetune + plan.disc_seconds_per_step
+    return refgs_seconds_per_step * TED_PER_REFGS_STEP[phase]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -296,7 +322,19 @@ def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
            "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
                     lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
-                    prior_probe(cfg, cam.width, cam.height))  # fmt: skip
+                    prior_probe(cfg, cam.width, cam.height),
+                    disc_probe(cfg, cam.width, cam.height))  # fmt: skip
+
+
+def disc_probe(cfg: Any, width: int, height: int) -> Any:
+    """TE-D's discriminator probe for a CoIn run (`cfg` a `CoInConfig`): a callable -> seconds it
+    adds to an adversarial step at this image size; None where TE-D is skipped."""
+    if "ted" in cfg.skip:
+        return None
+    from coin_cl.pipeline.ted import TEDConfig, probe_discriminator_seconds
+
+    ted = cfg.ted or TEDConfig()
+    return lambda: probe_discriminator_seconds(ted, height, width)
 
 
 def prior_probe(cfg: Any, width: int, height: int) -> Any:
@@ -380,7 +418,7 @@ def ted_iters(out: Path, shared: dict) -> list[int]:
         spp = seconds / n
         for k in steps:
             if plan.minutes.get(k) is not None:
-                caps[k] = CAP_FACTOR * steps[k] * spp * TED_PER_REFGS_STEP[k]
+                caps[k] = CAP_FACTOR * steps[k] * ted_step_seconds(plan, k, spp)
                 log.info("TE-D %s: %d steps (planned from Ref-GS's %.3f s/step; was %d from the probe)",
                          k, steps[k], spp, plan.steps[k])  # fmt: skip
     shared["iters"].update(steps)
