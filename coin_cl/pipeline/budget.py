@@ -16,6 +16,10 @@ cores, so a run is planned from `--budget` minutes on the machine at hand:
 3. A safety cap: each GS stage also stops at `CAP_FACTOR` x its planned minutes (logged), so a
    machine much slower than its probe (another job starting) cannot run far over the budget.
 
+TE-D's adversarial step is a fine-tune step plus its discriminator's cost, which a third probe
+measures (~1 s; `ted.probe_discriminator_seconds`): that cost does not shrink with the images as a
+GS step does, so a fixed ratio measured at 504x284 underplanned it 2.2x at 192x144.
+
 The scene prior (CLG's denoiser) takes its share as seconds of training, never below
 `PRIOR_MIN_SECONDS` (measured: below it, its fills are noise); its own probe (a few optimizer steps
 of the prior, ~4 s) turns the seconds into steps on this machine, never fewer than the minimum's
