@@ -38,6 +38,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from coin_cl.atomic import atomic_write  # pure stdlib: no engine, no OpenCL
+from coin_cl.timing import mean_step_seconds  # pure stdlib too
 
 from .sampling import DDIMSampler, Denoiser, EnergyFn, SamplerConfig, split_prediction
 from .schedule import ScheduleConfig, alphas_cumprod
@@ -78,18 +79,16 @@ def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 2, 
     x0 = torch.rand(shape, generator=g) * 2 - 1
     hole = (torch.rand((cfg.batch, 1, cfg.patch, cfg.patch), generator=g) < 0.3).float()
     w = 1 + (cfg.hole_weight - 1) * hole
-    times = []
-    for i in range(warmup + steps):
-        t0 = time.perf_counter()
+
+    def step() -> None:
         t = torch.randint(1, cfg.schedule.num_train_steps, (cfg.batch,), generator=g)
         loss = denoising_loss(net, x0, hole, w, t, torch.randn(shape, generator=g), acp, cfg.prediction_type)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
-        if i >= warmup:
-            times.append(time.perf_counter() - t0)
-    return float(sum(times) / len(times))
+
+    return mean_step_seconds(step, steps, warmup)
 
 
 @dataclass

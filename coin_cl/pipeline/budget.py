@@ -32,10 +32,11 @@ import json
 import logging
 import math
 import tempfile
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
+
+from coin_cl.timing import mean_step_seconds
 
 log = logging.getLogger(__name__)
 
@@ -186,13 +187,12 @@ def probe_seconds_per_step(scene: Any, train_idx: list[int], device: Any = None,
     cfg = TrainConfig(model="scaffold", iters=n, seed=seed, progress=False, ckpt_every=0, export_ply=False)
     with tempfile.TemporaryDirectory(prefix="coin-cl-probe-") as tmp:
         tr = Trainer(model, views, [], cfg, Path(tmp), strategy=scaled_strategy("scaffold", long))
-        times = []
-        for _ in range(n):
-            t = time.perf_counter()
+
+        def step() -> None:
             tr.train_step()
             tr.step += 1
-            times.append(time.perf_counter() - t)
-    return float(sum(times[PROBE_WARMUP:]) / PROBE_STEPS)
+
+        return mean_step_seconds(step, PROBE_STEPS, PROBE_WARMUP)
 
 
 def plan_run(

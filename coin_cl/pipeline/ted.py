@@ -39,6 +39,7 @@ from coin_cl.diffusion.discriminator import (
 from coin_cl.gs.strategy import Strategy
 from coin_cl.gs.terms import LossContext, LossTerm, PhotometricLoss
 from coin_cl.gs.trainer import TrainConfig, Trainer
+from coin_cl.timing import mean_step_seconds
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +91,6 @@ def probe_discriminator_seconds(
     depend on them); mean of `steps` after `warmup`. The plan adds it to a fine-tune step: a fixed
     ratio to a GS step, measured on 504x284 images (1.0), was 2.2 on the 192x144 room, where a GS
     step is cheap and the discriminator is not."""
-    import time
-
     p = patch_size(cfg, height, width)
     g = torch.Generator().manual_seed(0)
     with torch.random.fork_rng():
@@ -100,17 +99,15 @@ def probe_discriminator_seconds(
     disc.train()
     opt = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=cfg.betas_d)
     real = torch.rand((cfg.n_patches, 3, p, p), generator=g)
-    times = []
-    for i in range(warmup + steps):
+
+    def step() -> None:
         fake = torch.rand((cfg.n_patches, 3, p, p), generator=g).requires_grad_(True)
-        t0 = time.perf_counter()
         g_loss(disc(fake)).backward()
         opt.zero_grad(set_to_none=True)
         d_loss(disc(real), disc(fake.detach())).backward()
         opt.step()
-        if i >= warmup:
-            times.append(time.perf_counter() - t0)
-    return float(sum(times) / len(times))
+
+    return mean_step_seconds(step, steps, warmup)
 
 
 class AdversarialTerm(LossTerm):
