@@ -269,6 +269,41 @@ def test_ted_counts_none_follow_the_plan_and_numbers_are_honoured(tmp_path, monk
         B.explicit_steps(CoInConfig(iters_ted_finetune=5, ted=TEDConfig(iters_finetune=7)))
 
 
+def test_a_comparison_row_plans_with_the_rates_of_the_run_it_is_compared_to(tmp_path, monkeypatch):
+    """`CoInConfig.rates_from`: the row's plan takes the GS, scene-prior and discriminator rates of
+    the other run's plan instead of probing (a second probe could give the prior one step more and
+    redo the stages the rows share); a rate that plan lacks is measured; a missing plan is an error
+    naming it."""
+    from coin_cl.pipeline.coin import CoInConfig
+
+    monkeypatch.setattr(B, "probe_seconds_per_step", lambda *a, **k: 0.5)
+    monkeypatch.setattr(B, "prior_probe", lambda *a: lambda: 1.31)
+    monkeypatch.setattr(B, "disc_probe", lambda *a: lambda: 0.27)
+    first = B.plan_for(_Scene(), tmp_path / "coin", CoInConfig(budget_minutes=40.0), [0, 1])
+    assert first.prior_steps == round(first.prior_seconds / 1.31) > 133  # above the floor: rate-bound
+
+    def never(*a, **k):
+        raise AssertionError("probed although the rates were given")
+
+    monkeypatch.setattr(B, "probe_seconds_per_step", never)
+    monkeypatch.setattr(B, "prior_probe", lambda *a: never)
+    monkeypatch.setattr(B, "disc_probe", lambda *a: never)
+    cfg = CoInConfig(budget_minutes=40.0, rates_from=str(tmp_path / "coin"))
+    row = B.plan_for(_Scene(), tmp_path / "row", cfg, [0, 1])
+    assert (row.steps, row.prior_steps) == (first.steps, first.prior_steps)
+    rates = (row.probe_seconds_per_step, row.prior_seconds_per_step, row.disc_seconds_per_step)
+    assert rates == (0.5, 1.31, 0.27)
+    assert row.key["rates_from"] == str(tmp_path / "coin") and "rates_from" not in first.key
+    # a rate the other plan lacks is measured here
+    plan = json.loads((tmp_path / "coin" / B.PLAN_FILE).read_text())
+    plan["disc_seconds_per_step"] = None
+    (tmp_path / "coin" / B.PLAN_FILE).write_text(json.dumps(plan))
+    monkeypatch.setattr(B, "disc_probe", lambda *a: lambda: 0.5)
+    assert B.plan_for(_Scene(), tmp_path / "row2", cfg, [0, 1]).disc_seconds_per_step == 0.5
+    with pytest.raises(FileNotFoundError, match="nowhere.*plan.json"):
+        B.plan_for(_Scene(), tmp_path / "row3", CoInConfig(rates_from=str(tmp_path / "nowhere")), [0, 1])
+
+
 def test_run_ted_refuses_counts_left_to_a_plan(tmp_path):
     from coin_cl.pipeline.ted import TEDConfig, run_ted
 

@@ -37,7 +37,11 @@ def test_demo_room_runs_coin_and_baselines(tmp_path, capsys):
     # same budget: the naive row trains CoIn's GS steps (3 Ref-GS + 3 + 3 TE-D), masked reconstruction
     # the `--steps` given
     assert "Scaffold-GS, 9 steps" in room["methods"]["inpaint_then_gs"]["what"]
-    assert "3DGS, 30 steps" in room["methods"]["masked_recon"]["what"]
+    # ... its growth capped at one Gaussian per MR_PIXELS_PER_GAUSSIAN training pixels (6 views of 64x48)
+    assert "3DGS, 30 steps (at most 1843 Gaussians)" in room["methods"]["masked_recon"]["what"]
+    # the naive row planned with CoIn's measured rates instead of probing again
+    plan = json.loads((tmp_path / "room" / "inpaint_then_gs" / "plan.json").read_text())
+    assert plan["key"]["rates_from"] == str(tmp_path / "room" / "coin")
 
 
 def test_doctor_lists_the_device(capsys):

@@ -163,3 +163,29 @@ def test_anchor_growing_and_pruning_counts():
     # The statistics that were used are reset; the rarely-seen slot keeps accumulating.
     assert float(st.offset_denom.view(20, k)[:18, 0].sum()) == 0.0
     assert float(st.offset_denom.view(20, k)[:18, 3].sum()) == 18 * 10.0
+
+
+def test_growth_stops_exactly_at_the_cap_and_keeps_the_steepest():
+    # 5 Gaussians qualify (2 small: cloned, 3 large: split), the cap leaves room for 3: the three
+    # steepest grow (one clone, two splits), and the model ends at the cap, not past it.
+    st = DefaultStrategy(refine_start=0, refine_every=10, reset_every=1000, grow_grad2d=2e-4,
+                         grow_scale3d=0.01, prune_opa=0.005, max_gaussians=13)  # fmt: skip
+    m = _model()
+    st.initialize(m, seed=0)
+    small, large = math.log(0.005), math.log(0.05)
+    _set(m, "scales", torch.tensor([small] * 5 + [large] * 5)[:, None].repeat(1, 3))
+    _set(m, "opacities", inverse_sigmoid(torch.full((10,), 0.5)))
+    st.count = torch.full((10,), 1.0)
+    st.grad2d = torch.full((10,), 1e-5)
+    st.grad2d[[0, 1, 5, 6, 7]] = torch.tensor([3e-3, 1e-3, 5e-3, 4e-3, 2e-3])  # steepest: 5, 6, 0
+    ev = st.refine(m, step=9)
+    assert ev == {"cloned": 1, "split": 2, "pruned": 0, "reset": 0}
+    assert m.n_primitives == 13
+    # The clone is Gaussian 0 (the steeper small one); Gaussian 1 stays single.
+    means = m.p["means"].data
+    assert int((means == means[0]).all(1).sum()) == 2 and int((means == means[1]).all(1).sum()) == 1
+    # At the cap nothing grows at all.
+    st.count, st.grad2d = torch.full((13,), 1.0), torch.full((13,), 1.0)
+    ev = st.refine(m, step=19)
+    assert ev["cloned"] == ev["split"] == 0
+    assert m.n_primitives == 13

@@ -7,6 +7,8 @@ import os
 import platform
 from pathlib import Path
 
+from coin_cl.demo import DEMO_BUDGET_MINUTES
+
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -16,7 +18,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--frames", type=int, default=12, help="turntable frames")
     p.add_argument("--size", type=int, nargs=2, default=(480, 320), metavar=("W", "H"))
-    p.add_argument("--budget", type=float, default=3.0, help="CoIn's training minutes on the synthetic room")
+    p.add_argument("--budget", type=float, default=DEMO_BUDGET_MINUTES,
+                   help="CoIn's training minutes on the synthetic room (the demo takes about 2.5x this "
+                   "plus 4-5 minutes)")  # fmt: skip
     p.add_argument("--room-size", type=int, nargs=2, default=(192, 144), metavar=("W", "H"))
     p.add_argument("--room-views", type=int, default=24, help="synthetic room views (1 in 4 for testing)")
     p.add_argument(

@@ -111,7 +111,8 @@ class DefaultStrategy(Strategy):
     large); low-opacity and (after the first opacity reset) very large Gaussians are pruned; every
     `reset_every` steps opacities are clamped to twice the prune threshold. Screen gradients in NDC
     units (see `coin_cl.gs.base`: the pixel-position gradient times half the image size); 3D sizes
-    in multiples of the model's scene `extent`; screen sizes in pixels.
+    in multiples of the model's scene `extent`; screen sizes in pixels. Growth never takes the
+    model past `max_gaussians`: when more qualify than it leaves room for, the steepest grow.
 
     Statistics: grad2d [N] (summed NDC gradient norms), count [N] (renders where visible),
     max_radii [N] (largest screen radius, px).
@@ -127,7 +128,7 @@ class DefaultStrategy(Strategy):
     refine_every: int = 100
     reset_every: int = 3000
     split_factor: float = 1.6  # children of a split get scale / 1.6 (3DGS)
-    max_gaussians: int = 3_000_000  # growth stops here (memory guard)
+    max_gaussians: int = 3_000_000  # growth never passes this (memory guard; a caller may lower it)
 
     _stats = ("grad2d", "count", "max_radii")
 
@@ -183,6 +184,13 @@ class DefaultStrategy(Strategy):
             return 0, 0
         grads = self.grad2d / self.count.clamp_min(1)
         high = grads > self.grow_grad2d
+        room = self.max_gaussians - model.n_primitives
+        if int(high.sum()) > room:
+            # A clone or a split adds one Gaussian each: grow the `room` steepest, so the cap is
+            # met exactly and spent where the screen gradients say the fit is worst.
+            keep = torch.topk(torch.where(high, grads, -1.0), room).indices
+            high = torch.zeros_like(high)
+            high[keep] = True
         small = torch.exp(p["scales"].data).amax(-1) <= self.grow_scale3d * model.extent
         dup = high & small
         split = high & ~small

@@ -324,10 +324,37 @@ def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
     key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
            "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
-    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds,
-                    lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
-                    prior_probe(cfg, cam.width, cam.height),
-                    disc_probe(cfg, cam.width, cam.height))  # fmt: skip
+    probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
+              prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
+    if cfg.rates_from is not None:
+        key["rates_from"] = str(cfg.rates_from)  # only when set: plans made before keep their key
+        probes = inherited_rates(Path(cfg.rates_from), *probes)
+    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes)
+
+
+def inherited_rates(run: Path, probe: Any, prior: Any, disc: Any) -> tuple[Any, Any, Any]:
+    """The three probes of a run that takes its measured rates from the plan of run folder `run`
+    (`CoInConfig.rates_from`): each returns that plan's figure instead of measuring again, so a
+    comparison row at the same budget gets the same counts (the scene prior's steps, which stage 1's
+    key holds, included: probed anew they could differ by a step and redo the shared stages). A
+    rate the plan lacks (not probed there) is measured here; a probe this run does not need
+    (None) stays None."""
+    path = Path(run) / PLAN_FILE
+    try:
+        have = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise FileNotFoundError(f"{path}: cannot read the plan to take the rates from ({e}); "
+                                "run that folder first or leave rates_from unset") from e  # fmt: skip
+
+    def take(name: str, own: Any) -> Any:
+        value = have.get(name)
+        if own is None or value is None:
+            return own
+        return lambda: float(value)
+
+    log.info("plan: the measured rates come from %s", path)
+    return (take("probe_seconds_per_step", probe), take("prior_seconds_per_step", prior),
+            take("disc_seconds_per_step", disc))  # fmt: skip
 
 
 def disc_probe(cfg: Any, width: int, height: int) -> Any:

@@ -108,7 +108,10 @@ class CoInConfig:
     "captures" (left out of view n's photometric loss in Ref-GS and TE-D, so the other views'
     captures teach it, as masked reconstruction does; R^rmv_n stays the 2D inpainter's and CLG's
     context). Measured on the demo room: more texture (HF ratio 0.733 -> 0.768, GMSD 0.181 ->
-    0.175) at 0.19 dB less m-PSNR (docs/RESULTS.md, "The baselines at CoIn's budget")."""
+    0.175) at 0.19 dB less m-PSNR (docs/RESULTS.md, "The baselines at CoIn's budget").
+    rates_from: a run folder whose plan's measured rates (the GS, scene-prior and discriminator
+    probes) this run's plan takes instead of probing again (`budget.inherited_rates`): the
+    comparison rows (`demo.baseline_config`) plan with CoIn's figures and share its stages."""
 
     mask_kind: str = "seg"
     mask_dilate: int | None = None
@@ -136,6 +139,7 @@ class CoInConfig:
     carve: bool = False
     carve_cfg: CarveConfig = field(default_factory=CarveConfig)
     observed: str = "target"
+    rates_from: str | None = None
 
     def with_iters(self, n: int | None) -> CoInConfig:
         """This config with every GS training stage set to `n` steps (None: unchanged)."""
