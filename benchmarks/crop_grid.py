@@ -1,6 +1,7 @@
 """A crop grid of the masked region of every ground-truth test view: one column per run folder (its
 eval render), then the truth; rows are test views. Scores hide what an eye sees at once (the HF ratio
-counts noise as texture), so every results table has one of these beside it.
+counts noise as texture), so every results table has one of these beside it. A folder without
+`eval/renders` is read from its `pred/` (the demo's masked-reconstruction row).
 
     python benchmarks/crop_grid.py RUN_DIR [RUN_DIR ...] --out docs/img/NAME.png [--cell 160]
 
@@ -41,12 +42,18 @@ def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
             continue
         crop = metrics.bbox_crop(mask, pad=8)
         stem = view_stem(scene.cameras[i].name, i)
-        tiles = [read_image(r / "eval" / "renders" / f"{stem}.png")[crop] for r in runs]
+        tiles = [read_image(render_dir(r) / f"{stem}.png")[crop] for r in runs]
         tiles.append(np.asarray(scene.images[i], np.float32)[crop])
         rows.append(tile_row(tiles, cell))
     if not rows:
         raise ValueError(f"{runs[0]} has no ground-truth test view with a mask")
     return to_uint8(np.concatenate(rows, axis=0))
+
+
+def render_dir(run: Path) -> Path:
+    """A run's test-view renders: a CoIn run's `eval/renders`, or `pred/` of the demo's
+    masked-reconstruction row (`coin_cl.demo.room_baseline`)."""
+    return run / "eval" / "renders" if (run / "eval" / "renders").is_dir() else run / "pred"
 
 
 def main() -> int:
