@@ -207,7 +207,8 @@ def run_scene(name: str, out: Path, args) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--budget", type=float, default=3.0, help="CoIn's training minutes per run (demo: 3)")
+    ap.add_argument("--budget", type=float, default=3.0,
+                    help="CoIn's training minutes per run (the demo's before f4085d3, 2 since)")  # fmt: skip
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--size", type=int, nargs=2, default=(192, 144), help="width height (demo: 192 144)")
     ap.add_argument("--views", type=int, default=24, help="views per room (demo: 24)")
