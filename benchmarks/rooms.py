@@ -165,7 +165,7 @@ def run_scene(name: str, out: Path, args) -> dict:
     if not (scene_dir / "views.txt").is_file():
         write_synthetic(scene_dir, syn)
     cfg = CoInConfig(budget_minutes=args.budget, prior_seconds=args.prior_seconds, seed=args.seed,
-                     mask_dilate=args.mask_dilate)  # fmt: skip
+                     mask_dilate=args.mask_dilate, observed=args.observed)  # fmt: skip
     refine = {
         k: v for k, v in (("min_fraction", args.refine_vote), ("grow_px", args.refine_grow)) if v is not None
     }
@@ -227,6 +227,9 @@ def main() -> int:
     ap.add_argument("--mask-dilate", type=int, default=None,
                     help="CoInConfig.mask_dilate of the CoIn rows (default: the auto ring; 0: the exact "
                          "masks, docs/RESULTS.md 'Where the rooms' m-PSNR is decided')")  # fmt: skip
+    ap.add_argument("--observed", default=CoInConfig.observed, choices=("target", "captures"),
+                    help="CoInConfig.observed of the CoIn rows: how the observed part of a refined mask "
+                         "reaches the model (default: the config's)")  # fmt: skip
     ap.add_argument("--masked-steps", type=int, default=None,
                     help="masked reconstruction's 3DGS steps (default: Ref-GS + TE-D's)")  # fmt: skip
     args = ap.parse_args()
