@@ -150,7 +150,6 @@ def room(
     coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
     what = "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints"
     rows["coin"] = _row(coin.metrics, time.perf_counter() - t, what)
-    n_train, n_test = (coin.stages["0_scene"]["result"][k] for k in ("train", "test"))
     # The baseline starts from CoIn's scene and stage-1 folders (the runner skips them: their
     # manifests match), so both methods fit the very same inpaints.
     naive = out / "inpaint_then_gs"
@@ -167,10 +166,12 @@ def room(
     # ... with its 3DGS growth capped (`MR_PIXELS_PER_GAUSSIAN`) and, as a guard, no more training
     # minutes than CoIn's budget.
     cap = 0.0 if steps else 60.0 * budget
-    n_max = n_train * size[0] * size[1] // MR_PIXELS_PER_GAUSSIAN
-    rows["masked_recon"] = room_baseline(out / "masked_recon", scene_dir, steps or total, device, cap, n_max)
+    rows["masked_recon"] = room_baseline(
+        out / "masked_recon", scene_dir, steps or total, device, cap, MR_PIXELS_PER_GAUSSIAN
+    )
     stage1 = coin.stages["1_inpaint"]["result"]
     model = (stage1.get("prior") or {}).get("name") or ", ".join(stage1.get("sources", []))
+    n_train, n_test = (coin.stages["0_scene"]["result"][k] for k in ("train", "test"))
     table = {
         "scene": f"synthetic room {size[0]}x{size[1]}, {n_train} training views with the object, "
         f"{n_test} test views without",
@@ -244,13 +245,13 @@ def room_baseline(
     steps: int = 400,
     device=None,
     max_seconds: float = 0.0,
-    max_gaussians: int | None = None,
+    pixels_per_gaussian: int | None = None,
 ) -> dict:
     """The masked-reconstruction baseline: 3DGS trained `steps` steps (or `max_seconds` of training,
     0: no limit) on the object-present training views of `scene_dir` with the object's pixels left
-    out of the loss, its growth stopped at `max_gaussians` (None: the strategy's memory guard); the
-    object-absent test views rendered into `out/pred` and scored into `out/eval`. Returns a row of
-    `room`'s table."""
+    out of the loss, its growth stopped at one Gaussian per `pixels_per_gaussian` training pixels
+    (None: at the strategy's memory guard); the object-absent test views rendered into `out/pred`
+    and scored into `out/eval`. Returns a row of `room`'s table."""
     import torch
 
     from coin_cl import load_scene
@@ -264,8 +265,9 @@ def room_baseline(
     scene = load_scene(scene_dir)
     cfg = TrainConfig(model="3dgs", iters=steps, ckpt_every=200, max_seconds=max_seconds)
     strategy = scaled_strategy("3dgs", steps)
-    if max_gaussians is not None:
-        strategy = replace(strategy, max_gaussians=int(max_gaussians))
+    if pixels_per_gaussian is not None:
+        pixels = sum(scene.cameras[i].width * scene.cameras[i].height for i in scene.train_idx)
+        strategy = replace(strategy, max_gaussians=pixels // pixels_per_gaussian)
     trainer = make_trainer(
         scene, scene.train_idx, scene.test_idx, cfg, out / "train",
         model_cfg=scaled_model_config("3dgs", steps), exclude_masks=True, device=device, strategy=strategy,
@@ -278,6 +280,6 @@ def room_baseline(
             r = trainer.model.render(view.camera, trainer.step)
         write_png(pred / view.camera.name, to_uint8(r.image.clamp(0, 1).numpy()))
     agg = evaluate_folder(pred, scene_dir, out / "eval")["mean"]
-    cap = "" if max_gaussians is None else f" (at most {int(max_gaussians)} Gaussians)"
+    cap = "" if pixels_per_gaussian is None else f" (at most {strategy.max_gaussians} Gaussians)"
     what = f"3DGS, {res['step']} steps{cap}, object pixels left out of the loss (no inpainting)"
     return _row(agg, time.perf_counter() - t, what)
