@@ -16,7 +16,17 @@ def test_demo_turntable_writes_frames(tmp_path, capsys):
     assert not list(tmp_path.rglob(".*")), "temporary files left behind"
 
 
-def test_demo_room_runs_coin_and_baselines(tmp_path, capsys):
+def test_demo_room_runs_coin_and_baselines(tmp_path, capsys, monkeypatch):
+    import coin_cl.pipeline.refgs as refgs_mod
+
+    excluded: list = []  # Ref-GS's `exclude` per call: CoIn's first, the naive row's second
+    real_refgs = refgs_mod.run_refgs
+
+    def refgs_spy(*a, **k):
+        excluded.append(k.get("exclude"))
+        return real_refgs(*a, **k)
+
+    monkeypatch.setattr(refgs_mod, "run_refgs", refgs_spy)
     args = ["demo", "--out", str(tmp_path), "--frames", "1", "--size", "32", "32", "--room-size", "64", "48",
             "--room-views", "8", "--prior-seconds", "1", "--iters", "3", "--steps", "30"]  # fmt: skip
     assert main(args) == 0
@@ -42,6 +52,11 @@ def test_demo_room_runs_coin_and_baselines(tmp_path, capsys):
     # the naive row planned with CoIn's measured rates instead of probing again
     plan = json.loads((tmp_path / "room" / "inpaint_then_gs" / "plan.json").read_text())
     assert plan["key"]["rates_from"] == str(tmp_path / "room" / "coin")
+    # the room takes the refined split; CoIn leaves its observed part to the other views' captures
+    # (observed="captures"), the naive row trains on all of stage 1's pixels (observed="target")
+    assert (tmp_path / "room" / "coin" / "0_refine").is_dir() and len(excluded) == 2
+    assert excluded[0] is not None and any(e.any() for e in excluded[0] if e is not None)
+    assert excluded[1] is None
 
 
 def test_doctor_lists_the_device(capsys):

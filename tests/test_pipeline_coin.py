@@ -334,7 +334,7 @@ def test_removal_holds_every_mask_to_its_background_depth(first_run):
 
 def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_path, monkeypatch):
     """CoInConfig.observed "captures": Ref-GS and TE-D train with the observed part of every refined
-    mask (0_refine/observed) left out of view n's loss; "target" (the default) leaves nothing out."""
+    mask (0_refine/observed) left out of view n's loss; "target" leaves nothing out."""
     import coin_cl.pipeline.refgs as refgs_mod
     import coin_cl.pipeline.ted as ted_mod
     from coin_cl.scene.masks import read_mask
@@ -353,7 +353,8 @@ def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_pa
     monkeypatch.setattr(refgs_mod, "run_refgs", refgs_spy)
     monkeypatch.setattr(ted_mod, "run_ted", ted_spy)
     cfg = replace(TINY, inpaint_region="refined", skip=("clg",))
-    inpaint(room, tmp_path / "target", config=cfg)
+    assert cfg.observed == "captures"  # the default
+    inpaint(room, tmp_path / "target", config=replace(cfg, observed="target"))
     assert seen["refgs"] == [None] and all(e is None for e in seen["ted"][0])
     out = tmp_path / "captures"
     inpaint(room, out, config=replace(cfg, observed="captures"))
