@@ -4,7 +4,9 @@ CoIn run found (its stage 0_refine's `unseen/`), each run's PSNR and share of th
 each class, beside reference fills of the exactly unseen pixels (black, the mean colour of a ring
 around the mask, the oracle mean colour of the unseen pixels themselves) and, for a masked-
 reconstruction run (`train/` checkpoint), its opacity there; for every run its lightness there and
-its ghost figure on them (share rendered more than 10 % in front of the exact depth). Ends with a crop grid of
+its ghost figure on them (share rendered more than 10 % in front of the exact depth); then where each
+run's bbox GMSD is decided: the GMS map of the mask's bounding box (GMSD is its standard deviation)
+cut into the pixels outside the mask and the exactly observed and unseen ones. Ends with a crop grid of
 every test view: the exact split (green observed by some training view, red unseen by all), each
 run's render, the truth.
 
@@ -28,7 +30,7 @@ from common import cpu_model, git_commit
 from rooms import SCENES, observed_from
 
 from coin_cl.evaluation import split_tile
-from coin_cl.metrics import ghost_fraction
+from coin_cl.metrics import bbox_crop, ghost_fraction, gmsd_map
 from coin_cl.scene.io import read_image, to_uint8, write_png
 from coin_cl.scene.masks import read_mask
 
@@ -39,6 +41,22 @@ CLASSES = (
     "unseen, found observed",
 )
 RING_PX = 4  # the ring around the mask whose mean colour is the "ring mean" fill
+GMS_CLASSES = ("outside the mask", "observed", "unseen")
+
+
+def gms_by_class(pred: np.ndarray, gt: np.ndarray, classes: list[np.ndarray]) -> tuple[float, list, list]:
+    """(bbox GMSD, [mean GMS], [share of the GMS map's variance]) of one view, each list over
+    `classes` ((H, W) bool, disjoint, covering the mask's bounding box); a class is resized to the
+    map's half resolution (a map pixel belongs to the class that covers most of it)."""
+    crop = bbox_crop(classes[1] | classes[2])
+    v, q = gmsd_map(pred[crop], gt[crop])
+    dev = (q - q.mean()) ** 2
+    means, shares = [], []
+    for c in classes:
+        c = cv2.resize(c[crop].astype(np.float32), q.shape[::-1], interpolation=cv2.INTER_AREA) > 0.5
+        means.append(float(q[c].mean()) if c.any() else float("nan"))
+        shares.append(float(dev[c].sum() / max(dev.sum(), 1e-12)))
+    return v, means, shares
 
 
 def _render(run: Path, name: str) -> np.ndarray:
@@ -75,6 +93,7 @@ def main() -> int:
     light = {k: [] for k in ("truth", *runs)}
     ghost = {k: [] for k in runs}
     alpha: dict[str, list] = {}
+    gms: dict[str, list] = {k: [] for k in runs}  # per view: (GMSD, means, shares)
     rows = []
     for n in tests:
         m, t = syn.masks[n], syn.absent[n]
@@ -96,6 +115,7 @@ def main() -> int:
             for c, px in cls.items():
                 se[k][c] += float(err[px].sum())
             light[k].append(float(p[uns].mean()))
+            gms[k].append(gms_by_class(p, t, [~m, obs, uns]))
             a, d = _alpha_depth(Path(runs[k]), syn.cameras[n])
             if a is not None:  # masked reconstruction: how opaque it is where nobody saw
                 alpha.setdefault(k, []).append(a[uns])
@@ -132,6 +152,18 @@ def main() -> int:
         a = np.concatenate(alpha[k]) if k in alpha else None
         op = f"{a.mean():.2f} ({(a < 0.5).mean():.2f})" if a is not None else "-"
         print(f"| {k} | {np.nanmean(v):.2f} | {lt} | {gh} | {op} |")
+    print(
+        "\nWhere bbox GMSD (luminance) is decided: the GMS map of each view's box, by exact class: mean "
+        "GMS (1: gradient magnitudes agree) / share of the map's variance (means over test views)"
+    )
+    print("| run | bbox GMSD | " + " | ".join(GMS_CLASSES) + " |")
+    print("|---" * (len(GMS_CLASSES) + 2) + "|")
+    for k, per_view in gms.items():
+        g = np.nanmean([v for v, _, _ in per_view])
+        mean = np.nanmean([m_ for _, m_, _ in per_view], axis=0)
+        share = np.nanmean([s_ for _, _, s_ in per_view], axis=0)
+        cells = [f"{a:.3f} / {b:.2f}" for a, b in zip(mean, share, strict=True)]
+        print(f"| {k} | {g:.3f} | " + " | ".join(cells) + " |")
     if args.grid is not None:
         sep = np.ones((3, rows[0].shape[1], 3), np.float32)
         write_png(args.grid, to_uint8(np.concatenate([x for r in rows for x in (r, sep)][:-1], axis=0)))
@@ -142,6 +174,7 @@ def main() -> int:
         "unseen_ghost": {k: float(np.nanmean(v)) for k, v in ghost.items() if v},
         "class_share": {c: count[c] / max(total, 1) for c in CLASSES},
         "class_psnr": {k: {c: _psnr(se[k][c], count[c]) for c in CLASSES} for k in runs},
+        "bbox_gmsd": {k: float(np.nanmean([v for v, _, _ in g])) for k, g in gms.items()},
     }
     print(json.dumps(result))
     return 0

@@ -115,13 +115,27 @@ def bbox_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, data_range:
     return {"bbox_psnr": psnr(p, g, data_range), "bbox_ssim": ssim(p, g, data_range)}
 
 
-def gmsd(pred: np.ndarray, gt: np.ndarray) -> float:
+def gmsd_map(pred: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
     """Gradient magnitude similarity deviation (Xue et al. 2014; OpenCV's `quality` module) of two
-    (H, W, 3) float [0, 1] images: 0 is identical structure, larger is worse. Images are scaled to
-    [0, 255] first, the range OpenCV's constant assumes."""
+    (H, W, 3) float [0, 1] images, on their luminance as the paper defines it: (GMSD, the GMS map
+    (ceil(H / 2), ceil(W / 2)) it is the standard deviation of; 1 where the gradient magnitudes
+    agree). Luminance is scaled to [0, 255] first, the range OpenCV's constant assumes. (Before
+    this, OpenCV's per-channel result was read at channel 0: the red channel's GMSD.)"""
     p, g = _check_pair(pred, gt)
-    v, _ = cv2.quality.QualityGMSD_compute((g * 255).astype(np.float64), (p * 255).astype(np.float64))
-    return float(v[0])
+
+    def lum(x: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(x, np.float32)
+        return (cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) if x.ndim == 3 else x).astype(np.float64) * 255
+
+    v, q = cv2.quality.QualityGMSD_compute(lum(g), lum(p))
+    q = np.asarray(q)
+    return float(v[0]), q[..., 0] if q.ndim == 3 else q
+
+
+def gmsd(pred: np.ndarray, gt: np.ndarray) -> float:
+    """GMSD of two (H, W, 3) float [0, 1] images on their luminance (`gmsd_map`): 0 is identical
+    structure, larger is worse."""
+    return gmsd_map(pred, gt)[0]
 
 
 def bbox_gmsd(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:

@@ -143,6 +143,25 @@ def test_hf_ratio_and_gmsd_see_blur():
     assert v["hf_ratio"] < 0.5 and v["bbox_gmsd"] > 0.05
 
 
+def test_gmsd_is_on_luminance():
+    """GMSD sees structure in any channel (on luminance, as Xue et al. define it; reading OpenCV's
+    per-channel result at channel 0 saw the red channel alone): equal to the GMSD of the grey images,
+    and the standard deviation of its half-resolution map."""
+    rng = np.random.default_rng(5)
+    gt = rng.random((48, 40, 3)).astype(np.float32)
+    pred = gt.copy()
+    pred[..., 1:] = cv2.GaussianBlur(np.ascontiguousarray(gt[..., 1:]), (0, 0), 2.0)  # red untouched
+    assert M.gmsd(pred, gt) > 0.05
+
+    def grey(x):
+        return np.repeat(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY)[..., None], 3, axis=-1)
+
+    assert M.gmsd(pred, gt) == pytest.approx(M.gmsd(grey(pred), grey(gt)), rel=1e-5)
+    v, q = M.gmsd_map(pred, gt)
+    assert q.shape == (24, 20) and v == pytest.approx(float(q.std()), rel=1e-4)
+    assert M.gmsd_map(gt, gt)[1] == pytest.approx(np.ones((24, 20)))
+
+
 def test_mask_texture_is_the_hf_ratio_terms():
     """mask_texture: 0 on a flat image, a known value on a ramp, NaN on an empty mask, a clear error
     on a mask of another size; hf_ratio is the ratio of two of them."""
