@@ -107,9 +107,10 @@ class CoInConfig:
     "captures" (default: left out of view n's photometric loss in Ref-GS and TE-D, so the other
     views' captures teach it, as masked reconstruction does; R^rmv_n stays the 2D inpainter's and
     CLG's context) or "target" (the object-free fit's render R^rmv_n is view n's target there).
-    Measured at 1501 GS steps with the rooms' exact masks, "captures" against "target": room
-    m-PSNR 22.28 / 22.26, HF ratio 0.804 / 0.772, GMSD 0.156 / 0.158; room360 22.52 / 22.38,
-    0.895 / 0.857, 0.150 / 0.153 (docs/RESULTS.md, "The observed part from the captures").
+    Measured at 1501 GS steps with the rooms' exact masks, "captures" against "target" (one
+    machine): room m-PSNR 22.44 / 22.25, HF ratio 0.793 / 0.780, GMSD 0.140 / 0.139; room360
+    22.49 / 22.44, 0.906 / 0.862, 0.137 / 0.142 (docs/RESULTS.md, "The observed part from the
+    captures by default").
     Only refined-mask runs read it.
     rates_from: a run folder whose plan's measured rates (the GS, scene-prior and discriminator
     probes) this run's plan takes instead of probing again (`budget.inherited_rates`): the
