@@ -21,7 +21,8 @@ schedule (its timing probe would plan fewer steps).
 `--rows ... coin_view_check` adds a row with stage 0_refine's view check
 (`RefineConfig.view_check`); `coin_no_bg_depth` a row without the background depth term
 (`RefGSConfig.bg_depth=False`, Ref-GS and TE-D; stages 0-1 shared with the coin row). `--seed`
-sets `CoInConfig.seed` (the scene stays the same); `--refine-vote` / `--refine-grow` set stage
+sets the rows' training seed (`CoInConfig.seed`, masked reconstruction's `TrainConfig.seed`; the
+scene stays the same); `--refine-vote` / `--refine-grow` set stage
 0_refine's removal vote and growth (`RefineConfig.min_fraction`, `grow_px`; docs/RESULTS.md "Why
 the split inpaints what other views saw"). The last line is JSON (room_*, room360_*).
 """
@@ -125,7 +126,7 @@ def coin_row(syn, scene_dir: Path, out: Path, cfg: CoInConfig) -> dict:
     }
 
 
-def masked_recon_row(syn, scene_dir: Path, out: Path, steps: int) -> dict:
+def masked_recon_row(syn, scene_dir: Path, out: Path, steps: int, seed: int = 0) -> dict:
     """3DGS, `steps` steps, object pixels out of the loss (`coin_cl.demo.room_baseline`), plus its
     ghost figure from the test views' rendered depth."""
     import torch
@@ -137,7 +138,7 @@ def masked_recon_row(syn, scene_dir: Path, out: Path, steps: int) -> dict:
     from coin_cl.pipeline.stages import load_model
 
     t = time.perf_counter()
-    row = room_baseline(out, scene_dir, steps)
+    row = room_baseline(out, scene_dir, steps, seed=seed)
     model = load_model(out / "train", CKPT_NAME, model_from_state)
     ghost = []
     for n in [j for j, t_ in enumerate(syn.is_test) if t_]:
@@ -183,7 +184,7 @@ def run_scene(name: str, out: Path, args) -> dict:
         print(name, "naive", json.dumps(rows["naive"]), file=sys.stderr, flush=True)
     if "masked_recon" in args.rows:
         steps = args.masked_steps or naive.iters_refgs
-        rows["masked_recon"] = masked_recon_row(syn, scene_dir, out / "masked_recon", steps)
+        rows["masked_recon"] = masked_recon_row(syn, scene_dir, out / "masked_recon", steps, args.seed)
         print(name, "masked_recon", json.dumps(rows["masked_recon"]), file=sys.stderr, flush=True)
     if "coin_input" in args.rows:
         share_stages(out / "coin", out / "coin_input", ("0_scene",))
@@ -217,7 +218,8 @@ def main() -> int:
                     help="explicit steps (default: the demo's plan on a quiet machine at budget 3; "
                     "0 0 0: the budget plan of this machine)")  # fmt: skip
     ap.add_argument("--prior-seconds", type=float, default=120.0, help="scene prior (demo: 120)")
-    ap.add_argument("--seed", type=int, default=0, help="CoInConfig.seed of the CoIn rows (scene: seed 0)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="every row's training seed (CoInConfig.seed, TrainConfig.seed)")  # fmt: skip
     ap.add_argument("--rows", nargs="+", default=list(ROWS[:4]), choices=ROWS,
                     help="rows besides coin (coin_view_check: 0_refine's view check)")  # fmt: skip
     ap.add_argument("--refine-vote", type=float, default=None,

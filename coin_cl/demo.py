@@ -249,12 +249,14 @@ def room_baseline(
     device=None,
     max_seconds: float = 0.0,
     pixels_per_gaussian: int | None = None,
+    seed: int = 0,
 ) -> dict:
     """The masked-reconstruction baseline: 3DGS trained `steps` steps (or `max_seconds` of training,
     0: no limit) on the object-present training views of `scene_dir` with the object's pixels left
     out of the loss, its growth stopped at one Gaussian per `pixels_per_gaussian` training pixels
-    (None: at the strategy's memory guard); the object-absent test views rendered into `out/pred`
-    and scored into `out/eval`. Returns a row of `room`'s table."""
+    (None: at the strategy's memory guard), initialised and ordered by `seed` (`TrainConfig.seed`);
+    the object-absent test views rendered into `out/pred` and scored into `out/eval`. Returns a row
+    of `room`'s table."""
     import torch
 
     from coin_cl import load_scene
@@ -266,7 +268,7 @@ def room_baseline(
     log.info("demo: baseline, 3DGS with the object's pixels left out of the loss (no inpainting)")
     t = time.perf_counter()
     scene = load_scene(scene_dir)
-    cfg = TrainConfig(model="3dgs", iters=steps, ckpt_every=200, max_seconds=max_seconds)
+    cfg = TrainConfig(model="3dgs", iters=steps, ckpt_every=200, max_seconds=max_seconds, seed=seed)
     strategy = scaled_strategy("3dgs", steps)
     if pixels_per_gaussian is not None:
         pixels = sum(scene.cameras[i].width * scene.cameras[i].height for i in scene.train_idx)
