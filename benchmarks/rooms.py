@@ -21,10 +21,10 @@ schedule (its timing probe would plan fewer steps).
 `--rows ... coin_view_check` adds a row with stage 0_refine's view check
 (`RefineConfig.view_check`); `coin_no_bg_depth` a row without the background depth term
 (`RefGSConfig.bg_depth=False`, Ref-GS and TE-D; stages 0-1 shared with the coin row). `--seed`
-sets the rows' training seed (`CoInConfig.seed`, masked reconstruction's `TrainConfig.seed`; the
-scene stays the same); `--refine-vote` / `--refine-grow` set stage
-0_refine's removal vote and growth (`RefineConfig.min_fraction`, `grow_px`; docs/RESULTS.md "Why
-the split inpaints what other views saw"). The last line is JSON (room_*, room360_*).
+sets every row's training seed (`CoInConfig.seed`, masked reconstruction's `TrainConfig.seed`; the
+scene stays the same); `--refine-vote` / `--refine-grow` set stage 0_refine's removal vote and
+growth (`RefineConfig.min_fraction`, `grow_px`; docs/RESULTS.md "Why the split inpaints what other
+views saw"). The last line is JSON (room_*, room360_*).
 """
 
 from __future__ import annotations
