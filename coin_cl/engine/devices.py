@@ -1,6 +1,6 @@
 """OpenCL devices: which are visible, which build and run kernels, and which one to use.
 
-Device choice (DESIGN.md section 3, the runtime layer): the `device` argument or `COIN_CL_DEVICE`
+Device choice (docs/DESIGN.md section 3, the runtime layer): the `device` argument or `COIN_CL_DEVICE`
 (a case-insensitive substring of "platform / device", e.g. "oclgrind", "nvidia", "intel",
 "pthread"); a requested device that cannot build kernels is an error. Otherwise devices are tried
 in `default_rank` order (a GPU, then Intel's CPU runtime, then PoCL), each probed by building and

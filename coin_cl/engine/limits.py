@@ -1,6 +1,6 @@
 """Device limits the kernels depend on, queried once per device, and what each kernel needs.
 
-Which limits matter (DESIGN.md section 3, the runtime layer; the renderer of section 4):
+Which limits matter (docs/DESIGN.md section 3, the runtime layer; the renderer of section 4):
 - CL_DEVICE_MAX_WORK_GROUP_SIZE and each kernel's CL_KERNEL_WORK_GROUP_SIZE: the GPU rasterizer
   runs one work-group per 16x16 tile, 256 work-items wide by default; the per-item kernels
   (project, bin, decode, reduce, SSIM, warp) ask for 64 but use neither local memory nor barriers,

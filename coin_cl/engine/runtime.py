@@ -1,6 +1,6 @@
 """OpenCL runtime: one context and queue per device, a per-variant program cache, shared buffers.
 
-The device itself is found and chosen by `coin_cl.engine.devices` (DESIGN.md section 3, the runtime
+The device itself is found and chosen by `coin_cl.engine.devices` (docs/DESIGN.md section 3, the runtime
 layer); `get_runtime` keeps one `Runtime` per requested device for the whole process.
 
 Buffers: on a host-unified-memory device (the CPU implementations) a `cl.Buffer` is created over

@@ -1,4 +1,4 @@
-"""Counted host <-> device copies of the discrete-memory path (DESIGN.md section 3: "elsewhere an
+"""Counted host <-> device copies of the discrete-memory path (docs/DESIGN.md section 3: "elsewhere an
 explicit, counted transfer. The runtime can report how many bytes crossed per iteration").
 
 On a host-unified-memory device the runtime aliases torch's memory and nothing is counted. On a

@@ -1,5 +1,5 @@
 """The two model kinds by name, '3dgs' (vanilla 3DGS) and 'scaffold' (Scaffold-GS; CoIn paper
-section 3, "Preliminary", and DESIGN.md section 6): build a fresh model of a kind, compress its
+section 3, "Preliminary", and docs/DESIGN.md section 6): build a fresh model of a kind, compress its
 published schedules (model config and densification, written for 30k steps) to a shorter run as
 gsplat's `steps_scaler` does, and rebuild the model a checkpoint holds. A kind's default
 densification and loss terms live beside what they choose from (`strategy.default_strategy`,
