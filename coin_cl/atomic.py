@@ -7,16 +7,24 @@ under the final name. The temporary names start with ".tmp-" so that the stage r
 (`coin_cl.pipeline.runner.hash_files`) ignore a leftover one.
 
 A write that fails for want of room or permission (full disk, quota, read-only mount, no write
-access) raises `OutputWriteError`: one line naming the folder and what to do. Only pure-stdlib
-imports, so every layer (diffusion/ included) may use it.
+access) raises `OutputWriteError`: one line naming the folder and what to do.
+
+Links are never followed (files come from anyone: a link planted in an output folder must not turn
+a rerun into a write anywhere the user can write). A final path that is a symbolic link is refused;
+inside an output folder declared with `confined_to(OUT)` (the CLI declares every command's --out),
+a folder between OUT and the file that is a link, or that resolves outside OUT, is refused too:
+`UnsafePathError`, one line naming the path. Only pure-stdlib imports, so every layer (diffusion/
+included) may use it.
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 TMP_PREFIX = ".tmp-"
@@ -37,6 +45,57 @@ class OutputWriteError(OSError):
 
     def __str__(self) -> str:  # the message alone, without OSError's "[Errno N]" prefix
         return str(self.strerror)
+
+
+class UnsafePathError(OutputWriteError):
+    """An output path is, or goes through, a symbolic link (or leaves its output folder): refused."""
+
+
+# Output folders declared by `confined_to` (absolute, not resolved: the user's own --out may sit
+# under a link, such as /tmp on macOS; what lies inside it may not).
+_ROOTS: list[Path] = []
+
+
+@contextmanager
+def confined_to(folder: str | Path) -> Iterator[None]:
+    """`with confined_to(OUT):` writes under OUT refuse any folder on the way that is a link or
+    resolves outside OUT (`check_path`)."""
+    root = Path(os.path.abspath(folder))
+    _ROOTS.append(root)
+    try:
+        yield
+    finally:
+        _ROOTS.remove(root)
+
+
+def _refuse(path: Path, why: str) -> UnsafePathError:
+    return UnsafePathError(
+        errno.ELOOP,
+        f"refusing to write {path}: {why}; coin-cl does not follow links in its output folders, "
+        "remove the link or choose another output folder",
+    )
+
+
+def check_path(path: str | Path) -> Path:
+    """`path` made absolute, after checking that writing it follows no link: `path` itself is not
+    a symbolic link and, under a `confined_to` folder, no folder between it and `path` is one
+    or resolves outside it. Raises `UnsafePathError` naming the path."""
+    p = Path(os.path.abspath(path))
+    if p.is_symlink():
+        raise _refuse(p, f"it is a symbolic link (to {os.readlink(p)})")
+    for root in _ROOTS:
+        if not p.is_relative_to(root):
+            continue
+        real_root = os.path.realpath(root)
+        folder = root
+        for part in p.parent.relative_to(root).parts:
+            folder = folder / part
+            if folder.is_symlink():
+                raise _refuse(p, f"the folder {folder} is a symbolic link (to {os.readlink(folder)})")
+        real = os.path.realpath(p.parent)
+        if os.path.commonpath([real, real_root]) != real_root:
+            raise _refuse(p, f"its folder resolves to {real}, outside {root}")
+    return p
 
 
 def disk_error(exc: OSError, folder: Path) -> OutputWriteError | None:
@@ -80,7 +139,7 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     On any failure the temporary file is removed and `path` keeps its previous content (or stays
     absent); a full or read-only disk raises `OutputWriteError` naming the folder.
     """
-    path = Path(path)
+    path = check_path(path)
     tmp: Path | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -119,3 +178,8 @@ def write_text(path: str | Path, text: str) -> None:
 def write_bytes(path: str | Path, data: bytes) -> None:
     """Write a binary file atomically."""
     atomic_write(path, lambda p: p.write_bytes(data))
+
+
+def copy_file(src: str | Path, dst: str | Path) -> None:
+    """Copy `src`'s bytes to `dst` atomically (`dst` follows no link; `src` is only read)."""
+    atomic_write(dst, lambda p: shutil.copyfile(src, p))

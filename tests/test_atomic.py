@@ -74,3 +74,57 @@ def test_real_full_device(tmp_path):
     with pytest.raises(OutputWriteError, match="disk is full"):
         atomic_write(tmp_path / "a.bin", write)
     assert os.listdir(tmp_path) == []
+
+
+def test_a_planted_file_link_is_not_followed(tmp_path):
+    outside = tmp_path / "outside.txt"
+    outside.write_text("precious")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "plan.json").symlink_to(outside)
+    with atomic.confined_to(out), pytest.raises(atomic.UnsafePathError, match="symbolic link") as e:
+        write_text(out / "plan.json", "{}")
+    assert str(out / "plan.json") in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(atomic.UnsafePathError):  # refused without a declared output folder too
+        write_png(out / "plan.json", np.zeros((2, 2), np.uint8))
+    assert outside.read_text() == "precious" and (out / "plan.json").is_symlink()
+    assert [p.name for p in out.iterdir()] == ["plan.json"]  # no temporary left
+
+
+def test_a_planted_folder_link_inside_the_output_folder_is_not_followed(tmp_path):
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "depth.npy").write_bytes(b"theirs")
+    out = tmp_path / "out"
+    (out / "eval").mkdir(parents=True)
+    (out / "eval" / "depth").symlink_to(outside, target_is_directory=True)
+    with atomic.confined_to(out):
+        with pytest.raises(atomic.UnsafePathError, match=r"the folder .*depth is a symbolic link"):
+            write_text(out / "eval" / "depth" / "depth.npy", "mine")
+        with pytest.raises(atomic.UnsafePathError):  # a new file through the link: refused too
+            atomic.write_bytes(out / "eval" / "depth" / "new" / "x.npy", b"mine")
+        write_text(out / "eval" / "ok.json", "{}")  # a plain folder is fine
+    assert sorted(p.name for p in outside.iterdir()) == ["depth.npy"]
+    assert (outside / "depth.npy").read_bytes() == b"theirs"
+
+
+def test_the_output_folder_itself_may_sit_under_a_link(tmp_path):
+    """The user's own --out path may go through a link (/tmp on macOS); only what is inside it may not."""
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "via").symlink_to(real, target_is_directory=True)
+    out = tmp_path / "via" / "out"
+    with atomic.confined_to(out):
+        write_text(out / "a" / "b.txt", "x")
+    assert (real / "out" / "a" / "b.txt").read_text() == "x"
+
+
+def test_copy_file_is_atomic_and_refuses_links(tmp_path):
+    src = tmp_path / "src.bin"
+    src.write_bytes(b"abc")
+    atomic.copy_file(src, tmp_path / "dst.bin")
+    assert (tmp_path / "dst.bin").read_bytes() == b"abc"
+    (tmp_path / "link.bin").symlink_to(src)
+    with pytest.raises(atomic.UnsafePathError):
+        atomic.copy_file(tmp_path / "dst.bin", tmp_path / "link.bin")
+    assert src.read_bytes() == b"abc"

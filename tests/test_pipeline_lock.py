@@ -75,7 +75,7 @@ def test_run_stages_holds_the_lock_and_releases_it_on_an_exception(tmp_path):
     def check(ctx):
         seen.append((tmp_path / LOCK_NAME).is_file())
         with pytest.raises(FolderLockedError):
-            run_stages(tmp_path, [Stage("1_x", lambda c: {})])  # a second run on the same folder
+            acquire(tmp_path)  # a second holder (another run: nested run_stages in one process share it)
         return {}
 
     def boom(ctx):
@@ -87,3 +87,16 @@ def test_run_stages_holds_the_lock_and_releases_it_on_an_exception(tmp_path):
         run_stages(tmp_path, [Stage("1_b", boom)])
     assert not (tmp_path / LOCK_NAME).exists()
     assert run_stages(tmp_path, [Stage("1_c", lambda c: {})])["1_c"]["status"] == "ran"
+
+
+def test_nested_folder_locks_share_the_commands_lock(tmp_path):
+    from coin_cl.pipeline.lock import command_lock
+
+    with command_lock(tmp_path) as outer:
+        with folder_lock(tmp_path) as inner:  # the pipeline inside a command: not refused
+            assert inner is outer
+        assert (tmp_path / LOCK_NAME).exists()  # the inner block did not release it
+        with pytest.raises(FolderLockedError):
+            with command_lock(tmp_path):  # a second command in this process is refused
+                pass
+    assert not (tmp_path / LOCK_NAME).exists()

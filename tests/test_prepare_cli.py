@@ -43,3 +43,35 @@ def test_one_annotation_only(tmp_path):
     with pytest.raises(SystemExit):  # argparse: --box and --mask are mutually exclusive
         main(["prepare", str(tmp_path), "--out", str(tmp_path / "s"), "--box", "0", "1", "2", "3", "4",
               "--mask", "0", "m.png"])  # fmt: skip
+
+
+def test_out_the_photos_parent_keeps_every_photo_and_an_existing_scene_is_refused(tmp_path, capsys):
+    import hashlib
+
+    from coin_cl import load_scene
+    from coin_cl.prepare.capture import synthetic_capture
+
+    photos = tmp_path / "myscene" / "images"  # COLMAP's layout: --out is the photos' parent
+    synthetic_capture(photos, n_views=10, width=256, height=192)
+    (photos / "notes.txt").write_text("not a photo")
+
+    def hashes():
+        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(photos.iterdir())}
+
+    before = hashes()
+    code, err = run([photos, "--out", photos.parent, "--width", "256"], capsys)
+    assert code == 0, err
+    assert hashes() == before  # every original byte-identical, nothing added or removed
+    assert load_scene(photos.parent).images[0].shape == (192, 256, 3)  # read from images_prepared/
+    # another folder holding a scene prepare did not make: refused, untouched
+    other = tmp_path / "other"
+    (other / "sparse" / "0").mkdir(parents=True)
+    (other / "sparse" / "0" / "cameras.txt").write_text("# theirs")
+    code, err = run([photos, "--out", other], capsys)
+    assert code == 2 and err[-1] == (
+        f"coin-cl prepare: error: {other} holds a scene coin-cl prepare did not make (sparse/): add "
+        "--replace to replace its images/, sparse/0 and masks/ (the photos are never touched), or "
+        "choose another --out"
+    )
+    assert (other / "sparse" / "0" / "cameras.txt").read_text() == "# theirs"
+    assert sorted(p.name for p in other.rglob("*")) == ["0", "cameras.txt", "sparse"]

@@ -52,6 +52,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        # Ctrl-C: every write is atomic and the lock is released on the way out, so a rerun resumes;
+        # one line says so (no traceback). 130 = 128 + SIGINT, as a shell reports it.
+        if args.verbose:
+            raise
+        from coin_cl.cli.guard import interrupted_message
+
+        out = getattr(args, "out", None) or getattr(args, "out_dir", None)
+        print("\n" + interrupted_message(args.command, out), file=sys.stderr)
+        return 130
     except (OSError, ValueError, RuntimeError) as exc:
         # User-facing failures carry a message naming the file or value (OSError: a file the
         # system refused, a full or read-only disk); no traceback needed. One line, always.

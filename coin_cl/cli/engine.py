@@ -15,7 +15,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
         "demo",
         help="the engine and CoIn on embedded scenes (no data or download needed)",
     )
-    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("demo_out"),
+        help="output folder: new, empty, or one coin-cl demo made",
+    )
     p.add_argument("--frames", type=int, default=12, help="turntable frames")
     p.add_argument("--size", type=int, nargs=2, default=(480, 320), metavar=("W", "H"))
     p.add_argument("--budget", type=float, default=DEMO_BUDGET_MINUTES,
@@ -49,14 +54,16 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
 def run_demo(args: argparse.Namespace) -> int:
     """`coin-cl demo`: `coin_cl.demo.run_demo` with the command's options."""
+    from coin_cl.cli.guard import output_folder
     from coin_cl.demo import run_demo as demo
 
     out = Path(args.out)
-    summary = demo(
-        out, args.frames, tuple(args.size), args.steps, args.render_only, args.device,
-        budget=args.budget, room_size=tuple(args.room_size), iters=args.iters,
-        room_views=args.room_views, prior_seconds=args.prior_seconds,
-    )  # fmt: skip
+    with output_folder(out, "demo"):
+        summary = demo(
+            out, args.frames, tuple(args.size), args.steps, args.render_only, args.device,
+            budget=args.budget, room_size=tuple(args.room_size), iters=args.iters,
+            room_views=args.room_views, prior_seconds=args.prior_seconds,
+        )  # fmt: skip
     if "room" in summary:
         print((out / "room" / "results.md").read_text())
     print(f"wrote {out}/ (turntable/, room/, demo.json)")

@@ -21,7 +21,14 @@ def add_commands(subparsers) -> None:
         "and masks_contact_sheet.png. A second run resumes from what exists.",
     )
     p.add_argument("photos", type=Path, help="folder of photos of one scene (.jpg/.png, one aspect ratio)")
-    p.add_argument("--out", type=Path, required=True, help="scene folder to write")
+    p.add_argument("--out", type=Path, required=True,
+                   help="scene folder to write: new, empty, one prepare made (it resumes), or the "
+                        "photos' parent (the photos are kept; the images go to "
+                        "images_prepared/)")  # fmt: skip
+    p.add_argument("--replace", action="store_true",
+                   help="prepare into a folder that holds a scene prepare did not make (sparse/0, "
+                        "images/): its images/, sparse/0 and masks/ are replaced; the photos are only "
+                        "read, never replaced")  # fmt: skip
     p.add_argument("--width", type=int, default=d.width,
                    help=f"working width in px; wider photos are downscaled (default {d.width})")  # fmt: skip
     p.add_argument("--exhaustive-max", type=int, default=d.exhaustive_max,
@@ -46,6 +53,8 @@ def add_commands(subparsers) -> None:
 
 
 def cmd_prepare(args: argparse.Namespace) -> int:
+    from coin_cl.cli.guard import output_folder
+    from coin_cl.outdir import OutputFolderError, check_output
     from coin_cl.prepare import Annotation, SfmConfig, prepare
 
     ann = None
@@ -60,10 +69,26 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     elif args.mask:
         ann = Annotation(view=args.mask[0], mask=Path(args.mask[1]))
     cfg = SfmConfig(width=args.width, exhaustive_max=args.exhaustive_max, num_threads=args.threads)
-    report, masks = prepare(args.photos, args.out, ann, sfm=cfg, holdout=args.holdout,
-                            holdout_masks=args.holdout_masks)  # fmt: skip
+    # The photos' own folder inside --out (COLMAP's layout: --out its parent) is not content.
+    photos_here = args.photos.resolve().parent == args.out.resolve()
+    ignore = (args.photos.resolve().name,) if photos_here else ()
+    try:
+        check_output(args.out, "prepare", ignore, adopt=args.replace)
+    except OutputFolderError as exc:
+        scene = [f"{n}/" for n in ("sparse", "images") if (args.out / n).exists() and n not in ignore]
+        if not scene:
+            raise
+        raise OutputFolderError(
+            f"{args.out} holds a scene coin-cl prepare did not make ({', '.join(scene)}): add "
+            "--replace to replace its images/, sparse/0 and masks/ (the photos are never touched), "
+            "or choose another --out"
+        ) from exc
+    with output_folder(args.out, "prepare", ignore, adopt=args.replace):
+        report, masks = prepare(args.photos, args.out, ann, sfm=cfg, holdout=args.holdout,
+                                holdout_masks=args.holdout_masks)  # fmt: skip
+    images = "images_prepared" if (args.out / "images_prepared").is_dir() else "images"
     print(report.text(), end="")
-    print(f"wrote {args.out}/images, {args.out}/sparse/0, {args.out}/prepare_report.txt")
+    print(f"wrote {args.out}/{images}, {args.out}/sparse/0, {args.out}/prepare_report.txt")
     if masks is not None:
         flagged = [i for i, s in enumerate(masks.source) if s == "consensus"]
         print(f"wrote {args.out}/masks ({len(masks.masks)} views, {len(flagged)} to check) and "

@@ -9,7 +9,12 @@ from pathlib import Path
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="CoIn on a scene: 2D inpainting, Ref-GS, CLG, TE-D, evaluation")
     p.add_argument("scene", type=Path, help="a folder load_scene reads (SPIn-NeRF, COLMAP, coin-cl)")
-    p.add_argument("--out", type=Path, required=True, help="run folder (a rerun resumes)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="run folder: new, empty, or one coin-cl run made (a rerun resumes); another folder is refused",
+    )
     p.add_argument("--mask-kind", choices=("seg", "bbox", "scribble"), default="seg",
                    help="the shape of the object's masks: the scene's segmentation, or its bounding box / "
                         "scribbles derived from it (default seg)")  # fmt: skip
@@ -69,6 +74,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from coin_cl.cli.guard import output_folder
     from coin_cl.pipeline.coin import CoInConfig, inpaint
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
     from coin_cl.pipeline.report import run_report
@@ -80,8 +86,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
         inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
     ).with_iters(args.iters)  # fmt: skip
-    res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
-                  prompt=args.prompt or None, budget=args.budget, config=cfg, force=tuple(args.force),
-                  edited_ref=args.edited_ref)  # fmt: skip
+    with output_folder(args.out, "run"):
+        res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
+                      prompt=args.prompt or None, budget=args.budget, config=cfg,
+                      force=tuple(args.force), edited_ref=args.edited_ref)  # fmt: skip
     print(run_report(res))
     return 0

@@ -10,7 +10,9 @@ from pathlib import Path
 def add_commands(subparsers) -> None:
     """Register make-scene and eval on the `coin-cl` subparsers."""
     p = subparsers.add_parser("make-scene", help="generate the synthetic room scene with ground truth")
-    p.add_argument("out_dir", type=Path, help="folder to write (SPIn-NeRF layout)")
+    p.add_argument(
+        "out_dir", type=Path, help="folder to write (SPIn-NeRF layout): new, empty, or one make-scene made"
+    )
     p.add_argument("--coverage", type=int, default=180, choices=(90, 180, 360), help="camera arc in degrees")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--views", type=int, default=40, help="number of views (a quarter are test views)")
@@ -24,31 +26,40 @@ def add_commands(subparsers) -> None:
     e = subparsers.add_parser("eval", help="PSNR/SSIM (+ masked, LPIPS when weights exist) of test views")
     e.add_argument("pred_dir", type=Path, help="one image per test view, named as the view")
     e.add_argument("--scene", type=Path, required=True, help="scene folder with ground truth")
-    e.add_argument("--out", type=Path, default=None, help="output folder (default PRED_DIR/eval)")
+    e.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default PRED_DIR/eval): new, empty, or one coin-cl eval made",
+    )
     e.set_defaults(func=cmd_eval)
 
 
 def cmd_make_scene(args: argparse.Namespace) -> int:
+    from coin_cl.cli.guard import output_folder
     from coin_cl.scene.synthetic import write_synthetic
 
-    out = write_synthetic(
-        args.out_dir,
-        coverage=args.coverage,
-        seed=args.seed,
-        n_views=args.views,
-        width=args.width,
-        height=args.height,
-        task=args.task,
-    )
+    with output_folder(args.out_dir, "make-scene"):
+        out = write_synthetic(
+            args.out_dir,
+            coverage=args.coverage,
+            seed=args.seed,
+            n_views=args.views,
+            width=args.width,
+            height=args.height,
+            task=args.task,
+        )
     print(f"wrote synthetic {args.task} scene ({args.views} views, coverage {args.coverage} deg) to {out}")
     return 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from coin_cl.cli.guard import output_folder
     from coin_cl.evaluation import evaluate_folder, fmt_metric
 
-    doc = evaluate_folder(args.pred_dir, args.scene, args.out)
     out = args.out or args.pred_dir / "eval"
+    with output_folder(out, "eval"):
+        doc = evaluate_folder(args.pred_dir, args.scene, out)
     m = doc["mean"]
     print(
         f"{doc['n_views']} views: PSNR {fmt_metric(m['psnr'])}  SSIM {fmt_metric(m['ssim'])}  "

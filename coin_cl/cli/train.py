@@ -13,7 +13,12 @@ def add_commands(subparsers) -> None:
     t.add_argument("--model", choices=("scaffold", "3dgs"), default="scaffold")
     t.add_argument("--iters", type=int, default=30_000)
     t.add_argument("--resolution", type=float, default=0.5, help="image scale (0.5 = half size)")
-    t.add_argument("--out", type=Path, required=True, help="output folder (resumes if it has ckpt.pt)")
+    t.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="output folder: new, empty, or one coin-cl train made (resumes if it has ckpt.pt)",
+    )
     t.add_argument(
         "--holdout",
         type=int,
@@ -51,6 +56,7 @@ def add_commands(subparsers) -> None:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from coin_cl import load_scene
+    from coin_cl.cli.guard import output_folder
     from coin_cl.gs.model_kinds import scaled_model_config
     from coin_cl.gs.trainer import TrainConfig, make_trainer
     from coin_cl.scene.splits import inpainted_targets, split_indices
@@ -68,12 +74,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         max_seconds=60.0 * args.max_minutes,
         fused=args.fused == "on",
     )
-    tr = make_trainer(
-        scene, tr_idx, te_idx, cfg, args.out, images,
-        scaled_model_config(args.model, args.iters), args.exclude_masks, resume=not args.fresh,
-        device=args.device,
-    )  # fmt: skip
-    res = tr.train()
+    with output_folder(args.out, "train"):
+        tr = make_trainer(
+            scene, tr_idx, te_idx, cfg, args.out, images,
+            scaled_model_config(args.model, args.iters), args.exclude_masks, resume=not args.fresh,
+            device=args.device,
+        )  # fmt: skip
+        res = tr.train()
     print(
         f"{args.model}: {res['step']} steps in {res['train_seconds']:.0f} s, "
         f"{res['n']} primitives, held-out PSNR {res.get('psnr', math.nan):.2f} dB "

@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from coin_cl.atomic import write_text
 from coin_cl.timing import mean_step_seconds
 
 log = logging.getLogger(__name__)
@@ -262,10 +263,7 @@ def plan_run(
         prior_seconds_per_step=prior_spp,
         disc_seconds_per_step=disc,
     )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{path.name}")
-    tmp.write_text(json.dumps(asdict(plan), indent=2, sort_keys=True))
-    tmp.replace(path)
+    write_text(path, json.dumps(asdict(plan), indent=2, sort_keys=True))
     log.info("plan (%s%s%s%s): %s; written to %s", source,
              "" if spp is None else f", probe {spp:.3f} s/step",
              "" if prior_spp is None else f", scene prior {prior_spp:.2f} s/step",

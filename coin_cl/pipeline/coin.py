@@ -46,6 +46,7 @@ from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import RefineConfig, vote_ring
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
 from coin_cl.pipeline.stages import (
@@ -340,9 +341,12 @@ def inpaint(
         full = (round(cam.width / cfg.resolution), round(cam.height / cfg.resolution))
         edited = load_edited(src, (cam.width, cam.height), full if cfg.resolution != 1.0 else None)
     out = Path(out)
-    check_output_folder(out, captured)
     force = _stage_names(force)
-    return _run(scene, out, cfg, force, edited)
+    # Locked before anything is written (plan.json included): a second run on the folder is refused
+    # before it can touch the first's files.
+    with folder_lock(out):
+        check_output_folder(out, captured)
+        return _run(scene, out, cfg, force, edited)
 
 
 def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:

@@ -19,7 +19,7 @@ def stage_eval(ctx: StageContext) -> dict:
 
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CKPT_NAME
-    from coin_cl.scene.io import to_uint8, write_png
+    from coin_cl.scene.io import to_uint8, write_npy, write_png
 
     scene = ctx.shared["scene"]
     cfg: CoInConfig = ctx.shared["cfg"]
@@ -43,7 +43,7 @@ def stage_eval(ctx: StageContext) -> dict:
             import numpy as np
 
             d = r.depth.numpy().astype(np.float32)
-            np.save(ddir / f"{stem}.npy", np.where(r.alpha.numpy() > 0.5, d, np.nan))
+            write_npy(ddir / f"{stem}.npy", np.where(r.alpha.numpy() > 0.5, d, np.nan))
     from coin_cl.render_utils import orbit_gif
 
     orbit_gif(model, [scene.cameras[i] for i in scene.train_idx], ctx.out / "orbit.gif")

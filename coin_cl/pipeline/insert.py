@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from coin_cl.scene.io import read_image, to_uint8, write_npy, write_png
+from coin_cl.scene.io import read_image, to_uint8, write_npy, write_png, write_text
 
 log = logging.getLogger(__name__)
 
@@ -310,7 +310,7 @@ def run_insert(scene: Any, masks: list[np.ndarray], train: list[int], k: int, ed
         write_png(out_dir / "images" / f"{stem}.png", to_uint8(img))
         write_mask(out_dir / "footprints" / f"{stem}.png", foot)
         views[stem] = {"footprint_px": int(foot.sum()), "mask_px": int(np.asarray(masks[i]).sum())}
-    (out_dir / "edit" / "views.json").write_text(json.dumps(views, indent=1, sort_keys=True))
+    write_text(out_dir / "edit" / "views.json", json.dumps(views, indent=1, sort_keys=True))
     n_empty = sum(v["footprint_px"] == 0 for v in views.values())
     log.info("insertion: %d edited pixels, %d lifted; the object lands in %d of %d training views",
              int(lift.region.sum()), len(lift.points), len(views) - n_empty, len(views))  # fmt: skip

@@ -173,11 +173,38 @@ def acquire(folder: str | Path) -> FolderLock:
     raise FolderLockedError(f"could not take the lock {path}: it keeps changing hands; retry")
 
 
+# Locks this process holds through `folder_lock`, by absolute folder: a command that locks its
+# --out before planning calls the pipeline, which locks the same folder again (nested, not refused).
+_HELD: dict[str, FolderLock] = {}
+
+
 @contextmanager
 def folder_lock(folder: str | Path) -> Iterator[FolderLock]:
-    """`with folder_lock(OUT):` hold OUT's lock for the block, released on exceptions too."""
+    """`with folder_lock(OUT):` hold OUT's lock for the block, released on exceptions too. Nested
+    blocks of one process on one folder share the outer block's lock."""
+    key = os.path.abspath(folder)
+    held = _HELD.get(key)
+    if held is not None and held.fd >= 0:
+        yield held
+        return
     lk = acquire(folder)
+    _HELD[key] = lk
     try:
         yield lk
     finally:
+        _HELD.pop(key, None)
+        lk.release()
+
+
+@contextmanager
+def command_lock(folder: str | Path) -> Iterator[FolderLock]:
+    """A command's own lock on its output folder: refused when anyone holds it, this process
+    included; `folder_lock` blocks inside it share it."""
+    key = os.path.abspath(folder)
+    lk = acquire(folder)
+    _HELD[key] = lk
+    try:
+        yield lk
+    finally:
+        _HELD.pop(key, None)
         lk.release()

@@ -51,7 +51,7 @@ from coin_cl.gs.targets import composite_targets
 from coin_cl.gs.trainer import TrainConfig, Trainer
 from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
-from coin_cl.scene.io import view_stem, write_png
+from coin_cl.scene.io import view_stem, write_npy, write_png, write_text
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +124,8 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed:
         known = np.isfinite(known_depth)
         name = f"{prior.name}; {int(known.sum())} px from the inserted object's hull depth"
         prior = DepthPrior(np.where(known, known_depth, prior.prior).astype(np.float32), name)
-    np.save(npy, prior.prior)
-    meta.write_text(json.dumps({"name": prior.name, "view": k, "is_disparity": prior.is_disparity}))
+    write_npy(npy, prior.prior)
+    write_text(meta, json.dumps({"name": prior.name, "view": k, "is_disparity": prior.is_disparity}))
     return prior
 
 
@@ -205,7 +205,7 @@ def run_refgs(
                     prev_stage["iters"], n_iters)  # fmt: skip
         n_iters = int(prev_stage["iters"])
     # Write the plan before training so an interrupted run resumes with the same schedule.
-    (out / STAGE_JSON).write_text(json.dumps({**(prev_stage or {}), "iters": n_iters}, indent=1))
+    write_text(out / STAGE_JSON, json.dumps({**(prev_stage or {}), "iters": n_iters}, indent=1))
 
     # Reference view (scene index k, trainer index kt).
     k = choose_reference(scene, train_idx=train_idx, ref=cfg.ref)
@@ -330,7 +330,7 @@ def run_refgs(
         "mean_weight": {str(v): s["mean_weight"] for v, s in weights.summary().items()},
         "config": cfg.to_dict(),
     }
-    (out / STAGE_JSON).write_text(json.dumps(result, indent=1))
+    write_text(out / STAGE_JSON, json.dumps(result, indent=1))
     return result
 
 
@@ -340,7 +340,7 @@ def _save_bg_depths(
     folder.mkdir(exist_ok=True)
     for i, d in zip(train_idx, bg, strict=True):
         if d is not None:
-            np.save(folder / f"{view_stem(scene.cameras[i].name, i)}.npy", d)
+            write_npy(folder / f"{view_stem(scene.cameras[i].name, i)}.npy", d)
 
 
 def read_bg_depths(folder: Path, scene: Any, train_idx: Sequence[int]) -> list[np.ndarray | None]:
@@ -371,8 +371,8 @@ def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt
         alpha = r.alpha.numpy().astype(np.float32)
         stem = view_stem(scene.cameras[i].name, i)
         write_png(rdir / f"{stem}.png", img)
-        np.save(ddir / f"{stem}.npy", depth)
-        np.save(adir / f"{stem}.npy", alpha)
+        write_npy(ddir / f"{stem}.npy", depth)
+        write_npy(adir / f"{stem}.npy", alpha)
         if j == kt:
             ref = (img, depth, alpha)
     assert ref is not None

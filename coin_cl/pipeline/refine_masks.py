@@ -72,7 +72,7 @@ import numpy as np
 import torch
 
 from coin_cl.pipeline.observed_warp import warp_observed
-from coin_cl.scene.io import to_uint8, write_png
+from coin_cl.scene.io import to_uint8, write_png, write_text
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ def refine_masks(
         areas[stem] = {"input_px": int(mask.sum()), "refined_px": int(refined.sum())}
         log.info("refine masks: view %s: %d -> %d px (%.0f%%)", stem, mask.sum(), refined.sum(),
                  100 * refined.sum() / max(1, mask.sum()))  # fmt: skip
-    (out_dir / "areas.json").write_text(json.dumps(areas, indent=1, sort_keys=True))
+    write_text(out_dir / "areas.json", json.dumps(areas, indent=1, sort_keys=True))
     tot_in = sum(a["input_px"] for a in areas.values())
     tot_ref = sum(a["refined_px"] for a in areas.values())
     return {

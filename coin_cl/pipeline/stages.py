@@ -297,9 +297,9 @@ def stage_ted(ctx: StageContext) -> dict:
     if not any(ctx.out.rglob(CKPT_NAME)):
         # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the
         # Ref-GS scene through unchanged, so that eval and resumption find a checkpoint here.
-        import shutil
+        from coin_cl.atomic import copy_file
 
-        shutil.copy2(latest_ckpt(ctx.inputs["2_refgs"], CKPT_NAME), ctx.out / CKPT_NAME)
+        copy_file(latest_ckpt(ctx.inputs["2_refgs"], CKPT_NAME), ctx.out / CKPT_NAME)
         ctx.note("TE-D ran 0 iterations: the Ref-GS scene is passed through unchanged")
         res["passed_through"] = True
     return jsonable(res)

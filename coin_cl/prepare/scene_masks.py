@@ -15,7 +15,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..atomic import copy_file
 from ..scene.colmap import pinhole_for, read_model
+from ..scene.folder import image_dir
 from ..scene.io import IMAGE_EXTS, read_image, to_uint8, write_png, write_text
 from ..scene.types import Camera
 from .annotate import box_mask, check_box, read_annotation, resolve_view, scribble_mask
@@ -101,7 +103,7 @@ def load_prepared(scene_dir: str | Path) -> PreparedViews:
             raise ValueError(f"{model_dir}: camera {cid} is not undistorted; run `coin-cl prepare` again")
         c = model.cameras[cid]
         cams.append(Camera(K, vm, c.width, c.height, n))
-        imgs.append(read_image(root / "images" / n))
+        imgs.append(read_image(image_dir(root, None) / n))
     return PreparedViews(names, cams, imgs, points, [seen_by_name[n] for n in names])
 
 
@@ -159,7 +161,7 @@ def write_masks(scene_dir: str | Path, views: PreparedViews, result: PropagateRe
     for n in read_test_list(root):  # the held-out photos' region masks were given: keep them
         src = root / "masks" / f"{Path(n).stem}.png"
         if src.is_file():
-            shutil.copyfile(src, tmp / src.name)
+            copy_file(src, tmp / src.name)
     shutil.rmtree(root / "masks", ignore_errors=True)
     tmp.rename(root / "masks")
     report = {

@@ -16,13 +16,16 @@ Held-out photos (`holdout`, e.g. object-absent ground-truth views) get features 
 stay out of the mapping; they are localized in the finished model (`holdout.localize`) and written
 as test views (`sparse/0/test.txt`).
 
-Scratch files live in `SCENE/.prepare/` (working images, database, raw models).
+Scratch files live in `SCENE/.prepare/` (working images, database, raw models). The photos are
+only read: when they are `SCENE/images/` (COLMAP's layout), the undistorted images go to
+`SCENE/images_prepared/` instead (`scene_images`; `load_scene` looks there first).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -32,6 +35,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ..atomic import copy_file
+from ..scene.folder import PREPARED_IMAGES
 from ..scene.io import IMAGE_EXTS, read_image, write_png, write_text
 from .holdout import localize, resolve_holdout, write_test_list
 from .sfm_report import SfmReport, why_dropped, write_report
@@ -120,6 +125,32 @@ def image_size(path: Path) -> tuple[int, int]:
     return int(shape[1]), int(shape[0])
 
 
+def scene_images(scene: Path, photos_dir: Path) -> Path:
+    """The folder of the scene's undistorted images: SCENE/images, or SCENE/images_prepared when
+    the photos are SCENE/images."""
+    if os.path.realpath(scene / "images") == os.path.realpath(photos_dir):
+        return scene / PREPARED_IMAGES
+    return scene / "images"
+
+
+# Everything prepare writes or replaces inside SCENE (besides its images folder and its reports).
+OWN_FOLDERS = (WORK, "sparse", "masks", ".masks.tmp", PREPARED_IMAGES)
+
+
+def check_photos_outside_outputs(photos_dir: Path, scene: Path) -> None:
+    """Refuse photos that lie in a folder prepare writes or replaces (they would be deleted)."""
+    real = Path(os.path.realpath(photos_dir))
+    own = [scene / d for d in OWN_FOLDERS]
+    if scene_images(scene, photos_dir) == scene / "images":
+        own.append(scene / "images")
+    for d in own:
+        if real.is_relative_to(os.path.realpath(d)):
+            raise ValueError(
+                f"the photos in {photos_dir} lie in {d}, which prepare writes: move the photos "
+                "elsewhere or choose another --out"
+            )
+
+
 # ------------------------------------------------------------------------------------------- steps
 
 
@@ -133,7 +164,7 @@ def _prepare_images(photos: list[Path], imdir: Path, size: tuple[int, int]) -> l
         if dst.is_file() and image_size(dst) == size:
             continue
         if p.suffix.lower() == ".png" and image_size(p) == size:
-            shutil.copyfile(p, dst)  # already a PNG of the working size
+            copy_file(p, dst)  # already a PNG of the working size
             continue
         img = read_image(p)
         if (img.shape[1], img.shape[0]) != size:
@@ -207,7 +238,7 @@ def _match(db_path: Path, names: list[str], cfg: SfmConfig, marker: Path, work: 
                                        device=pycolmap.Device.cpu)  # fmt: skip
             bar.update(len(part))
     pair_file.unlink(missing_ok=True)
-    marker.write_text(method)
+    write_text(marker, method)
     return method
 
 
@@ -249,14 +280,15 @@ def _map(db_path: Path, imdir: Path, out: Path, cfg: SfmConfig, train: list[str]
     tmp = out / "best.tmp"
     tmp.mkdir()
     recs[order[0]].write_binary(str(tmp))
-    others_file.write_text(json.dumps(others))
-    held_file.write_text(json.dumps(held))
+    write_text(others_file, json.dumps(others))
+    write_text(held_file, json.dumps(held))
     tmp.rename(best)
     return best, others
 
 
-def _undistort(model: Path, imdir: Path, work: Path, scene: Path) -> None:
-    """PINHOLE images and model at the same size and focal length into scene/images, scene/sparse/0."""
+def _undistort(model: Path, imdir: Path, work: Path, scene: Path, images: Path) -> None:
+    """PINHOLE images and model at the same size and focal length into `images` (scene_images),
+    scene/sparse/0."""
     import pycolmap
 
     und = work / "undistorted"
@@ -264,7 +296,7 @@ def _undistort(model: Path, imdir: Path, work: Path, scene: Path) -> None:
     opts = pycolmap.UndistortCameraOptions()
     opts.min_scale = opts.max_scale = 1.0  # same size and focal: a mask drawn on a photo still fits
     pycolmap.undistort_images(und, model, imdir, undistort_options=opts)
-    for sub, dst in (("images", scene / "images"), ("sparse", scene / "sparse" / "0")):
+    for sub, dst in (("images", images), ("sparse", scene / "sparse" / "0")):
         shutil.rmtree(dst, ignore_errors=True)
         dst.parent.mkdir(parents=True, exist_ok=True)
         shutil.move(str(und / sub), str(dst))
@@ -289,12 +321,16 @@ def run_sfm(photos_dir: str | Path, scene_dir: str | Path, config: SfmConfig | N
     if not log.isEnabledFor(logging.DEBUG):
         pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines drown the progress bar
     try:
-        return _run_steps(list_photos(photos_dir), Path(scene_dir), config or SfmConfig(), tuple(holdout))
+        check_photos_outside_outputs(Path(photos_dir), Path(scene_dir))
+        images = scene_images(Path(scene_dir), Path(photos_dir))
+        return _run_steps(list_photos(photos_dir), Path(scene_dir), images, config or SfmConfig(),
+                          tuple(holdout))  # fmt: skip
     finally:
         pycolmap.logging.minloglevel = old
 
 
-def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig, holdout: tuple[str, ...]) -> SfmReport:
+def _run_steps(photos: list[Path], scene: Path, images: Path, cfg: SfmConfig,
+               holdout: tuple[str, ...]) -> SfmReport:  # fmt: skip
     import pycolmap
 
     work = scene / WORK
@@ -356,10 +392,11 @@ def _run_steps(photos: list[Path], scene: Path, cfg: SfmConfig, holdout: tuple[s
         rec.write_binary(str(model))
     test_list = scene / "sparse" / "0" / "test.txt"
     listed = test_list.read_text().split() if test_list.is_file() else []
-    if not (scene / "sparse" / "0" / "images.bin").is_file() or listed != [p.name for p in placed]:
-        _undistort(model, imdir, work, scene)
+    if (not (scene / "sparse" / "0" / "images.bin").is_file() or not images.is_dir()
+            or listed != [p.name for p in placed]):  # fmt: skip
+        _undistort(model, imdir, work, scene, images)
     write_test_list(scene / "sparse" / "0", [p.name for p in placed])
-    _drop_stale_images(scene / "images", set(registered) | {p.name for p in placed})
+    _drop_stale_images(images, set(registered) | {p.name for p in placed})
     step("undistort")
     steps.close()
     report = SfmReport(

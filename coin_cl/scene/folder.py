@@ -56,14 +56,19 @@ class ImageFolder:
         return [f.name for f in self.files]
 
 
+# Where `coin-cl prepare` writes a scene's images when the photos themselves are in images/
+# (COLMAP's layout, --out the photos' parent): the photos are never touched, so this folder wins.
+PREPARED_IMAGES = "images_prepared"
+
+
 def image_dir(root: Path, images: str | None) -> Path:
-    """`root/images` when named, else images_4/, images/, the first images_N/."""
+    """`root/images` when named, else images_prepared/, images_4/, images/, the first images_N/."""
     if images is not None:
         d = root / images
         if not d.is_dir():
             raise FileNotFoundError(f"image folder {d} not found; check the `images` argument")
         return d
-    for name in ("images_4", "images"):
+    for name in (PREPARED_IMAGES, "images_4", "images"):
         if (root / name).is_dir():
             return root / name
     others = sorted(root.glob("images_*"))
