@@ -1,4 +1,5 @@
-"""`coin-cl make-scene` (the embedded ground-truth scene) and `coin-cl eval` (metrics of predicted
+"""`coin-cl make-scene` (the embedded ground-truth scene, or with --from-capture a real capture with a
+virtual box painted in: `coin_cl.prepare.virtual_scene`) and `coin-cl eval` (metrics of predicted
 test views against a scene's object-absent ground truth)."""
 
 from __future__ import annotations
@@ -9,9 +10,28 @@ from pathlib import Path
 
 def add_commands(subparsers) -> None:
     """Register make-scene and eval on the `coin-cl` subparsers."""
-    p = subparsers.add_parser("make-scene", help="generate the synthetic room scene with ground truth")
+    p = subparsers.add_parser(
+        "make-scene",
+        help="generate the synthetic room scene with ground truth, or (--from-capture) a removal scene "
+        "from a posed real capture with a virtual box painted into its training views",
+    )
+    p.add_argument("out_dir", type=Path, nargs="?", default=None, help="folder to write (or --out)")
+    p.add_argument("--out", type=Path, default=None, help="folder to write (same as OUT_DIR)")
+    p.add_argument("--from-capture", type=Path, default=None, metavar="CAPTURE",
+                   help="posed capture folder (COLMAP / SPIn-NeRF layout, pinhole cameras): paint a virtual "
+                        "box into its training views; every --test-every-th view stays untouched as a test "
+                        "view (docs/VIRTUAL_OBJECTS.md)")  # fmt: skip
+    p.add_argument("--box", type=float, nargs=6, default=None, metavar=("CX", "CY", "CZ", "SX", "SY", "SZ"),
+                   help="with --from-capture: a point the box stands near (capture's world frame; its base "
+                        "goes on the surface fitted there) and its extents (x, y, up)")  # fmt: skip
     p.add_argument(
-        "out_dir", type=Path, help="folder to write (SPIn-NeRF layout): new, empty, or one make-scene made"
+        "--yaw", type=float, default=0.0, help="with --box: turn about the surface normal, degrees"
+    )
+    p.add_argument(
+        "--auto", action="store_true", help="with --from-capture: choose the placement automatically"
+    )
+    p.add_argument(
+        "--test-every", type=int, default=8, help="with --from-capture: every K-th view is a test view"
     )
     p.add_argument("--coverage", type=int, default=180, choices=(90, 180, 360), help="camera arc in degrees")
     p.add_argument("--seed", type=int, default=0)
@@ -36,12 +56,21 @@ def add_commands(subparsers) -> None:
 
 
 def cmd_make_scene(args: argparse.Namespace) -> int:
+    if args.out_dir is not None and args.out is not None and args.out_dir != args.out:
+        raise ValueError(f"two output folders given ({args.out_dir} and --out {args.out}); give one")
+    out_dir = args.out or args.out_dir
+    if out_dir is None:
+        raise ValueError("no output folder: give OUT_DIR or --out")
+    if args.from_capture is not None:
+        return _make_from_capture(args, out_dir)
+    if args.box is not None or args.auto:
+        raise ValueError("--box and --auto place a virtual object in a capture: add --from-capture CAPTURE")
     from coin_cl.cli.guard import output_folder
     from coin_cl.scene.synthetic import write_synthetic
 
-    with output_folder(args.out_dir, "make-scene"):
+    with output_folder(out_dir, "make-scene"):
         out = write_synthetic(
-            args.out_dir,
+            out_dir,
             coverage=args.coverage,
             seed=args.seed,
             n_views=args.views,
@@ -50,6 +79,29 @@ def cmd_make_scene(args: argparse.Namespace) -> int:
             task=args.task,
         )
     print(f"wrote synthetic {args.task} scene ({args.views} views, coverage {args.coverage} deg) to {out}")
+    return 0
+
+
+def _make_from_capture(args: argparse.Namespace, out_dir: Path) -> int:
+    from coin_cl.outdir import mark_output
+    from coin_cl.prepare.virtual_scene import BoxSpec, VirtualSceneConfig, make_virtual_scene
+
+    if (args.box is None) == (not args.auto):
+        raise ValueError("--from-capture needs a placement: --box CX CY CZ SX SY SZ [--yaw DEG] or --auto")
+    spec = None if args.auto else BoxSpec(tuple(args.box[:3]), tuple(args.box[3:]), args.yaw)
+    cfg = VirtualSceneConfig(test_every=args.test_every, seed=args.seed)
+    # make_virtual_scene refuses a non-empty OUT and writes it through a scratch folder renamed at
+    # the end; the marker then makes it make-scene's folder like any other output folder.
+    doc = make_virtual_scene(args.from_capture, out_dir, spec, cfg)
+    mark_output(out_dir, "make-scene")
+    n, cov = doc["n_views"], doc["coverage_train"]
+    print(
+        f"wrote {out_dir}: {n['train']} training views (box painted; coverage median "
+        f"{100 * cov.get('median', 0):.1f}%), {n['test']} test views, {n['excluded']} excluded (box hidden); "
+        f"{doc['points']['kept']} sparse points; {doc['seconds']['total']:.0f} s"
+    )
+    b = doc["box"]
+    print(f"box: centre {[round(x, 4) for x in b['center']]}, size {[round(x, 4) for x in b['size']]}")
     return 0
 
 
