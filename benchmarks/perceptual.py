@@ -2,7 +2,8 @@
 
 1. Error against run time: the float32 distance (what `coin-cl eval` computes) per 256x256 and per
    504x284 pair, beside a float64 run of the same net on the same pair (the reference); the pair is
-   a real crop and its sigma-2 blur.
+   a real crop and its sigma-2 blur. Wall time (median) and CPU time (process time, all threads: the
+   figure to trust on a loaded machine).
 2. Known answers: VGG-PD and PSNR of one real 256x256 crop against its Gaussian blurs (sigma 1, 2,
    4), JPEG re-encodings (quality 90, 50, 10, OpenCV) and added Gaussian noise (sigma 0.02, 0.05,
    0.1 of the [0, 1] range, seed 0), and a one-pixel shift.
@@ -20,6 +21,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see coin_cl
 import argparse  # noqa: E402
 import copy  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
@@ -65,6 +67,13 @@ def jpeg(img: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255
 
 
+def cpu_seconds(fn) -> float:
+    """Process CPU time (all threads) of one call of fn(): what the pair costs whatever else runs."""
+    t = time.process_time()
+    fn()
+    return time.process_time() - t
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--runs", type=int, default=5, help="timed runs per figure (median)")
@@ -78,8 +87,8 @@ def main() -> int:
     print(f"# VGG-PD benchmark  commit {git_commit()}  CPU {cpu_model()}  ({os.cpu_count()} logical cores, "
           f"torch {torch.get_num_threads()} threads)")  # fmt: skip
 
-    print("\n| pair | float32 s/pair | float64 s/pair | VGG-PD float32 | float64 | relative error |")
-    print("|---|---|---|---|---|---|")
+    print("\n| pair | float32 s/pair | float64 s/pair | float32 CPU s | float64 CPU s | VGG-PD float32 "
+          "| float64 | relative error |\n|---|---|---|---|---|---|---|---|")  # fmt: skip
     timing = {}
     for (h, w), at in (((256, 256), (200, 300)), ((284, 504), (160, 150))):
         src, where = source((h, w), at)
@@ -95,9 +104,14 @@ def main() -> int:
         d64 = run64()
         t32 = median_time(lambda blur=blur, ref=ref: M.vgg_pd(model, blur, ref), args.runs)
         t64 = median_time(run64, args.runs)
+        c32, c64 = cpu_seconds(lambda blur=blur, ref=ref: M.vgg_pd(model, blur, ref)), cpu_seconds(run64)
         err = abs(d32 - d64) / d64
-        timing[f"{w}x{h}"] = {"s32": t32, "s64": t64, "d32": d32, "d64": d64, "rel_err": err, "source": where}
-        print(f"| {w}x{h} (sigma-2 blur) | {t32:.3f} | {t64:.3f} | {d32:.6f} | {d64:.6f} | {err:.1e} |")
+        timing[f"{w}x{h}"] = {"s32": t32, "s64": t64, "cpu32": c32, "cpu64": c64, "d32": d32, "d64": d64,
+                              "rel_err": err, "source": where}  # fmt: skip
+        print(f"| {w}x{h} (sigma-2 blur) | {t32:.3f} | {t64:.3f} | {c32:.2f} | {c64:.2f} | {d32:.6f} "
+              f"| {d64:.6f} | {err:.1e} |")  # fmt: skip
+    print(f"wall: median of {args.runs} after a warm-up; CPU: process time of one call (all threads), "
+          f"robust to other load (load average now {os.getloadavg()[0]:.1f})")  # fmt: skip
     print("source:", "; ".join(f"{k}: {v['source']}" for k, v in timing.items()))
 
     src, where = source((256, 256), (200, 300))
