@@ -1,6 +1,7 @@
-"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance (`coin-cl eval`
-over a folder: tests/test_evaluation.py; the LPIPS and Inception networks and their weight loading:
-tests/test_nets.py)."""
+"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance, VGG-PD's
+algebra and known answers (blur, JPEG, noise, shift against PSNR; the real weights when installed)
+(`coin-cl eval` over a folder: tests/test_evaluation.py; the LPIPS and Inception networks and their
+weight loading: tests/test_nets.py; the VGG16 trunk's: tests/test_nets_vgg16_h5.py)."""
 
 import math
 import os
