@@ -199,3 +199,25 @@ def test_truncated_or_malformed_ply_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "t.ply is not a readable Gaussian PLY" in err
     assert not (tmp_path / "o.splat").exists()
+
+
+def test_graphdeco_from_a_run_folder_has_its_cameras_and_source(tmp_path):
+    from coin_cl.scene import load_scene, save_scene
+    from coin_cl.scene.synthetic import write_synthetic
+
+    captured = write_synthetic(
+        tmp_path / "captured", coverage=90, seed=1, n_views=4, width=32, height=24, n_points=200
+    )
+    scene = load_scene(captured)
+    run = tmp_path / "run"
+    save_scene(scene, run / "0_scene" / "scene")
+    (run / "run.json").write_text(json.dumps({"scene": {"path": str(captured)}}))
+    _splats(n=8).to_ply(run / "eval" / "point_cloud.ply")
+    out, n, _ = export_run(run, "graphdeco", tmp_path / "gd", iteration=123)
+    doc = json.loads((out / "cameras.json").read_text())
+    assert n == 8 and len(doc) == len(scene.cameras)
+    for entry, cam in zip(doc, scene.cameras, strict=True):
+        np.testing.assert_allclose(entry["position"], cam.center, atol=1e-9)
+        assert entry["img_name"] == cam.name.rsplit(".", 1)[0]
+    assert f"source_path='{captured.resolve()}'" in (out / "cfg_args").read_text()
+    assert (out / "point_cloud" / "iteration_123" / "point_cloud.ply").is_file()

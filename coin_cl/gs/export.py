@@ -14,7 +14,7 @@ Formats (`EXPORT_FORMATS`):
 - "graphdeco": `point_cloud/iteration_N/point_cloud.ply` (degree 3), `cameras.json` (graphdeco's
   `camera_to_JSON`: id, img_name (the stem), width, height, position (camera centre), rotation
   (camera-to-world 3x3, OpenCV axes, row-major), fx, fy), `cfg_args` (the `Namespace(...)` line
-  graphdeco's train.py writes; SIBR's viewer reads sh_degree, source_path and white_background).
+  graphdeco's train.py writes; `source_path`: the scene the run was made from, when it still exists).
 
 Gaussians holding NaN/Inf are left out of every format, with the count logged.
 """
@@ -158,6 +158,16 @@ def _finite(splats: Splats, path) -> tuple[Splats, int]:
     return g, dropped
 
 
+def _captured_scene(run: Path) -> Path | None:
+    """The scene folder the run was made from (run.json's scene path) when it still exists: the
+    `source_path` graphdeco's tools reopen (SIBR reads its COLMAP model), else None."""
+    try:
+        path = json.loads((run / "run.json").read_text())["scene"]["path"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return Path(path) if isinstance(path, str) and Path(path).is_dir() else None
+
+
 def export_splats(
     splats: Splats,
     fmt: str,
@@ -205,6 +215,7 @@ def export_run(
             from coin_cl.scene import load_scene
 
             cameras = load_scene(scene_dir, priors=False).cameras
+            scene_dir = _captured_scene(source) or scene_dir
     elif source.is_file():
         ply = source
     else:
