@@ -199,6 +199,12 @@ def test_truncated_or_malformed_ply_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "t.ply is not a readable Gaussian PLY" in err
     assert not (tmp_path / "o.splat").exists()
+    assert main(["render", str(p)]) == 2  # `coin-cl render PLY`
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "t.ply is not a readable Gaussian PLY" in err
+    g.to_ply(tmp_path / "ok.ply")
+    assert main(["render", str(tmp_path / "ok.ply")]) == 2
+    assert "ok.ply holds 30 Gaussians but no cameras" in capsys.readouterr().err
 
 
 def test_graphdeco_from_a_run_folder_has_its_cameras_and_source(tmp_path):

@@ -69,7 +69,7 @@ def splat_records(splats: Splats) -> np.ndarray:
 
 def write_splat(splats: Splats, path: str | Path) -> int:
     """Write `.splat` (module doc) atomically; returns how many Gaussians holding NaN/Inf were left out."""
-    g, dropped = _finite(splats, path)
+    g, dropped = splats.finite_for(path)
     rec = splat_records(g)
     atomic_write(path, lambda p: p.write_bytes(rec.tobytes()))
     return dropped
@@ -147,15 +147,6 @@ def write_graphdeco(
 
 
 # ---------------------------------------------------------------------------------------------- runs
-
-
-def _finite(splats: Splats, path) -> tuple[Splats, int]:
-    g, dropped = splats.finite()
-    if dropped:
-        if len(g) == 0:
-            raise ValueError(f"{path}: all {dropped} Gaussians hold NaN or Inf; nothing to write")
-        log.warning("%s: left out %d of %d Gaussians holding NaN or Inf", path, dropped, len(splats))
-    return g, dropped
 
 
 def _captured_scene(run: Path) -> Path | None:

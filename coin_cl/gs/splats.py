@@ -129,17 +129,23 @@ class Splats:
         dropped = int((~ok).sum())
         return (self if dropped == 0 else self.subset(ok)), dropped
 
+    def finite_for(self, path: str | Path) -> tuple[Splats, int]:
+        """`finite()` for a file about to be written: the count logged naming `path`; none left is
+        a ValueError naming it."""
+        g, dropped = self.finite()
+        if dropped:
+            if len(g) == 0:
+                raise ValueError(f"{path}: all {dropped} Gaussians hold NaN or Inf; nothing to write")
+            log.warning("%s: left out %d of %d Gaussians holding NaN or Inf", path, dropped, len(self))
+        return g, dropped
+
     def to_ply(self, path: str | Path, sh_degree: int | None = PLY_SH_DEGREE) -> int:
         """Write the 3DGS PLY layout (module doc; binary little-endian), atomically, with the SH
         padded to `sh_degree` (default 3: the fixed 62-float record graphdeco's SIBR viewer reads;
         None: the degree held). Gaussians holding NaN/Inf are left out (count logged); returns
         that count. All of them non-finite is a ValueError naming `path`."""
         g = self if sh_degree is None else self.with_sh_degree(sh_degree)
-        g, dropped = g.finite()
-        if dropped:
-            if len(g) == 0:
-                raise ValueError(f"{path}: all {dropped} Gaussians hold NaN or Inf; nothing to write")
-            log.warning("%s: left out %d of %d Gaussians holding NaN or Inf", path, dropped, len(self))
+        g, dropped = g.finite_for(path)
         n = len(g)
         a = {f.name: getattr(g, f.name).detach().cpu().numpy().astype(np.float32) for f in fields(g)}
         k = a["sh_rest"].shape[1]
