@@ -364,3 +364,80 @@ def test_paths_with_spaces_and_non_ascii_letters(syn_dir, tmp_path):
     shutil.copytree(syn_dir, d)
     sc = load_scene(d)
     assert len(sc) == 8 and sc.path == d
+
+
+# ---------------------------------------------------------------- GScream / FreeInpaint's SPIn-NeRF copies
+
+
+def _lama_layout(syn, root):
+    """The layout GScream's and FreeInpaint's loaders read: images_4/<stem>.png, sparse/0,
+    lama_input/<stem>_mask.png (training masks), images_4/mask_test/<stem>.png (test masks)."""
+    _plain_colmap(syn, root, masks=False)
+    (root / "images").rename(root / "images_4")
+    for j, c in enumerate(syn.cameras):
+        stem = c.name.rsplit(".", 1)[0]
+        m = syn.masks[j].astype(np.uint8) * 255
+        if syn.is_test[j]:
+            write_png(root / "images_4" / "mask_test" / f"{stem}.png", m)
+        else:
+            write_png(root / "lama_input" / f"{stem}_mask.png", m)
+    return root
+
+
+def test_gscream_freeinpaint_masks_load(syn, tmp_path):
+    root = _lama_layout(syn, tmp_path / "gs")
+    n_test = sum(syn.is_test)
+    assert syn.is_test[:n_test] == [True] * n_test  # the synthetic scene puts its test views first
+    s = load_scene(root, n_test=n_test)
+    assert s.meta["layout"] == "spinnerf"
+    for j in range(len(syn.cameras)):
+        np.testing.assert_array_equal(s.masks[j], syn.masks[j])
+    assert any(m.any() for m in s.masks)
+
+
+def test_masks_present_but_all_empty_is_an_error(syn, tmp_path):
+    root = _lama_layout(syn, tmp_path / "gs")
+    for p in (root / "lama_input").glob("*.png"):
+        write_png(p, np.zeros((syn.cameras[0].height, syn.cameras[0].width), np.uint8))
+    for p in (root / "images_4" / "mask_test").glob("*.png"):
+        write_png(p, np.zeros((syn.cameras[0].height, syn.cameras[0].width), np.uint8))
+    with pytest.raises(ValueError, match=r"gs: no view has a non-empty object mask \(looked in .*lama_input"):
+        load_scene(root, n_test=2)
+
+
+# ---------------------------------------------------------------- 360-USID
+
+
+def _usid(syn, root):
+    """360-USID as FreeInpaint's loader reads it: images/ + object_masks/ (training, with the
+    object), test_images/ (object absent), <scene>_masks/<k:05d>.png, reference/, sparse/0."""
+    _plain_colmap(syn, root, masks=False)
+    test_names = sorted(c.name for j, c in enumerate(syn.cameras) if syn.is_test[j])
+    for j, c in enumerate(syn.cameras):
+        m = syn.masks[j].astype(np.uint8) * 255
+        if syn.is_test[j]:
+            (root / "images" / c.name).unlink()
+            write_png(root / "test_images" / c.name, syn.absent[j])
+            write_png(root / "cone_masks" / f"{test_names.index(c.name):05d}.png", m)
+        else:
+            write_png(root / "object_masks" / c.name, m)
+    ref = next(c.name for j, c in enumerate(syn.cameras) if not syn.is_test[j])
+    write_png(root / "reference" / ref, syn.present[syn.is_test.index(False)])
+    return root, ref
+
+
+def test_usid_layout(syn, tmp_path):
+    root, ref = _usid(syn, tmp_path / "cone")
+    s = load_scene(root)
+    assert s.meta["layout"] == "360-usid"
+    by_name = {c.name: j for j, c in enumerate(syn.cameras)}
+    assert sorted(s.cameras[i].name for i in s.test_idx) == sorted(
+        c.name for j, c in enumerate(syn.cameras) if syn.is_test[j]
+    )
+    for i, cam in enumerate(s.cameras):
+        j = by_name[cam.name]
+        np.testing.assert_allclose(cam.viewmat, syn.cameras[j].viewmat, atol=1e-6)
+        np.testing.assert_array_equal(s.masks[i], syn.masks[j])
+        want = syn.absent[j] if syn.is_test[j] else syn.present[j]
+        np.testing.assert_allclose(s.images[i], want, atol=1 / 255)
+    assert s.cameras[s.ref_view].name == ref

@@ -92,6 +92,15 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     from coin_cl.render_utils import render_checkpoint
 
+    if args.out_dir.is_file() and args.out_dir.suffix.lower() == ".ply":
+        from coin_cl.gs.splats import Splats
+
+        g = Splats.from_ply(args.out_dir)  # a truncated or malformed file: one line naming it
+        raise ValueError(
+            f"{args.out_dir} holds {len(g)} Gaussians but no cameras: render the folder it was trained "
+            "into (or a coin-cl run folder); to open the PLY in a viewer see `coin-cl export`"
+        )
+
     n, where = render_checkpoint(args.out_dir, args.views, args.frames, args.backend, args.device)
     if args.views == "orbit":
         print(f"wrote {n} frames and {where}")

@@ -4,11 +4,14 @@
 PLY layout (what splat viewers, 3DGS and gsplat read and write), one vertex per Gaussian, all
 float32: x y z, nx ny nz (zeros), f_dc_0..2 (SH degree-0 coefficients), f_rest_0..3K-1 (higher SH,
 channel-major: all R coefficients, then G, then B), opacity (logit), scale_0..2 (log), rot_0..3
-(quaternion wxyz, not necessarily normalised). Point clouds are `coin_cl.scene.ply`'s.
+(quaternion wxyz, not necessarily normalised). Written with the SH padded to degree 3 by default
+(45 f_rest fields, 62 float32 a record) and Gaussians holding NaN/Inf left out. Other export formats
+(.splat, a graphdeco output folder) are `coin_cl.gs.export`'s; point clouds are `coin_cl.scene.ply`'s.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -19,11 +22,17 @@ from plyfile import PlyData, PlyElement
 from torch import Tensor
 
 from coin_cl.engine import Gaussians
-from coin_cl.gs.sh import eval_sh, rgb_to_sh
+from coin_cl.gs.sh import MAX_SH_DEGREE, eval_sh, num_sh_bases, rgb_to_sh
 from coin_cl.scene.io import atomic_write
+from coin_cl.scene.ply import read_ply_vertices
+
+log = logging.getLogger(__name__)
 
 # The vertex properties a 3DGS PLY must have (the rest: f_dc_1.., f_rest_*, normals, are optional).
 REQUIRED_PLY_PROPERTIES = ("x", "y", "z", "f_dc_0", "opacity", "scale_0", "rot_0")
+# The SH degree PLYs are written with by default: graphdeco's SIBR viewer reads a fixed record of
+# 62 float32 (degree 3) whatever the header says; name-based readers take any degree.
+PLY_SH_DEGREE = MAX_SH_DEGREE
 
 
 @dataclass
@@ -100,10 +109,45 @@ class Splats:
         )
 
     # ---- PLY ----
-    def to_ply(self, path: str | Path) -> None:
-        """Write the 3DGS PLY layout (module doc; binary little-endian), atomically."""
-        n = len(self)
-        a = {f.name: getattr(self, f.name).detach().cpu().numpy().astype(np.float32) for f in fields(self)}
+    def with_sh_degree(self, degree: int) -> Splats:
+        """The same Gaussians with `sh_rest` zero-padded (or cut) to SH `degree` (0..3): zero
+        higher bands leave every colour as it was; cutting drops the view-dependent part above
+        `degree`."""
+        k = num_sh_bases(degree) - 1
+        r = self.sh_rest
+        if r.shape[1] >= k:
+            rest = r[:, :k]
+        else:
+            rest = torch.cat([r, r.new_zeros(r.shape[0], k - r.shape[1], 3)], 1)
+        return Splats(self.means, self.quats, self.log_scales, self.opacity_logits, self.sh_dc, rest)
+
+    def finite(self) -> tuple[Splats, int]:
+        """(the Gaussians whose every value is finite, how many were dropped)."""
+        ok = torch.ones(len(self), dtype=torch.bool, device=self.means.device)
+        for t in self.tensors():
+            ok &= torch.isfinite(t.reshape(len(self), -1)).all(1)
+        dropped = int((~ok).sum())
+        return (self if dropped == 0 else self.subset(ok)), dropped
+
+    def finite_for(self, path: str | Path) -> tuple[Splats, int]:
+        """`finite()` for a file about to be written: the count logged naming `path`; none left is
+        a ValueError naming it."""
+        g, dropped = self.finite()
+        if dropped:
+            if len(g) == 0:
+                raise ValueError(f"{path}: all {dropped} Gaussians hold NaN or Inf; nothing to write")
+            log.warning("%s: left out %d of %d Gaussians holding NaN or Inf", path, dropped, len(self))
+        return g, dropped
+
+    def to_ply(self, path: str | Path, sh_degree: int | None = PLY_SH_DEGREE) -> int:
+        """Write the 3DGS PLY layout (module doc; binary little-endian), atomically, with the SH
+        padded to `sh_degree` (default 3: the fixed 62-float record graphdeco's SIBR viewer reads;
+        None: the degree held). Gaussians holding NaN/Inf are left out (count logged); returns
+        that count. All of them non-finite is a ValueError naming `path`."""
+        g = self if sh_degree is None else self.with_sh_degree(sh_degree)
+        g, dropped = g.finite_for(path)
+        n = len(g)
+        a = {f.name: getattr(g, f.name).detach().cpu().numpy().astype(np.float32) for f in fields(g)}
         k = a["sh_rest"].shape[1]
         cols: list[tuple[str, np.ndarray]] = []
         cols += [(c, a["means"][:, i]) for i, c in enumerate("xyz")]
@@ -120,6 +164,7 @@ class Splats:
             arr[name] = v
         el = PlyElement.describe(arr, "vertex")
         atomic_write(path, lambda p: PlyData([el], byte_order="<").write(str(p)))
+        return dropped
 
     @classmethod
     def from_ply(cls, path: str | Path) -> Splats:
@@ -127,7 +172,7 @@ class Splats:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"Gaussian PLY {path} not found")
-        v = PlyData.read(str(path))["vertex"].data
+        v = read_ply_vertices(path, "Gaussian PLY")
         names = v.dtype.names
         missing = [n for n in REQUIRED_PLY_PROPERTIES if n not in names]
         if missing:

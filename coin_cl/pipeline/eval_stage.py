@@ -49,8 +49,9 @@ def stage_eval(ctx: StageContext) -> dict:
     orbit_gif(model, [scene.cameras[i] for i in scene.train_idx], ctx.out / "orbit.gif")
     ply = ctx.out / "point_cloud.ply"
     centers = torch.stack([scene.cameras[i].center_t for i in scene.train_idx])
-    model.export_gaussians(centers.mean(0)).to_ply(ply)
-    result: dict[str, Any] = {"final_stage": final, "ply": str(ply)}
+    # SH padded to degree 3 (the record graphdeco's SIBR reads); NaN/Inf Gaussians left out, counted
+    dropped = model.export_gaussians(centers.mean(0)).to_ply(ply)
+    result: dict[str, Any] = {"final_stage": final, "ply": str(ply), "ply_nonfinite_dropped": dropped}
     gt_ok = scene.test_idx and all(scene.masks[i].any() for i in scene.test_idx)
     if gt_ok:
         from coin_cl.evaluation import evaluate_folder

@@ -33,6 +33,10 @@ from .types import Camera, Scene
 log = logging.getLogger(__name__)
 
 SPINNERF_N_TEST = 40
+# GScream's and FreeInpaint's SPIn-NeRF copies: training masks `lama_input/<stem>_mask.png` (the
+# LaMa inputs beside them), test masks `<images>/mask_test/<stem>.png`.
+LAMA_INPUT = "lama_input"
+LAMA_MASK_SUFFIX = "_mask.png"
 
 
 # ---------------------------------------------------------------------------------------------- the folder
@@ -273,16 +277,35 @@ def no_test_views(n: int) -> tuple[list[bool], str]:
 # ---------------------------------------------------------------------------------------------- views
 
 
+def mask_sources(folder: ImageFolder) -> list[Path]:
+    """Every place this folder's masks are looked for, in order (for the error when none holds a
+    non-empty mask): SPIn-NeRF's `<images>/label/` and `<images>/test_label/`, the GScream /
+    FreeInpaint variant's `lama_input/<stem>_mask.png` and `<images>/mask_test/`, and `masks/`."""
+    return [folder.imgdir / "label", folder.imgdir / "test_label", folder.root / LAMA_INPUT,
+            folder.imgdir / "mask_test", folder.root / "masks"]  # fmt: skip
+
+
 def view_mask(
     folder: ImageFolder, i: int, f: Path, is_test: bool, shape
 ) -> tuple[np.ndarray | None, Path | None]:
     """The mask file of view `i` read at `shape`, and its path: a test view's from
-    `<images>/test_label/out_{k+1:05d}.png` (or masks/ in a plain COLMAP folder), a training view's
-    from `<images>/label/` else `masks/`. (None, None) when the folder has no mask for it."""
+    `<images>/test_label/out_{k+1:05d}.png` (SPIn-NeRF), else `<images>/mask_test/<stem>.png`
+    (GScream / FreeInpaint), else masks/ (plain COLMAP); a training view's from `<images>/label/`,
+    else `lama_input/<stem>_mask.png` (GScream / FreeInpaint), else `masks/`. (None, None) when the
+    folder has no mask for it."""
     label_dir, test_label_dir = folder.imgdir / "label", folder.imgdir / "test_label"
-    masks_dir = folder.root / "masks"
+    masks_dir, mask_test_dir = folder.root / "masks", folder.imgdir / "mask_test"
+    lama_dir = folder.root / LAMA_INPUT
     if is_test:
         mp = test_label_dir / f"out_{folder.vindex[i] + 1:05d}.png"
+        if not test_label_dir.is_dir() and mask_test_dir.is_dir():
+            mp = find_file(mask_test_dir, f.name)
+            if mp is None:
+                raise FileNotFoundError(
+                    f"test mask for view {f.name} not found in {mask_test_dir} (expected "
+                    f"{mask_test_dir / (f.stem + '.png')}); add it or mark the view as train"
+                )
+            return read_mask(mp, shape), mp
         if not test_label_dir.is_dir() and masks_dir.is_dir():
             # Plain COLMAP folder with held-out views: their masks live in masks/ too.
             mp = find_file(masks_dir, f.name) or masks_dir / f.name
@@ -295,6 +318,14 @@ def view_mask(
                 )
             return read_mask(mp, shape), mp
         return None, None
+    if not label_dir.is_dir() and lama_dir.is_dir():
+        mp = lama_dir / f"{f.stem}{LAMA_MASK_SUFFIX}"
+        if not mp.is_file():
+            raise FileNotFoundError(
+                f"mask for training view {f} not found: expected {mp} (GScream / FreeInpaint layout); "
+                "add it or remove the image"
+            )
+        return read_mask(mp, shape), mp
     for d in (label_dir, masks_dir):
         if d.is_dir():
             mp = find_file(d, f.name)
@@ -307,11 +338,37 @@ def view_mask(
     return None, None
 
 
+def check_masks_found(root: Path, where: list[Path], masks: list[np.ndarray]) -> None:
+    """A folder that has masks (one of `where` exists) but whose every mask is empty is a
+    ValueError naming the folder and the places looked in: every view would be left as it is and
+    a run would inpaint nothing. A folder with none of them (a capture to train on) passes."""
+    if any(m.any() for m in masks):
+        return
+    present = [d for d in where if d.exists()]
+    if not present:
+        return
+    looked = ", ".join(str(d.relative_to(root)) if d.is_relative_to(root) else str(d) for d in where)
+    found = f"; {', '.join(d.name for d in present)} exists but every mask read from it is empty"
+    raise ValueError(
+        f"{root}: no view has a non-empty object mask (looked in {looked}){found}; add the masks "
+        "(non-zero = object) or check that the folder's layout is one docs/SCENES.md lists"
+    )
+
+
+# A layout's mask lookup: (folder, view i, image file, is_test, (H, W)) -> (mask or None, its path).
+MaskLookup = Callable[[ImageFolder, int, Path, bool, tuple], tuple[np.ndarray | None, Path | None]]
+
+
 def read_views(
-    folder: ImageFolder, poses: Poses, is_test: list[bool], mask_dilate: int
+    folder: ImageFolder,
+    poses: Poses,
+    is_test: list[bool],
+    mask_dilate: int,
+    mask_fn: MaskLookup | None = None,
 ) -> tuple[list[Camera], list[np.ndarray], list[np.ndarray], list[Undistorter | None]]:
-    """Cameras (K scaled to each image's size), images and masks (undistorted where asked), and
-    each view's undistorter (for the priors)."""
+    """Cameras (K scaled to each image's size), images and masks (undistorted where asked; masks
+    found by `mask_fn`, default `view_mask`), and each view's undistorter (for the priors)."""
+    mask_fn = mask_fn or view_mask
     cameras: list[Camera] = []
     imgs: list[np.ndarray] = []
     masks: list[np.ndarray] = []
@@ -352,7 +409,7 @@ def read_views(
         view_und.append(und)
         if und is not None:
             img = und.image(img)
-        m, mp = view_mask(folder, i, f, is_test[i], (H, W))
+        m, mp = mask_fn(folder, i, f, is_test[i], (H, W))
         if m is None:
             n_missing_masks += 1
             m = np.zeros((H, W), bool)
@@ -475,6 +532,8 @@ def _load_image_folder(
     n_test: int | None,
     mask_dilate: int,
     priors: bool,
+    mask_fn: MaskLookup | None = None,
+    mask_dirs: list[Path] | None = None,
 ) -> Scene:
     """The steps every image-folder layout shares, at the images' resolution."""
     poses = read_poses(folder, undistort)
@@ -488,7 +547,8 @@ def _load_image_folder(
         poses.source,
         split_source,
     )
-    cameras, imgs, masks, view_und = read_views(folder, poses, is_test, mask_dilate)
+    cameras, imgs, masks, view_und = read_views(folder, poses, is_test, mask_dilate, mask_fn)
+    check_masks_found(folder.root, mask_dirs if mask_dirs is not None else mask_sources(folder), masks)
     pts32 = np.asarray(pts, np.float32)
     near, far = near_far(poses.bounds, cameras, pts32)
     n = len(folder.files)

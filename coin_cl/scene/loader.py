@@ -1,10 +1,13 @@
-"""`load_scene`: one entry point for SPIn-NeRF folders, plain COLMAP folders and our own scenes; a
-small dispatcher over the per-layout loaders.
+"""`load_scene`: one entry point for SPIn-NeRF folders (and GScream's / FreeInpaint's copies of
+them), plain COLMAP folders, nerfstudio folders and our own scenes; a small dispatcher over the
+per-layout loaders.
 
 Layouts (docs/SCENES.md has the user-facing version):
 - a folder with `scene.json` is one written by `save_scene` (coin-cl's own format): `native.py`;
-- a folder whose image folder has `label/` or `test_label/`, or with `poses_bounds.npy`, is SPIn-NeRF /
-  LLFF; any other image folder is plain COLMAP: both in `folder.py`.
+- a folder with `transforms.json` is a nerfstudio folder: `nerfstudio.py`;
+- a folder with `test_images/` and `object_masks/` is 360-USID: `usid.py`;
+- a folder whose image folder has `label/`, `test_label/` or `mask_test/`, or with `lama_input/` or
+  `poses_bounds.npy`, is SPIn-NeRF / LLFF; any other image folder is plain COLMAP: both in `folder.py`.
 Folder rules:
 - images: `images_4/` if present, else `images/`, else the first `images_N/`;
 - poses: `sparse/0` (or `sparse/`, or the folder itself) with images.bin/.txt, else LLFF
@@ -12,30 +15,38 @@ Folder rules:
 - split: `views.txt` split column, else `sparse/0/test.txt`, else the first `n_test` names by sort
   order in the SPIn-NeRF layout (40) and none in a plain COLMAP folder;
 - masks: `<images>/label/<name>` for training views, `<images>/test_label/out_{k+1:05d}.png` for test
-  view k (SPIn-NeRF), or `masks/<name>` in a plain COLMAP folder.
+  view k (SPIn-NeRF); `lama_input/<stem>_mask.png` and `<images>/mask_test/<stem>.png` (GScream /
+  FreeInpaint); or `masks/<name>` in a plain COLMAP folder. Masks present but all empty: an error.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from .folder import image_dir, load_colmap_folder, load_spinnerf_folder, open_folder
+from .folder import LAMA_INPUT, image_dir, load_colmap_folder, load_spinnerf_folder, open_folder
 from .io import list_images
 from .native import load_native_folder, save_scene
+from .nerfstudio import TRANSFORMS, load_nerfstudio_folder
 from .types import Scene
+from .usid import is_usid, load_usid_folder
 
 __all__ = ["LAYOUTS", "detect_layout", "load_scene", "save_scene"]
 
 # layout name -> loader of an image folder (the native format has no image-folder step)
-LAYOUTS = {"spinnerf": load_spinnerf_folder, "colmap": load_colmap_folder}
+LAYOUTS = {"spinnerf": load_spinnerf_folder, "colmap": load_colmap_folder, "360-usid": load_usid_folder}
 
 
 def detect_layout(root: Path, imgdir: Path) -> str:
-    """The layout name: "spinnerf" when the image folder has label/ or test_label/ or the root has
-    poses_bounds.npy, else "colmap"."""
+    """The layout name: "360-usid" when the root has test_images/ and object_masks/; "spinnerf"
+    when the image folder has label/, test_label/ or mask_test/, or the root has lama_input/
+    (GScream / FreeInpaint) or poses_bounds.npy; else "colmap"."""
+    if is_usid(root):
+        return "360-usid"
     spinnerf = (
         (imgdir / "label").is_dir()
         or (imgdir / "test_label").is_dir()
+        or (imgdir / "mask_test").is_dir()
+        or (root / LAMA_INPUT).is_dir()
         or (root / "poses_bounds.npy").is_file()
     )
     return "spinnerf" if spinnerf else "colmap"
@@ -51,7 +62,7 @@ def load_scene(
     mask_dilate: int = 0,
     priors: bool = True,
 ) -> Scene:
-    """Load a scene folder (SPIn-NeRF layout, plain COLMAP, or one written by `save_scene`).
+    """Load a scene folder (SPIn-NeRF layout, plain COLMAP, nerfstudio, or one written by `save_scene`).
 
     images: image folder name inside `path` (default: images_4, images, images_N).
     resolution: further downscale (0.5 -> half size); K is scaled to match.
@@ -66,6 +77,10 @@ def load_scene(
         raise FileNotFoundError(f"scene folder {root} not found")
     if (root / "scene.json").is_file():
         return load_native_folder(root).resized(resolution)
+    if (root / TRANSFORMS).is_file():
+        return load_nerfstudio_folder(
+            root, undistort=undistort, n_test=n_test, mask_dilate=mask_dilate, priors=priors
+        ).resized(resolution)
     imgdir = image_dir(root, images)
     files = list_images(imgdir)
     if not files:

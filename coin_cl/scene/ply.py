@@ -4,10 +4,11 @@ Gaussians in the 3DGS PLY layout are `coin_cl.gs.splats.Splats` (`to_ply` / `fro
 from __future__ import annotations
 
 import logging
+import struct
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 
 from .io import atomic_write
 
@@ -31,6 +32,25 @@ def write_points_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | 
     atomic_write(path, lambda p: PlyData([el], byte_order="<").write(str(p)))
 
 
+def read_ply_vertices(path: str | Path, what: str = "PLY") -> np.ndarray:
+    """The `vertex` element of a PLY file as a numpy structured array. A file that is truncated,
+    not a PLY, or has no vertex element is one ValueError line naming it (plyfile's own errors
+    name neither the file nor what to do)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} not found")
+    try:
+        ply = PlyData.read(str(path))
+        return ply["vertex"].data
+    except KeyError:
+        raise ValueError(f"{path} has no vertex element; it is not a {what}") from None
+    except (PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError, struct.error) as exc:
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(
+            f"{path} is not a readable {what} (truncated or malformed: {why}); re-export or re-copy it"
+        ) from None
+
+
 def read_points_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """PLY point cloud -> points (N, 3) float32, colours (N, 3) float32 in [0, 1] or None.
 
@@ -38,9 +58,7 @@ def read_points_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     scene) are unknown, not black: returned as None with a log line.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"point cloud {path} not found")
-    v = PlyData.read(str(path))["vertex"].data
+    v = read_ply_vertices(path, "point cloud")
     pts = np.stack([np.asarray(v[c], np.float32) for c in "xyz"], axis=1)
     names = v.dtype.names
     colors = None
