@@ -1,12 +1,13 @@
 """Which folders a command may write in: the one rule for every `--out`.
 
-A command (`run`, `train`, `prepare`, `demo`, `make-scene`, `eval`) writes only in an output folder
-that is absent (it creates it), empty, or carries its own marker `OUT/.coin-cl-out` (JSON: the
-command that made it and when), written when the command takes the folder. A non-empty folder
-without the marker is refused with one line (`OutputFolderError`): coin-cl deletes or renames only
-what it wrote, so it must know the folder is its own. Folders that earlier versions made before the
-marker existed are recognised by a file only that command writes (`LEGACY`: a run's run.json, a
-training's ckpt.pt, ...) and get the marker then.
+A command (`run`, `train`, `prepare`, `demo`, `make-scene`, `eval`, `render --out`) writes only in
+an output folder that is absent (it creates it), empty, or carries its own marker `OUT/.coin-cl-out`
+(JSON: the command that made it and when), written when the command takes the folder. A non-empty
+folder without the marker is refused with one line (`OutputFolderError`): coin-cl deletes or renames
+only what it wrote, so it must know the folder is its own. Folders that earlier versions made before
+the marker existed are recognised by a file only that command writes (`LEGACY`: a run's run.json, a
+training's ckpt.pt, ...) and get the marker then. `render` without `--out` writes in the train or
+run folder it renders, under that command's rule (its marker or LEGACY file, its lock).
 
 Only pure-stdlib imports (`coin_cl.atomic`), like the lock it is taken with.
 """

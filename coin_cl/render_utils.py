@@ -104,10 +104,11 @@ def render_views(
     gif: a looping GIF of the frames."""
     from tqdm import tqdm
 
+    from coin_cl.atomic import check_path
     from coin_cl.scene.io import to_uint8, write_png
 
     if dest is not None:
-        Path(dest).mkdir(parents=True, exist_ok=True)
+        check_path(dest).mkdir(parents=True, exist_ok=True)  # made through no link (`confined_to`)
     frames = []
     for i, cam in enumerate(tqdm(cameras, desc=desc, unit="view")):
         with torch.no_grad():
@@ -170,13 +171,18 @@ def _run_folder(run: Path) -> tuple[Path, dict]:
 
 
 def render_checkpoint(
-    out_dir: Path, views: str = "test", frames: int = 48, backend: str = "opencl", device=None
+    out_dir: Path,
+    views: str = "test",
+    frames: int = 48,
+    backend: str = "opencl",
+    device=None,
+    dest: Path | None = None,
 ) -> tuple[int, Path]:
     """Render the model trained into `out_dir` (its checkpoint and cameras.json, or a `coin-cl run`
     folder: its final stage's model and its scene's cameras): `views` is "test",
     "train" or "orbit" (`frames` cameras from `orbit_cameras`). Writes an image and a depth map per
-    view under `out_dir/renders/<views>/` (and `renders/orbit.gif` for the orbit); returns the
-    number of views and the path written (the folder, or the GIF)."""
+    view under `dest/<views>/` (and `dest/orbit.gif` for the orbit; `dest` defaults to
+    `out_dir/renders`); returns the number of views and the path written (the folder, or the GIF)."""
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json
 
@@ -194,9 +200,10 @@ def render_checkpoint(
     model = model_from_state(state["model"])
     model.device = device
     step = int(state["trainer"]["step"])
-    dest = out_dir / "renders" / views
+    root = out_dir / "renders" if dest is None else Path(dest)
+    dest = root / views
     if views == "orbit":
-        gif = out_dir / "renders" / "orbit.gif"
+        gif = root / "orbit.gif"
         train = cameras_from_json(cams["train"])
         orbit = orbit_gif(model, train, gif, frames, step, backend, dest, depth=True)
         return len(orbit), gif

@@ -143,3 +143,46 @@ def test_make_scene_and_train_refuse_another_commands_folder(scene, tmp_path, ca
     assert "is the output folder of coin-cl make-scene, not of coin-cl train" in _one_line(capsys)
     assert main(["make-scene", str(out), "--views", "4", "--width", "32", "--height", "24"]) == 0
     assert _tree(out) == before  # the same scene written again in its own folder
+
+
+def test_a_second_run_with_other_settings_leaves_the_running_runs_plan_alone(
+    scene, tmp_path, capsys, monkeypatch
+):
+    """The first run is paused in its first stage, its plan made (in a thread, holding the folder's lock); a
+    second run with other settings is refused in one line and the first's plan.json (the step counts
+    every stage and every rerun uses) keeps every byte."""
+    import hashlib
+    import threading
+
+    import coin_cl.pipeline.coin as coin
+
+    out = tmp_path / "out"
+    paused, go = threading.Event(), threading.Event()
+
+    def pausing(ctx):
+        paused.set()
+        assert go.wait(60)
+        raise ValueError("the first run stops here: its stages are not under test")
+
+    monkeypatch.setattr(coin, "stage_scene", pausing)
+    rc: list[int] = []
+    first = threading.Thread(target=lambda: rc.append(main(
+        ["run", str(scene), "--out", str(out), "--iters", "1", "--prior-seconds", "1"])))  # fmt: skip
+    first.start()
+    try:
+        assert paused.wait(120)
+        plan = hashlib.sha256((out / "plan.json").read_bytes()).hexdigest()
+        capsys.readouterr()
+        assert main(["run", str(scene), "--out", str(out), "--iters", "3", "--prior-seconds", "2",
+                     "--seed", "7", "--force", "scene"]) == 2  # fmt: skip
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(
+            f"coin-cl run: error: {out} is in use by another coin-cl run"
+        )
+        assert hashlib.sha256((out / "plan.json").read_bytes()).hexdigest() == plan
+    finally:
+        go.set()
+        first.join(120)
+    assert rc == [2]  # the first went on after the refusal, to its own (test) end
+    assert hashlib.sha256((out / "plan.json").read_bytes()).hexdigest() == plan
+    assert not (out / ".coin-cl.lock").exists()

@@ -64,3 +64,101 @@ def test_train_and_render_honour_device(scene_dir, tmp_path, monkeypatch):
                  "--out", str(out), "--device", target]) == 0  # fmt: skip
     assert main(["render", str(out), "--views", "test", "--device", target]) == 0
     assert seen and set(seen) == {target}
+
+
+def _files(folder):
+    """{relative path: bytes} of every file under `folder`."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_second_train_on_a_training_folder_is_refused_and_the_first_completes(
+    scene_dir, tmp_path, capsys, monkeypatch
+):
+    """The first training is paused mid-run (in a thread, holding its folder's lock); a second
+    training with other settings on that folder is refused in one line and changes no byte of it;
+    the first then finishes."""
+    import threading
+
+    from coin_cl.gs.trainer import Trainer
+
+    out = tmp_path / "t"
+    paused, go = threading.Event(), threading.Event()
+    step = Trainer.train_step
+
+    def pausing_step(self):
+        if self.step == 2 and not paused.is_set():  # after step 2's checkpoint
+            paused.set()
+            assert go.wait(60)
+        return step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", pausing_step)
+    rc: list[int] = []
+    first = threading.Thread(target=lambda: rc.append(main([
+        "train", str(scene_dir), "--model", "3dgs", "--iters", "4", "--resolution", "1.0",
+        "--out", str(out), "--ckpt-every", "2", "--backend", "torch"])))  # fmt: skip
+    first.start()
+    try:
+        assert paused.wait(60)
+        before = _files(out)
+        assert ".coin-cl.lock" in before and "ckpt.pt" in before
+        capsys.readouterr()
+        assert main(["train", str(scene_dir), "--model", "scaffold", "--iters", "5", "--fresh",
+                     "--out", str(out), "--backend", "torch"]) == 2  # fmt: skip
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"coin-cl train: error: {out} is in use by another")
+        assert _files(out) == before
+    finally:
+        go.set()
+        first.join(120)
+    assert rc == [0]
+    assert json.loads((out / "log.json").read_text())["train"][-1]["step"] == 4
+    assert not (out / ".coin-cl.lock").exists()
+
+
+def test_render_writes_only_in_its_trained_folder_or_its_own_out_and_waits_for_no_one(
+    scene_dir, tmp_path, capsys
+):
+    from coin_cl.pipeline.lock import acquire
+
+    out = tmp_path / "t"
+    assert main(["train", str(scene_dir), "--model", "3dgs", "--iters", "2", "--resolution", "1.0",
+                 "--out", str(out), "--backend", "torch"]) == 0  # fmt: skip
+    render = ["render", str(out), "--views", "test", "--backend", "torch"]
+    # a training still holding the folder: render is refused before writing anything
+    lk = acquire(out)
+    try:
+        before = _files(out)
+        capsys.readouterr()
+        assert main(render) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"coin-cl render: error: {out} is in use by another")
+        assert _files(out) == before
+    finally:
+        lk.release()
+    # a folder no train or run made: refused, untouched
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("mine")
+    assert main(["render", str(theirs)]) == 2
+    assert "has no model to render" in capsys.readouterr().err
+    assert sorted(p.name for p in theirs.iterdir()) == ["notes.txt"]
+    # renders/ a link out of the folder: refused, nothing written through it
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (out / "renders").symlink_to(elsewhere, target_is_directory=True)
+    assert main(render) == 2
+    assert "is a symbolic link" in capsys.readouterr().err and not any(elsewhere.iterdir())
+    (out / "renders").unlink()
+    # --out: the trained folder is only read, the renders go to a folder render marks as its own
+    before = _files(out)
+    dest = tmp_path / "r"
+    assert main([*render, "--out", str(dest)]) == 0
+    assert _files(out) == before
+    assert len(list((dest / "test").glob("*_depth.png"))) == 1
+    assert json.loads((dest / ".coin-cl-out").read_text())["command"] == "render"
+    assert main([*render, "--out", str(theirs)]) == 2  # --out follows the output-folder rule
+    assert sorted(p.name for p in theirs.iterdir()) == ["notes.txt"]
+    # and without --out, into the trained folder's renders/
+    assert main(render) == 0
+    assert len(list((out / "renders" / "test").glob("*_depth.png"))) == 1
+    assert not (out / ".coin-cl.lock").exists()

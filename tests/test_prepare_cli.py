@@ -75,3 +75,48 @@ def test_out_the_photos_parent_keeps_every_photo_and_an_existing_scene_is_refuse
     )
     assert (other / "sparse" / "0" / "cameras.txt").read_text() == "# theirs"
     assert sorted(p.name for p in other.rglob("*")) == ["0", "cameras.txt", "sparse"]
+
+
+def test_a_second_prepare_on_a_folder_being_prepared_is_refused_and_the_first_completes(
+    tmp_path, capsys, monkeypatch
+):
+    """The first prepare is paused between feature extraction and matching (in a thread, holding
+    its folder's lock); a second prepare with other settings on that folder is refused in one line
+    and changes no byte of it; the first then finishes its scene."""
+    import threading
+
+    import coin_cl.prepare.sfm as sfm
+    from coin_cl import load_scene
+    from coin_cl.prepare.capture import synthetic_capture
+
+    photos, out = tmp_path / "photos", tmp_path / "scene"
+    synthetic_capture(photos, n_views=8, width=192, height=144)
+    paused, go = threading.Event(), threading.Event()
+    match = sfm._match
+
+    def pausing_match(*a, **k):
+        paused.set()
+        assert go.wait(60)
+        return match(*a, **k)
+
+    monkeypatch.setattr(sfm, "_match", pausing_match)
+    rc: list[int] = []
+    first = threading.Thread(target=lambda: rc.append(main(["prepare", str(photos), "--out", str(out)])))
+    first.start()
+    try:
+        assert paused.wait(60)
+        files = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+        assert ".coin-cl.lock" in files and any(name.endswith(".png") for name in files)
+        capsys.readouterr()
+        code, err = run([photos, "--out", out, "--width", "96", "--replace"], capsys)
+        assert code == 2 and len(err) == 1
+        assert err[0].startswith(f"coin-cl prepare: error: {out} is in use by another coin-cl run")
+        assert {
+            str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()
+        } == files
+    finally:
+        go.set()
+        first.join(120)
+    assert rc == [0]
+    assert load_scene(out).images[0].shape == (144, 192, 3)
+    assert not (out / ".coin-cl.lock").exists()

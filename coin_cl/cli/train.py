@@ -46,7 +46,13 @@ def add_commands(subparsers) -> None:
     t.set_defaults(func=cmd_train)
 
     r = subparsers.add_parser("render", help="render a trained model: images, depth maps, an orbit")
-    r.add_argument("out_dir", type=Path)
+    r.add_argument("out_dir", type=Path, help="a folder coin-cl train or coin-cl run made")
+    r.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="write the renders here (new, empty, or one coin-cl render made) instead of OUT_DIR/renders",
+    )
     r.add_argument("--views", choices=("test", "train", "orbit"), default="test")
     r.add_argument("--frames", type=int, default=48, help="orbit frames")
     r.add_argument("--backend", choices=("opencl", "torch"), default="opencl")
@@ -90,6 +96,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from coin_cl.cli.guard import output_folder
+    from coin_cl.outdir import MARKER, OutputFolderError, check_output, read_marker
     from coin_cl.render_utils import render_checkpoint
 
     if args.out_dir.is_file() and args.out_dir.suffix.lower() == ".ply":
@@ -101,7 +109,35 @@ def cmd_render(args: argparse.Namespace) -> int:
             "into (or a coin-cl run folder); to open the PLY in a viewer see `coin-cl export`"
         )
 
-    n, where = render_checkpoint(args.out_dir, args.views, args.frames, args.backend, args.device)
+    src = args.out_dir
+    if not src.is_dir():
+        raise FileNotFoundError(f"{src} is not a folder: give a folder coin-cl train or coin-cl run made")
+    if args.out is not None and args.out.resolve().is_relative_to(src.resolve()):
+        raise OutputFolderError(
+            f"--out {args.out} lies inside {src}: leave --out out to render into {src / 'renders'}"
+        )
+    if args.out is not None:
+        # the trained folder is only read; the renders go to a folder of render's own
+        folder, command, dest = args.out, "render", args.out
+    else:
+        # the renders go inside the trained folder: only one its command made, taken like that command
+        made_by = (read_marker(src) or {}).get("command")
+        command = made_by or ("run" if (src / "run.json").is_file() else "train")
+        try:
+            kind = check_output(src, command) if command in ("train", "run") else None
+        except OutputFolderError:
+            kind = None
+        if kind != "ours":
+            raise OutputFolderError(
+                f"{src} is the output folder of coin-cl {made_by}: give render a folder coin-cl train "
+                "or coin-cl run made"
+                if made_by
+                else f"{src} has no model to render (no ckpt.pt, run.json or {MARKER} in it): train "
+                "into it first, or give a folder coin-cl train or coin-cl run made"
+            )
+        folder, dest = src, src / "renders"
+    with output_folder(folder, command):
+        n, where = render_checkpoint(src, args.views, args.frames, args.backend, args.device, dest)
     if args.views == "orbit":
         print(f"wrote {n} frames and {where}")
     else:
