@@ -17,6 +17,7 @@ from coin_cl.diffusion.scene_prior import (
 )
 
 from coin_cl import metrics
+from coin_cl.checkpoint import load_checkpoint
 
 
 def texture(seed: int, n: int = 128) -> np.ndarray:
@@ -163,7 +164,7 @@ def test_steps_mode_resumes_after_a_kill_to_the_same_model(tmp_path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "run", progress=False, ckpt_seconds=0.0)
     (ck,) = (tmp_path / "run").glob("*.ckpt.pt")
-    assert torch.load(ck, weights_only=False)["steps"] == 3
+    assert load_checkpoint(ck)["steps"] == 3
     monkeypatch.setattr(sp, "denoising_loss", real)
     res = train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "run", progress=False)
     assert res.info["steps"] == 6 and not list((tmp_path / "run").glob("*.ckpt.pt"))
