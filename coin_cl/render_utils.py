@@ -192,7 +192,7 @@ def render_checkpoint(
     else:
         cams = json.loads((out_dir / CAMERAS_NAME).read_text())
     if ckpt.parent == out_dir:
-        remedy = f"it is not a model coin-cl trained: delete it and train into {out_dir} again"
+        remedy = f"delete it and train into {out_dir} again"
     else:  # a run folder's stage (4_ted/<phase>/ckpt.pt, 2_refgs/gs/ckpt.pt)
         remedy = f"rerun coin-cl run on {out_dir} with --force {ckpt.relative_to(out_dir).parts[0]}"
     state = load_checkpoint(ckpt, remedy)
