@@ -150,7 +150,8 @@ def unreadable_files(root: Path) -> list[str]:
     """Files under final names that do not read back whole (PNG/GIF decode, .pt loads, JSON parses,
     PLY parses, .npy loads): what a kill must never leave."""
     import imageio.v3 as iio
-    import torch
+
+    from coin_cl.checkpoint import load_checkpoint
 
     bad = []
     for p in sorted(root.rglob("*")):
@@ -160,7 +161,7 @@ def unreadable_files(root: Path) -> list[str]:
             if p.suffix in (".png", ".jpg", ".gif"):
                 iio.imread(p, index=None) if p.suffix == ".gif" else iio.imread(p)
             elif p.suffix == ".pt":
-                torch.load(p, map_location="cpu", weights_only=False)
+                load_checkpoint(p)
             elif p.suffix == ".json":
                 json.loads(p.read_text())
             elif p.suffix == ".npy":
@@ -224,7 +225,8 @@ def _equal(a, b) -> bool:
 def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
     """(files compared, those that differ): every file of every stage folder, bytes for images,
     PLY and arrays; tensors for .pt; JSON without timings; trainer logs without timings."""
-    import torch
+
+    from coin_cl.checkpoint import load_checkpoint
 
     n, diff = 0, []
     for st in [s for s in STAGES if (ref / s).is_dir() or (run / s).is_dir()]:
@@ -239,11 +241,7 @@ def compare_outputs(ref: Path, run: Path) -> tuple[int, list[str]]:
             n += 1
             pa, pb = ref / st / f, run / st / f
             if f.suffix in (".pt", ".json"):
-                load = (
-                    (lambda p: torch.load(p, weights_only=False))
-                    if f.suffix == ".pt"
-                    else (lambda p: json.loads(p.read_text()))
-                )
+                load = load_checkpoint if f.suffix == ".pt" else (lambda p: json.loads(p.read_text()))
                 same = _equal(_strip(load(pa), str(ref)), _strip(load(pb), str(run)))
             else:
                 same = pa.read_bytes() == pb.read_bytes()
@@ -270,13 +268,13 @@ def wrote_progress(folder: Path, since: float) -> bool:
 def progress_kept(folder: Path) -> int:
     """Work a killed stage keeps for its resumption: training steps in its checkpoints (GS trainer,
     scene prior) plus per-view images already written."""
-    import torch
+    from coin_cl.checkpoint import load_checkpoint
 
     n = 0
     for p in folder.rglob("*.pt"):
         if p.name == "ckpt.pt" or p.name.endswith(".ckpt.pt"):
             try:
-                st = torch.load(p, map_location="cpu", weights_only=False)
+                st = load_checkpoint(p)
             except Exception:  # noqa: BLE001 - counted as unreadable elsewhere
                 continue
             n += int(st["trainer"]["step"]) if "trainer" in st else int(st.get("steps", 0))

@@ -76,6 +76,7 @@ def ghost_of_model(model, scene, depths: dict[int, np.ndarray]) -> float:
 def final_model(run: Path):
     """The final model of a `coin-cl run` folder (the stage eval scored; the last stage that trained
     one when the folder has no eval)."""
+    from coin_cl.checkpoint import load_checkpoint
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CKPT_NAME
 
@@ -85,7 +86,7 @@ def final_model(run: Path):
     else:
         folder = next(run / s for s in ("4_ted", "2_refgs") if any((run / s).rglob(CKPT_NAME)))
     ckpt = sorted(folder.rglob(CKPT_NAME), key=lambda p: p.stat().st_mtime)[-1]
-    return model_from_state(torch.load(ckpt, weights_only=False)["model"])
+    return model_from_state(load_checkpoint(ckpt)["model"])
 
 
 def ghost_of_run(run: Path, scene, depths: dict[int, np.ndarray]) -> float:

@@ -40,6 +40,7 @@ sys.path.insert(0, str(ROOT))
 from common import cpu_model, default_data, git_commit, vgg_pd_cell, vgg_pd_note, write_result  # noqa: E402
 
 from coin_cl import load_scene, metrics  # noqa: E402
+from coin_cl.checkpoint import load_checkpoint  # noqa: E402
 from coin_cl.gs.model_kinds import model_from_state  # noqa: E402
 from coin_cl.gs.refgs import RefGSConfig  # noqa: E402
 from coin_cl.gs.targets import composite_targets  # noqa: E402
@@ -79,7 +80,7 @@ def cross_view_residual(scene, res: dict, k: int, target_k: np.ndarray) -> float
 
 
 def score(scene, res: dict, backend: str) -> dict:
-    state = torch.load(res["checkpoint"], weights_only=False)
+    state = load_checkpoint(res["checkpoint"])
     model = model_from_state(state["model"])
     vgg, _ = vgg16_h5_from_env()  # None without the weights: the column says so
     per_view = []

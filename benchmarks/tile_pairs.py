@@ -28,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 
 from common import cpu_model, git_commit  # noqa: E402
 
+from coin_cl.checkpoint import load_checkpoint  # noqa: E402
 from coin_cl.engine import constants as cst  # noqa: E402
 from coin_cl.engine.reference import splat_extents  # noqa: E402
 from coin_cl.gs.model_kinds import model_from_state  # noqa: E402
@@ -82,7 +83,7 @@ def main() -> int:
     for name in ("ckpt.pt", "cameras.json"):
         if not (args.ckpt_dir / name).is_file():
             ap.error(f"{args.ckpt_dir / name} not found: pass a trainer checkpoint folder")
-    model = model_from_state(torch.load(args.ckpt_dir / "ckpt.pt", weights_only=False)["model"])
+    model = model_from_state(load_checkpoint(args.ckpt_dir / "ckpt.pt")["model"])
     cams = cameras_from_json(json.loads((args.ckpt_dir / "cameras.json").read_text())["train"])
 
     import coin_cl.engine.ops.rasterize as rz

@@ -183,6 +183,7 @@ def render_checkpoint(
     "train" or "orbit" (`frames` cameras from `orbit_cameras`). Writes an image and a depth map per
     view under `dest/<views>/` (and `dest/orbit.gif` for the orbit; `dest` defaults to
     `out_dir/renders`); returns the number of views and the path written (the folder, or the GIF)."""
+    from coin_cl.checkpoint import load_checkpoint, malformed
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json
 
@@ -196,10 +197,17 @@ def render_checkpoint(
         )
     else:
         cams = json.loads((out_dir / CAMERAS_NAME).read_text())
-    state = torch.load(ckpt, weights_only=False)
-    model = model_from_state(state["model"])
+    if ckpt.parent == out_dir:
+        remedy = f"delete it and train into {out_dir} again"
+    else:  # a run folder's stage (4_ted/<phase>/ckpt.pt, 2_refgs/gs/ckpt.pt)
+        remedy = f"rerun coin-cl run on {out_dir} with --force {ckpt.relative_to(out_dir).parts[0]}"
+    state = load_checkpoint(ckpt, remedy)
+    try:
+        model = model_from_state(state["model"])
+        step = int(state["trainer"]["step"])
+    except (KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise malformed(ckpt, exc, remedy) from None
     model.device = device
-    step = int(state["trainer"]["step"])
     root = out_dir / "renders" if dest is None else Path(dest)
     dest = root / views
     if views == "orbit":

@@ -9,7 +9,9 @@ from torch import Tensor
 
 from coin_cl.engine.gaussians import Gaussians
 
-__all__ = ["Gaussians", "garden_like", "look_at_camera", "random_gaussians"]
+__all__ = [
+    "Gaussians", "garden_like", "hostile_checkpoint", "look_at_camera", "plant_marker", "random_gaussians"
+]  # fmt: skip
 
 
 def look_at_camera(
@@ -68,3 +70,31 @@ def garden_like(points: Tensor, n: int, seed: int = 0, jitter: float = 0.5, chan
         opacities=torch.rand(n, generator=g),
         colors=torch.rand(n, channels, generator=g),
     )
+
+
+def plant_marker(marker: str) -> dict:
+    """Write the file `marker`: the payload of `hostile_checkpoint`, so a test sees whether it ran."""
+    from pathlib import Path
+
+    Path(marker).write_text("the checkpoint's code ran")
+    return {}
+
+
+class _Payload:
+    """Unpickles by calling `plant_marker(marker)`: code run by merely loading the file."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (plant_marker, (self.marker,))
+
+
+def hostile_checkpoint(path, marker) -> None:
+    """Write at `path` a torch.save file shaped like a trainer checkpoint whose unpickling writes
+    the file `marker` (`plant_marker`): loaded with weights_only=False, the marker appears."""
+    from pathlib import Path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    state = {"model": _Payload(str(marker)), "trainer": {"step": 1}, "state_dict": {}, "info": {}}
+    torch.save(state, path)

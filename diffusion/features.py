@@ -30,6 +30,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from coin_cl.checkpoint import load_checkpoint  # torch only: no engine, no OpenCL
+
 log = logging.getLogger(__name__)
 
 DINO_ENV = "COIN_DINO_WEIGHTS"
@@ -143,8 +145,8 @@ def load_dino(path: str | os.PathLike | None = None) -> DinoViT:
             f"DINO weights file {p} does not exist (set {DINO_ENV} or pass the path "
             "to dino_deitsmall16_pretrain.pth)"
         )
-    sd = torch.load(p, map_location="cpu", weights_only=True)
-    if isinstance(sd, dict) and "teacher" in sd:
+    sd = load_checkpoint(p, f"set {DINO_ENV} to dino_deitsmall16_pretrain.pth", what="DINO weight file")
+    if "teacher" in sd:
         sd = sd["teacher"]
     sd = {k.removeprefix("module.").removeprefix("backbone."): v for k, v in sd.items()}
     sd = {k: v for k, v in sd.items() if not k.startswith("head.")}

@@ -7,6 +7,11 @@ image (1, 3, H, W) float32 RGB in [0, 1] and mask (1, 1, H, W) float32 in {0, 1}
 padded up to a multiple of 8 by symmetric (mirror) padding at the bottom and right; the output is
 (1, 3, H, W) RGB in [0, 1], cropped back to the input size. The file is named by an argument or the
 ``COIN_LAMA_PATH`` environment variable (the CLI's ``--lama-path``).
+
+A TorchScript file is a program, not data: loading it and calling it runs the code it holds, and
+nothing here sandboxes that. The LaMa file is trusted input, like an executable: name only a file
+from a source you trust (IOPaint's big-lama.pt). Checkpoints, by contrast, are read without running
+anything (`coin_cl.checkpoint`).
 """
 
 from __future__ import annotations
@@ -45,7 +50,7 @@ def resolve_lama_path(path: str | os.PathLike | None = None) -> Path:
 
 def load_lama(path: str | os.PathLike | None = None) -> torch.jit.ScriptModule:
     """Load the TorchScript LaMa on the CPU (eval mode); a file that is not a TorchScript archive
-    gives a ValueError naming it and COIN_LAMA_PATH."""
+    gives a ValueError naming it and COIN_LAMA_PATH. The file runs as code: trusted input only."""
     p = resolve_lama_path(path)
     try:
         model = torch.jit.load(str(p), map_location="cpu")

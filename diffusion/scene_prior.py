@@ -38,6 +38,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from coin_cl.atomic import atomic_write  # pure stdlib: no engine, no OpenCL
+from coin_cl.checkpoint import load_checkpoint, malformed  # torch only: no engine, no OpenCL
 from coin_cl.timing import mean_step_seconds  # pure stdlib too
 
 from .sampling import DDIMSampler, Denoiser, EnergyFn, SamplerConfig, split_prediction
@@ -52,6 +53,8 @@ STEPS_PER_SECOND = 133 / 120
 # Wall-clock seconds between training checkpoints, so that a kill loses at most about this much
 # ($COIN_CKPT_SECONDS overrides it, as for the GS trainer: benchmarks/faults.py uses 1).
 CKPT_SECONDS = float(os.environ.get("COIN_CKPT_SECONDS", 60.0))
+# What to do with a cached prior or its training checkpoint that cannot be read (ends the one line).
+CACHE_REMEDY = "delete it: the scene prior is trained again"
 
 
 def steps_for_seconds(seconds: float, seconds_per_step: float | None = None) -> int:
@@ -383,16 +386,14 @@ def train_scene_prior(
         key = cache_key(images, exclude, cfg)
         path = Path(cache_dir) / f"scene_prior_{key}.pt"
         if path.is_file():
-            blob = torch.load(path, map_location="cpu", weights_only=False)
+            blob = load_checkpoint(path, CACHE_REMEDY)
             net = InpaintUNet(cfg.base)
-            net.load_state_dict(blob["state_dict"])
-            log.info(
-                "%s: reusing cached model %s (trained %.0f s, %d steps)",
-                NAME,
-                path,
-                blob["info"]["train_s"],
-                blob["info"]["steps"],
-            )
+            try:
+                net.load_state_dict(blob["state_dict"])
+                train_s, n_steps = float(blob["info"]["train_s"]), int(blob["info"]["steps"])
+            except (KeyError, TypeError, ValueError, AttributeError) as exc:
+                raise malformed(path, exc, CACHE_REMEDY) from None
+            log.info("%s: reusing cached model %s (trained %.0f s, %d steps)", NAME, path, train_s, n_steps)
             return ScenePrior(net, cfg, blob["info"] | {"cached": True, "path": str(path)})
     torch.manual_seed(cfg.seed)
     net = InpaintUNet(cfg.base)
@@ -408,12 +409,15 @@ def train_scene_prior(
     ckpt = None if path is None else path.with_name(path.stem + ".ckpt.pt")
     steps, ema, spent = 0, None, 0.0
     if ckpt is not None and ckpt.is_file():
-        st = torch.load(ckpt, map_location="cpu", weights_only=False)
-        net.load_state_dict(st["net"])
-        opt.load_state_dict(st["opt"])
-        g.set_state(st["gen"])
-        sampler.rng.bit_generator.state = st["rng"]
-        steps, ema, spent = st["steps"], st["ema"], st["train_s"]
+        st = load_checkpoint(ckpt, CACHE_REMEDY)
+        try:
+            net.load_state_dict(st["net"])
+            opt.load_state_dict(st["opt"])
+            g.set_state(st["gen"])
+            sampler.rng.bit_generator.state = st["rng"]
+            steps, ema, spent = st["steps"], st["ema"], st["train_s"]
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise malformed(ckpt, exc, CACHE_REMEDY) from None
         log.info("%s: resuming the interrupted training at step %d (%s)", NAME, steps, ckpt)
     log.info(
         "%s: training %.2f M parameters on %d images for %s (patch %d, scales %s)",

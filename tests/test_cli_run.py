@@ -67,3 +67,33 @@ def test_every_stage_shows_progress(tmp_path, capsys):
     assert ("train scaffold", 4) in done and ("train scaffold", 3) in done  # TE-D's two phases
     assert any(name.startswith("CLG") for name in names)
     assert "eval renders" in names and "orbit" in names
+
+
+def test_a_rerun_does_not_resume_from_a_hostile_checkpoint(tmp_path, capsys, monkeypatch):
+    """`coin-cl run` on a half-finished run folder resumes 2_refgs from 2_refgs/gs/ckpt.pt: a file
+    planted there that would run code when unpickled is refused, in one line naming it and the stage
+    to rerun, and its code never runs."""
+    from coin_cl.gs.trainer import Trainer
+    from coin_cl.scene import write_synthetic
+    from coin_cl.testing import hostile_checkpoint
+
+    room = write_synthetic(tmp_path / "room", n_views=5, width=32, height=24, seed=1)
+    out, marker = tmp_path / "run", tmp_path / "marker"
+    args = ["run", str(room), "--out", str(out), "--iters", "2", "--prior-seconds", "1",
+            "--inpaint-region", "input", "--skip-stage", "clg", "--skip-stage", "ted"]  # fmt: skip
+
+    def killed(self):
+        raise KeyboardInterrupt  # the run is killed in its first GS training, inside 2_refgs
+
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "train", killed)
+        with pytest.raises(KeyboardInterrupt):
+            main(args)
+    assert (out / "2_refgs").is_dir() and not (out / "2_refgs" / "manifest.json").exists()
+    ckpt = out / "2_refgs" / "gs" / "ckpt.pt"
+    hostile_checkpoint(ckpt, marker)
+    capsys.readouterr()
+    assert main(args) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
+    assert len(err) == 1 and str(ckpt) in err[0] and "refused" in err[0], err
+    assert "Traceback" not in err[0] and not marker.exists()

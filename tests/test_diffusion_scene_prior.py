@@ -17,6 +17,7 @@ from coin_cl.diffusion.scene_prior import (
 )
 
 from coin_cl import metrics
+from coin_cl.checkpoint import load_checkpoint
 
 
 def texture(seed: int, n: int = 128) -> np.ndarray:
@@ -163,7 +164,7 @@ def test_steps_mode_resumes_after_a_kill_to_the_same_model(tmp_path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "run", progress=False, ckpt_seconds=0.0)
     (ck,) = (tmp_path / "run").glob("*.ckpt.pt")
-    assert torch.load(ck, weights_only=False)["steps"] == 3
+    assert load_checkpoint(ck)["steps"] == 3
     monkeypatch.setattr(sp, "denoising_loss", real)
     res = train_scene_prior(imgs, None, cfg, cache_dir=tmp_path / "run", progress=False)
     assert res.info["steps"] == 6 and not list((tmp_path / "run").glob("*.ckpt.pt"))
@@ -188,3 +189,24 @@ def test_scene_prior_probe_measures_a_positive_rate():
     for bad in (0.0, -1.0, float("inf")):
         with pytest.raises(ValueError, match="seconds per step"):
             steps_for_seconds(120.0, bad)
+
+
+@pytest.mark.parametrize("which", ["cache", "training checkpoint"])
+def test_a_hostile_cached_prior_is_refused_without_running(tmp_path, which):
+    """The cache (scene_prior_<key>.pt) and its training checkpoint (.ckpt.pt) come from the run
+    folder, which may come from anyone: a planted file that would run code is refused, in one line
+    naming it."""
+    from coin_cl.checkpoint import CheckpointError
+    from coin_cl.testing import hostile_checkpoint
+
+    cfg = ScenePriorConfig(patch=16, base=8, scales=(1,), batch=2, train_steps=2, train_seconds=0.0)
+    imgs = [texture(0, 48)]
+    path = tmp_path / f"scene_prior_{cache_key(imgs, [np.zeros((48, 48), bool)], cfg)}.pt"
+    if which != "cache":
+        path = path.with_name(path.stem + ".ckpt.pt")
+    hostile_checkpoint(path, tmp_path / "marker")
+    with pytest.raises(CheckpointError, match="refused") as exc:
+        train_scene_prior(imgs, None, cfg, cache_dir=tmp_path, progress=False)
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+    assert "the scene prior is trained again" in str(exc.value)
+    assert not (tmp_path / "marker").exists()

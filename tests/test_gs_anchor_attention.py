@@ -127,7 +127,7 @@ def test_attention_caps_seeded_and_state_round_trip():
     torch.save(sd, buf)
     buf.seek(0)
     a3 = AnchorAttention(32, max_in=7, max_side=9, seed=99)
-    a3.load_state_dict(torch.load(buf, weights_only=False))
+    a3.load_state_dict(torch.load(buf, weights_only=True))
     assert a3.n_calls == 1
     assert torch.equal(a1(f, in_idx, side_idx)[0], a3(f, in_idx, side_idx)[0])
 

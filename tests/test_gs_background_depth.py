@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from coin_cl import load_scene
+from coin_cl.checkpoint import load_checkpoint
 from coin_cl.gs.background_depth import MIN_PIXELS, BackgroundDepthTerm, background_depth, background_depths
 from coin_cl.gs.base import RenderOutput
 from coin_cl.gs.data import Camera, View
@@ -126,7 +127,7 @@ def test_bad_settings_are_clear_errors():
 def _ghost(run: dict, scene, syn) -> float:
     from coin_cl.gs.model_kinds import model_from_state
 
-    model = model_from_state(torch.load(run["checkpoint"], weights_only=False)["model"])
+    model = model_from_state(load_checkpoint(run["checkpoint"])["model"])
     vals = []
     for i in scene.test_idx:
         m = np.asarray(scene.masks[i], bool)

@@ -162,3 +162,70 @@ def test_render_writes_only_in_its_trained_folder_or_its_own_out_and_waits_for_n
     assert main(render) == 0
     assert len(list((out / "renders" / "test").glob("*_depth.png"))) == 1
     assert not (out / ".coin-cl.lock").exists()
+
+
+def _one_line_naming(err: str, path) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and str(path) in lines[0] and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_render_refuses_a_hostile_checkpoint_without_running_it(tmp_path, capsys):
+    """`coin-cl render TRAIN_DIR` on a received folder whose ckpt.pt would run code when unpickled."""
+    from coin_cl.testing import hostile_checkpoint
+
+    out, marker = tmp_path / "received", tmp_path / "marker"
+    hostile_checkpoint(out / "ckpt.pt", marker)
+    (out / "cameras.json").write_text('{"train": [], "test": []}')
+    assert main(["render", str(out)]) == 2
+    line = _one_line_naming(capsys.readouterr().err, out / "ckpt.pt")
+    assert "refused" in line and "nothing in it was run" in line and not marker.exists()
+
+
+def test_render_of_a_run_folder_refuses_a_hostile_stage_checkpoint(scene_dir, tmp_path, capsys):
+    """`coin-cl render RUN`: the model comes from the run's 2_refgs/gs/ckpt.pt; the error says
+    which stage to rerun."""
+    import shutil
+
+    from coin_cl.testing import hostile_checkpoint
+
+    run, marker = tmp_path / "run", tmp_path / "marker"
+    shutil.copytree(scene_dir, run / "0_scene" / "scene")
+    (run / "run.json").write_text("{}")
+    hostile_checkpoint(run / "2_refgs" / "gs" / "ckpt.pt", marker)
+    assert main(["render", str(run)]) == 2
+    line = _one_line_naming(capsys.readouterr().err, run / "2_refgs" / "gs" / "ckpt.pt")
+    assert "refused" in line and "--force 2_refgs" in line and not marker.exists()
+
+
+def test_render_of_a_truncated_checkpoint_is_one_line(tmp_path, capsys):
+    out = tmp_path / "cut"
+    out.mkdir()
+    (out / "ckpt.pt").write_bytes(b"PK\x03\x04 half of a checkpoint")
+    (out / "cameras.json").write_text('{"train": [], "test": []}')
+    assert main(["render", str(out)]) == 2
+    assert "truncated" in _one_line_naming(capsys.readouterr().err, out / "ckpt.pt")
+
+
+def test_train_does_not_resume_from_a_hostile_checkpoint(scene_dir, tmp_path, capsys):
+    """`coin-cl train --out DIR` resumes from DIR/ckpt.pt: a planted one is refused, not run."""
+    from coin_cl.testing import hostile_checkpoint
+
+    out, marker = tmp_path / "out", tmp_path / "marker"
+    hostile_checkpoint(out / "ckpt.pt", marker)
+    assert main(["train", str(scene_dir), "--model", "3dgs", "--iters", "2", "--resolution", "1.0",
+                 "--backend", "torch", "--out", str(out)]) == 2  # fmt: skip
+    line = _one_line_naming(capsys.readouterr().err, out / "ckpt.pt")
+    assert "refused" in line and "--fresh" in line and not marker.exists()
+
+
+def test_train_names_a_checkpoint_of_another_shape(scene_dir, tmp_path, capsys):
+    """A safe dict that is not a training checkpoint (another program's) is one line too."""
+    import torch
+
+    out = tmp_path / "out"
+    out.mkdir()
+    torch.save({"weights": torch.ones(2)}, out / "ckpt.pt")
+    assert main(["train", str(scene_dir), "--model", "3dgs", "--iters", "2", "--resolution", "1.0",
+                 "--backend", "torch", "--out", str(out)]) == 2  # fmt: skip
+    assert "not the checkpoint expected here" in _one_line_naming(capsys.readouterr().err, out / "ckpt.pt")

@@ -6,6 +6,7 @@ import pytest
 import torch
 from torch import Tensor
 
+from coin_cl.checkpoint import load_checkpoint
 from coin_cl.gs.gaussians import GaussianConfig
 from coin_cl.gs.losses import LossConfig, photometric_loss
 from coin_cl.gs.model_kinds import build_model
@@ -163,7 +164,7 @@ def test_stateful_terms_roundtrip_through_a_checkpoint_bit_exactly(scene, tmp_pa
     run = _trainer(scene, terms(), tmp_path / "run", iters, "opencl", kill, ckpt_every=10)
     with pytest.raises(Killed):
         run.train()
-    saved = torch.load(tmp_path / "run" / CKPT_NAME, weights_only=False)
+    saved = load_checkpoint(tmp_path / "run" / CKPT_NAME)
     assert set(saved["terms"]) == {"photometric", "critic"}
     resumed = _trainer(scene, terms(), tmp_path / "run", iters, "opencl", ckpt_every=10)
     resumed.load_checkpoint()

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from coin_cl.checkpoint import load_checkpoint
 from coin_cl.gs.gaussians import GaussianConfig
 from coin_cl.gs.model_kinds import build_model
 from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy
@@ -88,7 +89,7 @@ def test_nan_guard_stops_and_keeps_last_good_checkpoint(scene, tmp_path):
     tr = _trainer(scene, "scaffold", tmp_path, 40, poison, backend="opencl", ckpt_every=5)
     with pytest.raises(TrainingDivergedError, match=r"step 12.*after step 10"):
         tr.train()
-    state = torch.load(tmp_path / CKPT_NAME, weights_only=False)
+    state = load_checkpoint(tmp_path / CKPT_NAME)
     assert state["trainer"]["step"] == 10
     assert all(torch.isfinite(v).all() for v in state["model"]["optimizer"]["params"].values())
     log = json.loads((tmp_path / LOG_NAME).read_text())
@@ -127,7 +128,7 @@ def test_checkpoint_from_before_the_strategy_split_still_resumes(scene, kind, tm
     held the schedule) and the view order in the trainer; they load into the same state."""
     tr = _trainer(scene, kind, tmp_path / "new", 12, backend="opencl", ckpt_every=12, export_ply=False)
     tr.train()
-    state = torch.load(tmp_path / "new" / CKPT_NAME, weights_only=False)
+    state = load_checkpoint(tmp_path / "new" / CKPT_NAME)
     st = state.pop("strategy")
     state.pop("terms")
     smp = state.pop("sampler")

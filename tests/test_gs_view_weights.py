@@ -63,7 +63,7 @@ def test_weights_checkpoint_round_trip_is_exact():
     torch.save(w.state_dict(), buf)
     buf.seek(0)
     w2 = AdaptiveViewWeights(ref_view=None)
-    w2.load_state_dict(torch.load(buf, weights_only=False))
+    w2.load_state_dict(torch.load(buf, weights_only=True))
     assert w2.state_dict() == w.state_dict()
     a = [w.weight(views[i % 40], losses[i], step=i) for i in range(40, 80)]
     b = [w2.weight(views[i % 40], losses[i], step=i) for i in range(40, 80)]

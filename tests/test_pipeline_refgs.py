@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from coin_cl import load_scene
+from coin_cl.checkpoint import load_checkpoint
 from coin_cl.gs import depth_prior
 from coin_cl.gs.anchor_attention import AnchorAttention
 from coin_cl.gs.depth_prior import DATASET_DEPTH_PRIOR, GS_DEPTH_PRIOR
@@ -100,7 +101,7 @@ def test_stage_writes_every_output(room, tmp_path):
 
 
 def _final_state(out: Path) -> dict:
-    return torch.load(out / "gs" / "ckpt.pt", weights_only=False)
+    return load_checkpoint(out / "gs" / "ckpt.pt")
 
 
 def test_resume_is_bit_exact(room, tmp_path):

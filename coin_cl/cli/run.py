@@ -63,7 +63,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inpainter", choices=("auto", "embedded", "telea", "lama"), default="auto",
                    help="stage 1 without SD2 or dataset inpaints: auto = lama when a file is named, else "
                         "embedded (exemplar patches + smooth structure, no weights)")  # fmt: skip
-    p.add_argument("--lama-path", default=None, help="LaMa TorchScript big-lama.pt (or COIN_LAMA_PATH)")
+    p.add_argument("--lama-path", default=None,
+                   help="LaMa TorchScript big-lama.pt (or COIN_LAMA_PATH). TorchScript is a program: "
+                        "the file runs as code, so name only a file you trust (IOPaint's own)")  # fmt: skip
     p.add_argument("--dino-path", default=None, help="DINO ViT-S/16 checkpoint")
     p.add_argument("--device", default=None, help="OpenCL device name substring")
     p.add_argument("--seed", type=int, default=0)

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from coin_cl.checkpoint import CheckpointError, load_checkpoint, malformed
 from coin_cl.gs.base import Model
 from coin_cl.gs.data import Camera, View, init_points, scene_extent
 from coin_cl.gs.losses import LossConfig
@@ -43,6 +44,11 @@ from coin_cl.scene.io import atomic_write
 log = logging.getLogger(__name__)
 
 CKPT_NAME = "ckpt.pt"
+# What to do with a ckpt.pt that cannot be resumed from (ends `CheckpointError`'s one line).
+RESUME_REMEDY = (
+    "delete it to train from the start (coin-cl train: --fresh; coin-cl run: --force the stage "
+    "whose folder holds it)"
+)
 LOG_NAME = "log.json"
 CAMERAS_NAME = "cameras.json"
 PLY_NAME = "point_cloud.ply"
@@ -235,7 +241,13 @@ class Trainer:
         path = Path(path) if path is not None else self.ckpt_path
         if path is None or not path.is_file():
             raise FileNotFoundError(f"no checkpoint at {path}")
-        state = torch.load(path, weights_only=False)
+        state = load_checkpoint(path, RESUME_REMEDY)
+        try:
+            self._restore(state)
+        except (KeyError, TypeError, AttributeError, IndexError) as exc:  # a dict of another shape
+            raise malformed(path, exc, RESUME_REMEDY) from None
+
+    def _restore(self, state: dict[str, Any]) -> None:
         msd = state["model"]
         device = self.model.device  # the device is the caller's choice, not the checkpoint's
         self.model = model_from_state(msd)
@@ -270,8 +282,11 @@ class Trainer:
     def _diverged(self, what: str) -> TrainingDivergedError:
         last = "none was written"
         if self.ckpt_path is not None and self.ckpt_path.is_file():
-            st = torch.load(self.ckpt_path, weights_only=False)["trainer"]["step"]
-            last = f"{self.ckpt_path} (after step {st}) is kept"
+            try:
+                st = load_checkpoint(self.ckpt_path)["trainer"]["step"]
+                last = f"{self.ckpt_path} (after step {st}) is kept"
+            except (CheckpointError, KeyError, TypeError):
+                last = f"{self.ckpt_path} is unreadable"
         self.log["diverged"] = {"step": self.step, "what": what}
         self.save_log()
         return TrainingDivergedError(

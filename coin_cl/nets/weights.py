@@ -41,17 +41,14 @@ def unavailable(what: str, *files: WeightFile) -> str:
 
 def load_state_dict(path: str | Path, what: str = "weight file") -> dict:
     """A torch state_dict from a local file (a bare state_dict or a {"state_dict": ...} checkpoint),
-    loaded on the CPU with `weights_only=True`. Errors name the file."""
-    import torch
+    loaded on the CPU without running code (`coin_cl.checkpoint`). Errors name the file."""
+    from coin_cl.checkpoint import load_checkpoint
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} {path} not found")
-    try:
-        sd = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ValueError(f"{path} is not a torch state_dict file ({exc})") from exc
-    if isinstance(sd, dict) and "state_dict" in sd:
+    sd = load_checkpoint(path, f"point to the {what} itself", what=what)
+    if "state_dict" in sd:
         sd = sd["state_dict"]
     if not isinstance(sd, dict):
         raise ValueError(f"{path} does not hold a state_dict")

@@ -40,7 +40,8 @@ log = logging.getLogger(__name__)
 class Inpaint2DConfig:
     """use_dataset: take the dataset's per-view inpaints when they exist (seg masks only).
     inpainter: what fills views without SD2 or dataset inpaints: "auto", "embedded", "lama", "prior"
-    or "telea" (module docstring). lama_path: the TorchScript big-lama.pt (default $COIN_LAMA_PATH).
+    or "telea" (module docstring). lama_path: the TorchScript big-lama.pt (default $COIN_LAMA_PATH;
+    TorchScript runs as code, so it is trusted input, never a file from just anyone).
     exemplar: the embedded inpainter's settings; exemplar_views: how many neighbouring views (by
     index, nearest first) it copies patches from besides the view itself.
     use_prior: with inpainter "prior", train and use the scene prior (False: OpenCV).

@@ -40,10 +40,17 @@ def latest_ckpt(folder: Path, ckpt_name: str) -> Path:
 
 
 def load_model(folder: Path, ckpt_name: str, model_from_state):
-    import torch
+    """The model of the newest `ckpt_name` under the stage folder `folder`, read without running
+    code (`coin_cl.checkpoint`); a bad file is one line naming it and the stage to rerun."""
+    from coin_cl.checkpoint import load_checkpoint, malformed
 
-    state = torch.load(latest_ckpt(folder, ckpt_name), weights_only=False)
-    return model_from_state(state["model"])
+    path = latest_ckpt(folder, ckpt_name)
+    remedy = f"rerun with --force {folder.name} to train it again"
+    state = load_checkpoint(path, remedy)
+    try:
+        return model_from_state(state["model"])
+    except (KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise malformed(path, exc, remedy) from None
 
 
 def stage_scene(ctx: StageContext) -> dict:
