@@ -16,13 +16,11 @@ from __future__ import annotations
 import base64
 import html
 import json
-import logging
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
-
-log = logging.getLogger(__name__)
 
 REPORT_NAME = "report.html"
 # Pictures the page shows that the run does not already hold as files.
@@ -126,11 +124,13 @@ def _size(path: Path) -> tuple[int, int] | None:
 
 
 def _img(run: Path, rel: str, caption: str) -> str:
-    """A picture of the run (`rel` to it) that opens at full size on click. Its width and height
-    are in the tag, so the page does not move while the pictures load."""
+    """A picture of the run (`rel` to it, percent-encoded in the link: a view may be named
+    "a#1.png") that opens at full size on click. Its width and height are in the tag, so that
+    the page does not move while the pictures load."""
     wh = _size(run / rel)
     dims = f' width="{wh[0]}" height="{wh[1]}"' if wh else ""
-    return (f'<figure><a href="{_esc(rel)}" target="_blank"><img src="{_esc(rel)}"{dims} '
+    url = _esc(quote(rel))
+    return (f'<figure><a href="{url}" target="_blank"><img src="{url}"{dims} '
             f'alt="{_esc(caption)}"></a><figcaption>{_esc(caption)}</figcaption></figure>')  # fmt: skip
 
 
@@ -252,7 +252,7 @@ def _viewer_html(ply: Path, scene) -> str:
     else:
         cap = f"all {data['n']} Gaussians of eval/point_cloud.ply (the page embeds at most {MAX_SPLATS})"
     js = (Path(__file__).with_name("report_viewer.js")).read_text(encoding="utf-8")
-    payload = json.dumps(data).replace("</", "<\\/")
+    payload = json.dumps(data).replace("<", "\\u003c")  # no "</script>" or "<!--" in the script's data
     return (f"<p class=note>{_esc(cap)}; colours without view dependence (degree-0 SH). Drag to orbit, "
             "shift- or right-drag to pan, wheel to zoom.</p>"
             f'<div><label>camera <select id="viewer-camera"></select></label> '
@@ -331,7 +331,7 @@ def write_report(run_dir: str | Path) -> Path:
     files = [("run log", "log.json"), ("plan", "plan.json"), ("metrics", "eval/metrics/metrics.md"),
              ("Gaussians (3DGS PLY)", "eval/point_cloud.ply"), ("renders", "eval/renders")]  # fmt: skip
     files = [(w, p) for w, p in files if (run / p).exists()]
-    links = "".join(f'<li>{w}: <a href="{_esc(p)}">{_esc(p)}</a></li>' for w, p in files)
+    links = "".join(f'<li>{w}: <a href="{_esc(quote(p))}">{_esc(p)}</a></li>' for w, p in files)
     parts.append(f"<h2>Files</h2><ul>{links}</ul>")
     page = ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
             f"<title>coin-cl run {_esc(run.resolve().name)}</title><style>{CSS}</style></head><body>"

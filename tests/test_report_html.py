@@ -7,6 +7,7 @@ import shutil
 import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import unquote
 
 import cv2
 import numpy as np
@@ -117,7 +118,7 @@ def _links(page: Path) -> _Links:
 
 def check_links(run: Path) -> list[str]:
     """Every src/href of RUN/report.html is a relative path to a file or folder inside RUN."""
-    links = _links(run / "report.html").links
+    links = [unquote(li) for li in _links(run / "report.html").links]
     for link in links:
         assert "://" not in link and not link.startswith("/"), f"not a relative link: {link}"
         target = (run / link).resolve()
