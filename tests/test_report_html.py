@@ -16,7 +16,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from coin_cl.cli import main
-from coin_cl.report_html import MAX_SPLATS, splat_payload, write_report
+from coin_cl.report_html import MAX_SPLATS, MAX_TRAIN_VIEWS, splat_payload, write_report
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 # Headless, software WebGL (SwiftShader), no network, one fresh profile per call; the same window
@@ -255,3 +255,33 @@ def test_the_page_in_headless_chromium(run, tmp_path):
     assert w > 100 and abs(h - w * truth.shape[0] / truth.shape[1]) <= 2
     box = cv2.resize(img[y : y + h, x : x + w, ::-1], truth.shape[1::-1], interpolation=cv2.INTER_AREA)
     assert np.abs(box / 255.0 - truth).mean() < 0.03
+
+
+@pytest.mark.parametrize("case", ["real capture", "no test views"])
+def test_the_page_without_an_object_picture_or_ground_truth(run, tmp_path, case):
+    """A real capture has no picture of a test view with the object: the mask on the truth stands in.
+    A scene without test views has no metrics: the page shows training views (capture | result)."""
+    from dataclasses import replace
+
+    from coin_cl.scene import load_scene, save_scene
+
+    src, _ = run
+    folder = tmp_path / "run"
+    shutil.copytree(src, folder)
+    scene = load_scene(folder / "0_scene" / "scene")
+    shutil.rmtree(folder / "0_scene" / "scene")
+    extras = {k: v for k, v in scene.extras.items() if k != "object_present"}
+    if case == "no test views":
+        scene = replace(scene, train_idx=sorted(scene.train_idx + scene.test_idx), test_idx=[])
+        shutil.rmtree(folder / "eval" / "metrics")
+    save_scene(replace(scene, extras=extras), folder / "0_scene" / "scene")
+    write_report(folder)
+    text = " ".join(_links(folder / "report.html").text)
+    links = check_links(folder)
+    if case == "real capture":
+        assert "the object's mask (red) on the truth" in text and "truth (object absent)" in text
+        assert not any(li.endswith("_capture.png") for li in links)
+    else:
+        assert "No metrics" in text and "Views: capture | result" in text
+        assert "truth (object absent)" not in text
+        assert sum(li.endswith("_capture.png") for li in links) == 2 * MAX_TRAIN_VIEWS  # link + picture
