@@ -163,8 +163,10 @@
     sortAndDraw();
   }
   const up = data.up;
+  // Dragging right or down turns the scene with the pointer (the camera goes left or up), as in
+  // most 3D viewers; 0.3 degrees a pixel.
   function orbit(dx, dy) {
-    const ang = -dx * 0.008, pitch = dy * 0.008;
+    const ang = -dx * 0.005, pitch = -dy * 0.005;
     for (const [axis, a] of [[up, ang], [cam.right, pitch]]) {
       cam.eye = add(target, rotate(sub(cam.eye, target), axis, a));
       cam.right = rotate(cam.right, axis, a);
