@@ -285,3 +285,29 @@ def test_the_page_without_an_object_picture_or_ground_truth(run, tmp_path, case)
         assert "No metrics" in text and "Views: capture | result" in text
         assert "truth (object absent)" not in text
         assert sum(li.endswith("_capture.png") for li in links) == 2 * MAX_TRAIN_VIEWS  # link + picture
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install chromium)")
+def test_dragging_turns_the_3d_view(run, tmp_path):
+    """A drag on the 3D view (pointer events, as a mouse sends them) draws it again from elsewhere."""
+    src, _ = run
+    folder = tmp_path / "run"
+    shutil.copytree(src, folder)
+    page = (folder / "report.html").read_text()
+    drag = """<script>window.addEventListener('load', function () {
+      const c = document.getElementById('viewer');
+      const o = {bubbles: true, pointerId: 1, clientX: 100, clientY: 100};
+      c.dispatchEvent(new PointerEvent('pointerdown', o));
+      c.dispatchEvent(new PointerEvent('pointermove', Object.assign({}, o, {clientX: 160, clientY: 140})));
+      c.dispatchEvent(new PointerEvent('pointerup', o));
+    });</script>"""
+    (folder / "dragged.html").write_text(page.replace("</body>", drag + "</body>"))
+    dom = _chromium(folder / "report.html", "--dump-dom", tmp=tmp_path).stdout
+    canvas = dom.split('<canvas id="viewer"', 1)[1].split(">", 1)[0]
+    x, y, w, h = [int(v) for v in canvas.split('data-rect="', 1)[1].split('"', 1)[0].split(",")]
+    shots = []
+    for name in ("report.html", "dragged.html"):
+        _chromium(folder / name, f"--screenshot={tmp_path / name}.png", tmp=tmp_path)
+        shots.append(cv2.imread(f"{tmp_path / name}.png")[y : y + h, x : x + w].astype(np.float32) / 255)
+    assert shots[1].std() > 0.05  # still a picture
+    assert np.abs(shots[0] - shots[1]).mean() > 0.05  # of another view
