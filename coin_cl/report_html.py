@@ -37,15 +37,25 @@ PLY_FIELDS = ("x", "y", "z", "opacity", *(f"scale_{i}" for i in range(3)), *(f"r
               *(f"f_dc_{i}" for i in range(3)))  # fmt: skip
 
 
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc}); rerun the stage that writes it") from exc
+
+
 def splat_payload(ply: Path, cap: int = MAX_SPLATS) -> dict[str, Any]:
     """A 3DGS PLY (fields read by name, so any layout with the standard fields) -> the viewer's
     data: the `cap` most visible Gaussians (opacity x volume), each as float32 x y z and its
     world covariance (c00 c01 c02 c11 c12 c22), and uint8 RGBA (degree-0 SH colour, opacity).
     Non-finite Gaussians are dropped. Returns {"n", "n_total", "geometry", "colors" (base64),
     "means" (the kept centres, (n, 3) float64, for the cameras' focus)}."""
-    from plyfile import PlyData
+    from plyfile import PlyData, PlyParseError
 
-    v = PlyData.read(str(ply))["vertex"].data
+    try:
+        v = PlyData.read(str(ply))["vertex"].data
+    except (PlyParseError, ValueError, KeyError) as exc:
+        raise ValueError(f"{ply} is not a readable PLY with a vertex element ({exc})") from exc
     missing = [f for f in PLY_FIELDS if f not in v.dtype.names]
     if missing:
         raise ValueError(f"{ply} lacks the 3DGS PLY fields {missing}; export it with Splats.to_ply")
@@ -309,8 +319,8 @@ def write_report(run_dir: str | Path) -> Path:
     if not (run / "log.json").is_file() or not scene_dir.is_dir():
         raise FileNotFoundError(f"{run} is not a coin-cl run folder (no log.json or 0_scene/scene); "
                                 "give the --out folder of a coin-cl run")  # fmt: skip
-    logdoc = json.loads((run / "log.json").read_text())
-    plan = json.loads((run / "plan.json").read_text()) if (run / "plan.json").is_file() else None
+    logdoc = _read_json(run / "log.json")
+    plan = _read_json(run / "plan.json") if (run / "plan.json").is_file() else None
     scene = load_scene(scene_dir)
     ev = run / "eval"
     parts = [f"<h1>coin-cl run: {_esc(run.resolve().name)}</h1>",
@@ -318,7 +328,7 @@ def write_report(run_dir: str | Path) -> Path:
     mpath = ev / "metrics" / "metrics.json"
     if mpath.is_file():
         parts += ["<h2>Metrics against the ground truth (object absent)</h2>",
-                  _metrics_html(json.loads(mpath.read_text()))]  # fmt: skip
+                  _metrics_html(_read_json(mpath))]  # fmt: skip
     else:
         parts.append("<p class=note>No metrics: the scene has no ground-truth test views with masks.</p>")
     title = "Test views: capture | result | truth" if scene.test_idx else "Views: capture | result"

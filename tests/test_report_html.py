@@ -190,6 +190,9 @@ def test_splats_are_read_by_field_name_and_capped(tmp_path):
     )
     with pytest.raises(ValueError, match="opacity"):
         splat_payload(ply)
+    ply.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n")
+    with pytest.raises(ValueError, match="g.ply is not a readable PLY"):  # cut short
+        splat_payload(ply)
 
 
 def test_cli_report_rebuilds_the_page(run, tmp_path, capsys):
@@ -208,6 +211,10 @@ def test_cli_report_rebuilds_the_page(run, tmp_path, capsys):
     assert main(["report", str(tmp_path / "nothing")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not a coin-cl run folder" in err
+    (folder / "log.json").write_text('{"stages": ')  # cut short
+    assert main(["report", str(folder)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "log.json is not valid JSON" in err
 
 
 def _chromium(page: Path, *args: str, tmp: Path) -> subprocess.CompletedProcess:
