@@ -132,9 +132,11 @@ def room(
     Both baselines train CoIn's GS step count (`baseline_steps`); masked reconstruction also stops
     at CoIn's `budget` minutes of training (`steps` sets its count instead, without that limit).
 
-    Writes `out/scene/`, one folder per method, and `out/results.md`; returns the table as a dict."""
+    Writes `out/scene/`, one folder per method, CoIn's page `out/coin/report.html`
+    (`coin_cl.report_html`) and `out/results.md`; returns the table as a dict."""
     from coin_cl.pipeline.coin import CoInConfig, inpaint
     from coin_cl.pipeline.runner import share_stages
+    from coin_cl.report_html import write_report
     from coin_cl.scene.io import write_text
     from coin_cl.scene.synthetic import write_synthetic
 
@@ -148,6 +150,7 @@ def room(
     log.info("demo: CoIn on the synthetic room (%.1f min training budget)", budget)
     t = time.perf_counter()
     coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
+    write_report(out / "coin")
     what = "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints"
     rows["coin"] = _row(coin.metrics, time.perf_counter() - t, what)
     # The baseline starts from CoIn's scene and stage-1 folders (the runner skips them: their

@@ -2,6 +2,7 @@
 
 import errno
 import os
+import stat
 from types import SimpleNamespace
 
 import numpy as np
@@ -128,3 +129,12 @@ def test_copy_file_is_atomic_and_refuses_links(tmp_path):
     with pytest.raises(atomic.UnsafePathError):
         atomic.copy_file(tmp_path / "dst.bin", tmp_path / "link.bin")
     assert src.read_bytes() == b"abc"
+
+
+def test_outputs_get_the_users_file_mode_not_mkstemps_0600(tmp_path):
+    mask = os.umask(0o022)  # read the process's umask (and put it back at once)
+    os.umask(mask)
+    write_text(tmp_path / "page.html", "<p>hi</p>")
+    mode = stat.S_IMODE((tmp_path / "page.html").stat().st_mode)
+    assert mode == 0o666 & ~mask
+    assert mask & 0o044 or mode & 0o044  # readable by others unless the umask forbids it

@@ -1,6 +1,7 @@
 """`coin-cl demo` and `coin-cl doctor` end to end (small sizes)."""
 
 import json
+import re
 
 import numpy as np
 
@@ -57,6 +58,13 @@ def test_demo_room_runs_coin_and_baselines(tmp_path, capsys, monkeypatch):
     assert (tmp_path / "room" / "coin" / "0_refine").is_dir() and len(excluded) == 2
     assert excluded[0] is not None and any(e.any() for e in excluded[0] if e is not None)
     assert excluded[1] is None
+    # CoIn's page is written at the end of its run, and every picture it shows is a file of the run
+    coin = tmp_path / "room" / "coin"
+    page = (coin / "report.html").read_text()
+    links = re.findall(r'(?:src|href)="([^"]+)"', page)
+    assert "eval/orbit.gif" in links and any(li.startswith("eval/renders/") for li in links)
+    assert all((coin / li).exists() for li in links), [li for li in links if not (coin / li).exists()]
+    assert 'id="splat-data"' in page
 
 
 def test_doctor_lists_the_device(capsys):

@@ -1,6 +1,6 @@
 """The `coin-cl` command line: thin parsers over the Python API (`coin_cl.demo`, `coin_cl.evaluation`,
 `coin_cl.gs.trainer`, `coin_cl.gs.model_kinds`, `coin_cl.gs.export`, `coin_cl.prepare`,
-`coin_cl.render_utils`, `coin_cl.scene`).
+`coin_cl.render_utils`, `coin_cl.report_html`, `coin_cl.scene`).
 
 A module of this package joins the CLI by defining `add_commands(subparsers)`; the list below names
 them. Nothing outside `coin_cl.cli` imports it.
@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "coin_cl.cli.scene",  # make-scene, eval
     "coin_cl.cli.train",  # train, render
     "coin_cl.cli.run",  # run (CoIn end to end)
+    "coin_cl.cli.report",  # report (a run's page, report.html)
     "coin_cl.cli.prepare",  # prepare (photos -> posed scene + masks)
     "coin_cl.cli.export",  # export (a run's Gaussians as ply / graphdeco / splat)
 ]

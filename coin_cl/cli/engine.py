@@ -66,6 +66,7 @@ def run_demo(args: argparse.Namespace) -> int:
         )  # fmt: skip
     if "room" in summary:
         print((out / "room" / "results.md").read_text())
+        print(f"CoIn's run on the room, to open: {out / 'room' / 'coin' / 'report.html'}")
     print(f"wrote {out}/ (turntable/, room/, demo.json)")
     return 0
 

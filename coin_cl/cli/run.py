@@ -80,6 +80,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.pipeline.coin import CoInConfig, inpaint
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
     from coin_cl.pipeline.report import run_report
+    from coin_cl.report_html import write_report
 
     i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path, sd2_mode=args.sd2_mode)
     cfg = CoInConfig(
@@ -92,5 +93,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
                       prompt=args.prompt or None, budget=args.budget, config=cfg,
                       force=tuple(args.force), edited_ref=args.edited_ref)  # fmt: skip
+        write_report(res.out)
     print(run_report(res))
     return 0

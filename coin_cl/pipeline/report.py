@@ -12,7 +12,8 @@ METRIC_COLUMNS = (("psnr", "PSNR"), ("ssim", "SSIM"), ("m_psnr", "m-PSNR"), ("m_
                   ("hf_ratio", "HF ratio"), ("bbox_gmsd", "bbox GMSD"))  # fmt: skip
 
 
-def _minutes(rec: dict[str, Any]) -> str:
+def minutes(rec: dict[str, Any]) -> str:
+    """A stage record's minutes as the tables show them: "1.5", "(1.5)" when it ran earlier, "-"."""
     if "seconds" in rec:
         return f"{rec['seconds'] / 60:.1f}"
     if rec.get("seconds_when_run") is not None:
@@ -25,7 +26,7 @@ def stage_table(stages: dict[str, dict]) -> list[str]:
     w = max([len(n) for n in stages] + [5])
     lines = [f"  {'stage':<{w}}  {'minutes':>7}  status", f"  {'-' * w}  {'-' * 7}  {'-' * 6}"]
     for name, rec in stages.items():
-        lines.append(f"  {name:<{w}}  {_minutes(rec):>7}  {rec.get('status', '?')}")
+        lines.append(f"  {name:<{w}}  {minutes(rec):>7}  {rec.get('status', '?')}")
     total = sum(rec.get("seconds", 0.0) for rec in stages.values())
     lines.append(f"  {'total':<{w}}  {total / 60:>7.1f}  (this run; bracketed minutes are earlier runs')")
     return lines
@@ -59,6 +60,7 @@ def run_report(res: Any) -> str:
     lines += ["", "Open next:"]
     ev = out / "eval"
     for what, path in (
+        ("report (open this)", out / "report.html"),
         ("metrics", ev / "metrics" / "metrics.md"),
         ("render | truth grids", ev / "metrics" / "grids"),
         ("renders", ev / "renders"),
