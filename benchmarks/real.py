@@ -158,7 +158,9 @@ def pipeline_row(scene: Path, run: Path, cfg: CoInConfig) -> dict:
 
 def at_default_steps(default_run: Path, cfg: CoInConfig, args) -> CoInConfig:
     """`cfg` with the default row's schedule given explicitly (`coin.steps_from`: its resolution,
-    step counts after TE-D's re-plan, scene prior seconds), so a variant trains what the default did."""
+    step counts after TE-D's re-plan, scene prior seconds), so a variant trains what the default did;
+    its plan takes the default row's measured rates (`rates_from`: nothing probed twice)."""
+    cfg = replace(cfg, rates_from=str(default_run))
     if args.iters is not None:  # the smoke pass-through is already explicit
         return cfg
     from coin import steps_from
@@ -168,12 +170,15 @@ def at_default_steps(default_run: Path, cfg: CoInConfig, args) -> CoInConfig:
 
 def masked_recon_row(default_run: Path, run: Path, steps: int) -> dict:
     """`demo.room_baseline` on the default row's working-resolution scene (`0_scene/scene`, the views
-    and masks its evaluation scored), `steps` 3DGS steps; kept in RUN/row.json once finished."""
+    and masks its evaluation scored), `steps` 3DGS steps (a killed one resumes from its checkpoint);
+    kept in RUN/row.json once finished and reused while the default row's step count is the same."""
     done = run / "row.json"
     if done.is_file():
         row = json.loads(done.read_text())
-        if row.get("steps") == steps:
-            return row
+        if row.get("steps") != steps:  # its checkpoint would resume past or short of this schedule
+            raise SystemExit(f"{run} holds masked reconstruction at {row.get('steps')} steps, the "
+                             f"default row now trained {steps}: remove {run} to redo it")  # fmt: skip
+        return row
     t = time.perf_counter()
     room_baseline(run, default_run / "0_scene" / "scene", steps)
     metrics = json.loads((run / "eval" / "metrics.json").read_text())["mean"]
