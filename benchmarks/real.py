@@ -1,0 +1,402 @@
+"""Benchmark: removal on real captures. CoIn's default command beside the naive baseline, masked
+reconstruction, a smooth stage 1 and (SPIn-NeRF) the dataset's LaMa stage 1, scored on each scene's
+object-absent test views.
+
+Scenes (`--scenes`; folders under `--data`, default `$COIN_DATA` else `../shared/data`):
+    spinnerf   spinnerf_scene1: the 5 object-absent ground-truth views are the test views
+    cup_plain  a virtual box on plain wood, made from cup_capture by `coin-cl make-scene
+               --from-capture` with docs/VIRTUAL_OBJECTS.md's placement (built under OUT/scenes/ on
+               first use, through `coin_cl.prepare.virtual_scene.make_virtual_scene`; reused after)
+    cup_edge   the same at the desk's back edge
+
+Rows (`--rows`; each a run folder OUT/<scene>/<row>):
+    default       exactly `coin-cl run SCENE --out DIR` (with `--budget B` when --budget is given)
+    naive         plain Scaffold-GS on the default row's stage-1 inpaints, as many GS steps as the
+                  default row trained (`coin_cl.demo.baseline_config`, stages 0-1 shared)
+    masked_recon  3DGS with the object's pixels left out of the loss, the same GS steps
+                  (`coin_cl.demo.room_baseline` on the default row's working-resolution scene)
+    smooth        the default pipeline at the default row's steps (`coin.steps_from`) with OpenCV's
+                  Telea fill alone as stage 1 (`Inpaint2DConfig(inpainter="telea", use_dataset=False)`)
+    lama          (spinnerf only) the default pipeline at the default row's steps with the dataset's
+                  LaMa inpaints as stage 1 (`Inpaint2DConfig(inpainter="auto", use_dataset=True)`,
+                  seg masks). `coin-cl run` itself takes them on SPIn-NeRF (Inpaint2DConfig's
+                  use_dataset is on by default), so this row is the default's settings at its
+                  explicit schedule; the "stage 1" column names the sources each row really used
+
+Columns: PSNR, m-PSNR, VGG-PD (whole view), m-VGG-PD (mask's bounding box), bbox GMSD, HF ratio
+(`coin_cl.evaluation`), the ghost figure (`benchmarks/ghost.py`: the share of the test masks rendered
+more than 10 % in front of a Scaffold-GS fitted to the object-absent test views, `--ghost-iters`
+steps, cached in OUT/<scene>/ghost_reference), minutes (what the row's stages took when they ran, a
+shared stage counted in each row that uses it; masked_recon its training and scoring). "n/a (why)"
+where a figure cannot be computed. One crop grid per scene (`benchmarks/crop_grid.py`):
+OUT/<scene>/crops.png, columns = the rows in table order, then the truth.
+
+Resumable: a rerun scores the finished rows without training (the stage runner finds their stages
+up to date; masked_recon keeps its `row.json`). Writes OUT/real.md; the last line is JSON.
+
+    python benchmarks/real.py --out /work/real_out --scenes cup_plain cup_edge spinnerf --budget 10
+"""
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see coin_cl/__init__.py
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import cpu_model, default_data, git_commit, vgg_pd_note  # noqa: E402
+
+from coin_cl.atomic import write_text  # noqa: E402
+from coin_cl.demo import baseline_config, room_baseline  # noqa: E402
+from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint  # noqa: E402
+from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
+from coin_cl.pipeline.runner import share_stages  # noqa: E402
+
+# docs/VIRTUAL_OBJECTS.md, "The two cup scenes": (box point x y z, extents x y up, yaw degrees).
+CUP_BOXES = {
+    "cup_plain": ((4.219, 1.416, 2.08), (1.1, 0.85, 0.95), 25.0),
+    "cup_edge": ((2.785, 4.886, 4.866), (1.1, 0.85, 0.95), 25.0),
+}
+SCENES = ("spinnerf", "cup_plain", "cup_edge")
+ROWS = ("default", "naive", "masked_recon", "smooth", "lama")
+KEYS = ("psnr", "m_psnr", "vgg_pd", "m_vgg_pd", "bbox_gmsd", "hf_ratio")
+CLI_BUDGET = 30.0  # `coin-cl run`'s --budget default: the budget of the default row without --budget
+
+
+def data_root() -> Path:
+    """`$COIN_DATA`, else `../shared/data` beside the repository (`common.default_data`'s folder)."""
+    return default_data().parent
+
+
+def scene_folder(name: str, data: Path, out: Path, extra: dict[str, Path]) -> Path:
+    """The scene folder of `name`: SPIn-NeRF's from --data, a cup scene built under OUT/scenes on first
+    use (its build time printed), or a folder given with --scene-dir."""
+    if name in extra:
+        return extra[name]
+    if name == "spinnerf":
+        path = data / "spinnerf_scene1"
+        if not path.is_dir():
+            raise SystemExit(f"{path} not found: pass --data DIR holding spinnerf_scene1 (or set COIN_DATA)")
+        return path
+    path = out / "scenes" / name
+    if (path / "scene.json").is_file():
+        print(f"[{name}] scene {path} (reused)", flush=True)
+        return path
+    capture = data / "cup_capture"
+    if not capture.is_dir():
+        raise SystemExit(f"{capture} not found: pass --data DIR holding cup_capture (or set COIN_DATA)")
+    from coin_cl.prepare.virtual_scene import BoxSpec, make_virtual_scene
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{name}.tmp"  # make_virtual_scene's own work folder, left by a killed build
+    if tmp.is_dir() and not tmp.is_symlink():
+        import shutil
+
+        print(f"[{name}] removing {tmp}, left by an interrupted build", flush=True)
+        shutil.rmtree(tmp)
+
+    center, size, yaw = CUP_BOXES[name]
+    print(f"[{name}] building the scene: coin-cl make-scene --from-capture {capture} --out {path} --box "
+          f"{' '.join(map(str, center + size))} --yaw {yaw:g}", flush=True)  # fmt: skip
+    t = time.perf_counter()
+    make_virtual_scene(capture, path, BoxSpec(center, size, yaw))
+    print(f"[{name}] scene built in {(time.perf_counter() - t) / 60:.1f} min", flush=True)
+    return path
+
+
+def stage_cost(stages: dict) -> float:
+    """Minutes the stages took when they ran (this invocation's, or the manifest's for up-to-date ones)."""
+    return sum((r.get("seconds") or r.get("seconds_when_run") or 0.0) for r in stages.values()) / 60
+
+
+def sources_of(run: Path) -> list[str] | None:
+    """The stage-1 sources a run used (its `1_inpaint/sources.json`, sorted), None without one."""
+    p = run / "1_inpaint" / "sources.json"
+    return sorted(set(json.loads(p.read_text()).values())) if p.is_file() else None
+
+
+def run_default(scene: Path, run: Path, args) -> dict:
+    """`coin-cl run SCENE --out RUN` (plus --budget when given; --iters / --prior-seconds only from the
+    test's smoke pass-through), through the CLI as a user runs it; a finished folder resumes to nothing."""
+    cmd = ["run", str(scene), "--out", str(run)]
+    cmd += [] if args.budget is None else ["--budget", f"{args.budget:g}"]
+    cmd += [] if args.iters is None else ["--iters", str(args.iters)]
+    cmd += [] if args.prior_seconds is None else ["--prior-seconds", f"{args.prior_seconds:g}"]
+    print("$ coin-cl " + " ".join(cmd), flush=True)
+    subprocess.run([sys.executable, "-m", "coin_cl.cli", *cmd], check=True)
+    log = json.loads((run / "log.json").read_text())["stages"]
+    metrics = json.loads((run / "eval" / "metrics" / "metrics.json").read_text())["mean"]
+    return {**{k: metrics.get(k) for k in KEYS}, "minutes": stage_cost(log), "sources": sources_of(run)}
+
+
+def base_config(default_run: Path, args) -> CoInConfig:
+    """The CLI's config as the default row resolved it: its budget and working resolution (and the
+    test's smoke steps), what the rows built beside it start from."""
+    plan = json.loads((default_run / "plan.json").read_text())
+    cfg = CoInConfig(budget_minutes=args.budget or CLI_BUDGET, resolution=plan["key"]["resolution"],
+                     prior_seconds=args.prior_seconds)  # fmt: skip
+    return cfg.with_iters(args.iters)
+
+
+def pipeline_row(scene: Path, run: Path, cfg: CoInConfig) -> dict:
+    res = inpaint(scene, run, config=cfg)
+    m = res.metrics or {}
+    return {**{k: m.get(k) for k in KEYS}, "minutes": stage_cost(res.stages), "sources": sources_of(run)}
+
+
+def at_default_steps(default_run: Path, cfg: CoInConfig, args) -> CoInConfig:
+    """`cfg` with the default row's schedule given explicitly (`coin.steps_from`: its resolution,
+    step counts after TE-D's re-plan, scene prior seconds), so a variant trains what the default did;
+    its plan takes the default row's measured rates (`rates_from`: nothing probed twice)."""
+    cfg = replace(cfg, rates_from=str(default_run))
+    if args.iters is not None:  # the smoke pass-through is already explicit
+        return cfg
+    from coin import steps_from
+
+    return steps_from(default_run, cfg)
+
+
+def masked_recon_row(default_run: Path, run: Path, steps: int) -> dict:
+    """`demo.room_baseline` on the default row's working-resolution scene (`0_scene/scene`, the views
+    and masks its evaluation scored), `steps` 3DGS steps (a killed one resumes from its checkpoint);
+    kept in RUN/row.json once finished and reused while the default row's step count is the same."""
+    done = run / "row.json"
+    if done.is_file():
+        row = json.loads(done.read_text())
+        if row.get("steps") != steps:  # its checkpoint would resume past or short of this schedule
+            raise SystemExit(f"{run} holds masked reconstruction at {row.get('steps')} steps, the "
+                             f"default row now trained {steps}: remove {run} to redo it")  # fmt: skip
+        return row
+    t = time.perf_counter()
+    room_baseline(run, default_run / "0_scene" / "scene", steps)
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())["mean"]
+    row = {**{k: metrics.get(k) for k in KEYS}, "minutes": (time.perf_counter() - t) / 60, "steps": steps,
+           "sources": ["none (object pixels left out of the loss)"]}  # fmt: skip
+    write_text(done, json.dumps(row, indent=1))
+    return row
+
+
+def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: int) -> dict[str, float | str]:
+    """{row: ghost figure, or "n/a (why)"}: each row's final model against a Scaffold-GS fitted to the
+    object-absent test views of the default row's working-resolution scene (`ghost.reference_depths`,
+    `iters` steps, cached in out/ghost_reference/r<resolution>_i<iters>)."""
+    import torch
+    from ghost import ghost_of_model, ghost_of_run, reference_depths
+
+    from coin_cl.checkpoint import load_checkpoint
+    from coin_cl.gs.model_kinds import model_from_state
+    from coin_cl.gs.trainer import CKPT_NAME
+    from coin_cl.scene import load_scene
+
+    scene = load_scene(default_run / "0_scene" / "scene")
+    if not any(np.asarray(scene.masks[i]).any() for i in scene.test_idx):
+        return dict.fromkeys(runs, "n/a (no test view with a mask)")
+    res_key = json.loads((default_run / "plan.json").read_text())["key"]["resolution"]
+    depths = reference_depths(scene, out / "ghost_reference" / f"r{res_key:g}_i{iters}", iters)
+    res = {}
+    for name, run in runs.items():
+        if name == "masked_recon":
+            ckpts = sorted((run / "train").rglob(CKPT_NAME), key=lambda p: p.stat().st_mtime)
+            if not ckpts:
+                res[name] = "n/a (no checkpoint)"
+                continue
+            with torch.no_grad():
+                res[name] = ghost_of_model(
+                    model_from_state(load_checkpoint(ckpts[-1])["model"]), scene, depths
+                )
+        else:
+            res[name] = ghost_of_run(run, scene, depths)
+    return res
+
+
+def crop_grid(runs: list[Path], cell: int = 160) -> np.ndarray:
+    """`crop_grid.grid`'s picture, finding a render by stem whatever its extension (masked
+    reconstruction names its renders after the camera, e.g. a capture's .jpg): [rows * (cell + 4),
+    (len(runs) + 1) * (cell + 4), 3] uint8."""
+    from crop_grid import render_dir, tile_row
+
+    from coin_cl import metrics
+    from coin_cl.scene import load_scene
+    from coin_cl.scene.io import read_image, to_uint8, view_stem
+
+    scene = load_scene(runs[0] / "0_scene" / "scene")
+    rows = []
+    for i in scene.test_idx:
+        mask = np.asarray(scene.masks[i], bool)
+        if not mask.any():
+            continue
+        crop = metrics.bbox_crop(mask, pad=8)
+        stem = view_stem(scene.cameras[i].name, i)
+        tiles = []
+        for r in runs:
+            d = render_dir(r)
+            found = [d / f"{stem}.png"] if (d / f"{stem}.png").is_file() else sorted(d.glob(f"{stem}.*"))
+            if not found:
+                raise FileNotFoundError(f"{d} has no render of test view {stem}")
+            tiles.append(read_image(found[0])[crop])
+        tiles.append(np.asarray(scene.images[i], np.float32)[crop])
+        rows.append(tile_row(tiles, cell))
+    if not rows:
+        raise ValueError(f"{runs[0]} has no ground-truth test view with a mask")
+    return to_uint8(np.concatenate(rows, axis=0))
+
+
+def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
+    default_run = out / "default"
+    table: dict[str, dict] = {}
+    t = time.perf_counter()
+    print(f"[{name}] row default ...", flush=True)
+    table["default"] = run_default(scene, default_run, args)
+    print(f"[{name}] row default done ({(time.perf_counter() - t) / 60:.1f} min this invocation)", flush=True)
+    base = base_config(default_run, args)
+    naive_cfg = baseline_config(base, default_run)
+    for row in rows:
+        if row == "default":
+            continue
+        run = out / row
+        if row == "lama" and name != "spinnerf":
+            table[row] = {"na": "n/a (the dataset's LaMa inpaints exist for SPIn-NeRF only)"}
+            continue
+        t = time.perf_counter()
+        print(f"[{name}] row {row} ...", flush=True)
+        if row == "naive":
+            share_stages(default_run, run, ("0_scene", "0_refine", "1_inpaint"))
+            table[row] = pipeline_row(scene, run, naive_cfg)
+        elif row == "masked_recon":
+            table[row] = masked_recon_row(default_run, run, naive_cfg.iters_refgs)
+        elif row == "smooth":
+            share_stages(default_run, run, ("0_scene", "0_refine"))
+            i2d = Inpaint2DConfig(inpainter="telea", use_dataset=False)
+            table[row] = pipeline_row(
+                scene, run, at_default_steps(default_run, replace(base, inpaint2d=i2d), args)
+            )
+        elif row == "lama":
+            share_stages(default_run, run, STAGES)
+            i2d = Inpaint2DConfig(inpainter="auto", use_dataset=True)
+            table[row] = pipeline_row(
+                scene, run, at_default_steps(default_run, replace(base, inpaint2d=i2d), args)
+            )
+        print(
+            f"[{name}] row {row} done ({(time.perf_counter() - t) / 60:.1f} min this invocation)", flush=True
+        )
+    runs = {r: out / r for r in table if "na" not in table[r]}
+    if args.no_ghost:
+        ghosts = dict.fromkeys(runs, "n/a (--no-ghost)")
+    else:
+        ghosts = ghost_figures(runs, default_run, out, args.ghost_iters)
+    for r, g in ghosts.items():
+        table[r]["ghost"] = g
+    from coin_cl.scene.io import write_png
+
+    write_png(out / "crops.png", crop_grid(list(runs.values())) / 255.0)
+    print(f"[{name}] crop grid {out / 'crops.png'}: columns {' | '.join(runs)} | truth", flush=True)
+    return table
+
+
+def cell(v, digits: int = 2, why: str = "not computed") -> str:
+    if isinstance(v, str):
+        return v
+    if v is None:
+        return f"n/a ({why})"
+    return "nan" if not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def markdown(name: str, scene: Path, table: dict, header: str) -> str:
+    lines = [f"## {name} ({scene})", "", header, "",
+             "| row | PSNR | m-PSNR | VGG-PD | m-VGG-PD | bbox GMSD | HF ratio | ghost | minutes | stage 1 |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for row, r in table.items():
+        if "na" in r:
+            lines.append(f"| {row} | " + " | ".join([r["na"]] + ["-"] * 8) + " |")
+            continue
+        vgg = "weights absent"
+        lines.append(
+            f"| {row} | {cell(r['psnr'])} | {cell(r['m_psnr'])} | {cell(r['vgg_pd'], 3, vgg)} "
+            f"| {cell(r['m_vgg_pd'], 3, vgg)} | {cell(r['bbox_gmsd'], 3)} | {cell(r['hf_ratio'], 3)} "
+            f"| {cell(r.get('ghost'), 3)} | {r['minutes']:.1f} | {', '.join(r.get('sources') or ['-'])} |"
+        )
+    lines += ["", f"Crop grid: {name}/crops.png (columns: "
+              f"{', '.join(r for r in table if 'na' not in table[r])}, truth)", ""]  # fmt: skip
+    return "\n".join(lines)
+
+
+def summary(tables: dict[str, dict]) -> dict:
+    res: dict = {}
+    for scene, t in tables.items():
+        d, n = t.get("default", {}), t.get("naive", {})
+        res[f"{scene}_coin_mpsnr"] = d.get("m_psnr")
+        res[f"{scene}_naive_mpsnr"] = n.get("m_psnr")
+        res[f"{scene}_coin_vggpd_m"] = d.get("m_vgg_pd")
+        res[f"{scene}_naive_vggpd_m"] = n.get("m_vgg_pd")
+        g = d.get("ghost")
+        res[f"{scene}_coin_ghost"] = g if isinstance(g, float) else None
+        for row, r in t.items():
+            res[f"{scene}_{row}_minutes"] = r.get("minutes")
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--data", type=Path, default=None, help="folder of spinnerf_scene1 and cup_capture "
+                    "(default $COIN_DATA, else ../shared/data beside the repository)")  # fmt: skip
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    ap.add_argument("--rows", nargs="+", default=list(ROWS), choices=ROWS, help="default always runs")
+    ap.add_argument("--budget", type=float, default=None,
+                    help=f"coin-cl run's --budget for the default row (default: none given, i.e. "
+                         f"{CLI_BUDGET:g}); the other rows follow the default row's steps")  # fmt: skip
+    ap.add_argument("--ghost-iters", type=int, default=600, help="steps of the ghost reference GS")
+    ap.add_argument("--no-ghost", action="store_true", help="skip the ghost figure (n/a in the table)")
+    # Smoke-test pass-through (tests/test_benchmarks_real.py): explicit steps instead of the budget's
+    # plan, and extra scene folders by name. Not for figures.
+    ap.add_argument("--iters", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--prior-seconds", type=float, default=None, help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--scene-dir", nargs=2, action="append", default=[], metavar=("NAME", "DIR"), help=argparse.SUPPRESS
+    )
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    data = args.data or data_root()
+    extra = {n: Path(d) for n, d in args.scene_dir}
+    scenes = list(extra) if extra else args.scenes
+    rows = ["default"] + [r for r in args.rows if r != "default"]
+
+    from coin_cl.engine import get_runtime
+
+    budget = f"{args.budget:g}" if args.budget is not None else f"{CLI_BUDGET:g} (coin-cl run's default)"
+    header = (f"commit {git_commit()}; CPU {cpu_model()}, {os.cpu_count()} cores; OpenCL "
+              f"{get_runtime().name}; budget {budget} min"
+              + ("" if args.iters is None else f"; smoke steps --iters {args.iters}"))  # fmt: skip
+    print(f"# real-capture benchmark: {header}", flush=True)
+    tables, parts = {}, []
+    for name in scenes:
+        scene = scene_folder(name, data, args.out, extra)
+        tables[name] = run_scene(name, scene, args.out / name, rows, args)
+        parts.append(markdown(name, scene, tables[name], header))
+        print("\n" + parts[-1], flush=True)
+    note = vgg_pd_note()
+    text = "# Real-capture removal\n\n" + "\n".join(parts) + (f"\nVGG-PD: {note}\n" if note else "")
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(args.out / "real.md", text)
+    if note:
+        print(f"VGG-PD: {note}")
+    result = {**summary(tables), "budget_minutes": args.budget or CLI_BUDGET, "commit": git_commit(),
+              "cpu": cpu_model()}  # fmt: skip
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
