@@ -1,5 +1,6 @@
 """Benchmark: removal on real captures. CoIn's default command beside the naive baseline, masked
-reconstruction, a smooth stage 1 and (SPIn-NeRF) the dataset's LaMa stage 1, scored on each scene's
+reconstruction, a smooth stage 1 and (SPIn-NeRF, whose default takes the dataset's LaMa fills) the embedded
+inpainter as stage 1, scored on each scene's
 object-absent test views.
 
 Scenes (`--scenes`; folders under `--data`, default `$COIN_DATA` else `../shared/data`):
@@ -17,11 +18,12 @@ Rows (`--rows`; each a run folder OUT/<scene>/<row>):
                   (`coin_cl.demo.room_baseline` on the default row's working-resolution scene)
     smooth        the default pipeline at the default row's steps (`coin.steps_from`) with OpenCV's
                   Telea fill alone as stage 1 (`Inpaint2DConfig(inpainter="telea", use_dataset=False)`)
-    lama          (spinnerf only) the default pipeline at the default row's steps with the dataset's
-                  LaMa inpaints as stage 1 (`Inpaint2DConfig(inpainter="auto", use_dataset=True)`,
-                  seg masks). `coin-cl run` itself takes them on SPIn-NeRF (Inpaint2DConfig's
-                  use_dataset is on by default), so this row is the default's settings at its
-                  explicit schedule; the "stage 1" column names the sources each row really used
+    embedded      (spinnerf only) the default pipeline at the default row's steps with the embedded
+                  exemplar inpainter as stage 1 (`Inpaint2DConfig(use_dataset=False)`): `coin-cl run`
+                  takes the dataset's LaMa inpaints on SPIn-NeRF (use_dataset is on by default), so
+                  there the default row is CoIn with LaMa and this row is what a user without
+                  precomputed fills gets; on the cup scenes the default row is already that. The
+                  "stage 1" column names the sources each row really used
 
 Columns: PSNR, m-PSNR, VGG-PD (whole view), m-VGG-PD (mask's bounding box), bbox GMSD, HF ratio
 (`coin_cl.evaluation`), the ghost figure (`benchmarks/ghost.py`: the share of the test masks rendered
@@ -60,7 +62,7 @@ from common import cpu_model, default_data, git_commit, vgg_pd_note  # noqa: E40
 
 from coin_cl.atomic import write_text  # noqa: E402
 from coin_cl.demo import baseline_config, room_baseline  # noqa: E402
-from coin_cl.pipeline.coin import STAGES, CoInConfig, inpaint  # noqa: E402
+from coin_cl.pipeline.coin import CoInConfig, inpaint  # noqa: E402
 from coin_cl.pipeline.inpaint2d import Inpaint2DConfig  # noqa: E402
 from coin_cl.pipeline.runner import share_stages  # noqa: E402
 
@@ -70,7 +72,7 @@ CUP_BOXES = {
     "cup_edge": ((2.785, 4.886, 4.866), (1.1, 0.85, 0.95), 25.0),
 }
 SCENES = ("spinnerf", "cup_plain", "cup_edge")
-ROWS = ("default", "naive", "masked_recon", "smooth", "lama")
+ROWS = ("default", "naive", "masked_recon", "smooth", "embedded")
 KEYS = ("psnr", "m_psnr", "vgg_pd", "m_vgg_pd", "bbox_gmsd", "hf_ratio")
 CLI_BUDGET = 30.0  # `coin-cl run`'s --budget default: the budget of the default row without --budget
 
@@ -266,8 +268,8 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
         if row == "default":
             continue
         run = out / row
-        if row == "lama" and name != "spinnerf":
-            table[row] = {"na": "n/a (the dataset's LaMa inpaints exist for SPIn-NeRF only)"}
+        if row == "embedded" and name != "spinnerf":
+            table[row] = {"na": "n/a (no dataset inpaints: the default row is the embedded inpainter)"}
             continue
         t = time.perf_counter()
         print(f"[{name}] row {row} ...", flush=True)
@@ -282,9 +284,9 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
             table[row] = pipeline_row(
                 scene, run, at_default_steps(default_run, replace(base, inpaint2d=i2d), args)
             )
-        elif row == "lama":
-            share_stages(default_run, run, STAGES)
-            i2d = Inpaint2DConfig(inpainter="auto", use_dataset=True)
+        elif row == "embedded":
+            share_stages(default_run, run, ("0_scene", "0_refine"))
+            i2d = Inpaint2DConfig(use_dataset=False)
             table[row] = pipeline_row(
                 scene, run, at_default_steps(default_run, replace(base, inpaint2d=i2d), args)
             )
