@@ -60,8 +60,11 @@ class ExemplarConfig:
     the band inside the hole is as strong (RMS) as the same band in the window's known pixels
     (`texture_gain`; at or below hf_gain: off).
     guard_px: pixels (working resolution) around every view's mask that are never copied from and
-    that the fill itself recomputes (only the mask's pixels are written): a pixel the object covers
-    partly at this resolution carries its colours, and a copy of it draws the object's outline.
+    that the fill itself recomputes (only the mask's pixels are written): for masks that leave pixels
+    the object covers partly outside them (their mixed colours would be copied, or carried into the
+    hole by the smooth fill, as an outline). 0 by default: stage 1's masks are resized conservatively
+    (`coin_cl.scene.types.resize_mask`), and a guard also hides the truest pixels of the surroundings
+    from the smooth fill (demo room, structure alone: m-PSNR 19.86 -> 18.92 dB with 1 px).
     source_band: source patches are centred at most source_band x the hole's radius (its largest
     inscribed radius, at least the patch side) from the hole, in every view (the same pixels): the
     hole's own surroundings, not the rest of the window. source_gate: source patches must also look
@@ -92,7 +95,7 @@ class ExemplarConfig:
     vote_h: float = 1.0
     vote: str = "copy"
     texture_gain_max: float = 1.0
-    guard_px: int = 1
+    guard_px: int = 0
     source_band: float = 3.0
     source_gate: bool = True
     gate_tol: float = 0.06
