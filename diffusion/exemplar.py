@@ -75,10 +75,12 @@ class ExemplarConfig:
     plain_rms: the texture rule. When the RMS of the high band (``x - G_hf_sigma * x``) of the ring's
     known pixels (within a patch side of the hole) is below it, in colour units of [0, 1], the
     surroundings are plain and the fill is the smooth structure fill alone, with no synthesised
-    texture: the texture it would add is below the ring's own level by construction, and on a plain
-    surface any smooth fill is closer than a collage. 0.012 is about a 3/255 sensor-noise level:
-    the plain demo floors and SPIn-NeRF's grass/leaf holes (the benchmark) sit far on either side of
-    it (docs/BENCHMARKS.md). 0 turns the rule off.
+    texture: leaving the texture out departs from the ring by less than the threshold, while a
+    synthesised one can invent structure, and on a plain surface any smooth fill is closer than a
+    collage. 0.012 sits just above a plain surface with
+    sensor noise of about 3/255 (0.0096 for Gaussian noise of 0.01) and below every hole of
+    benchmarks/inpaint2d.py (0.018-0.114 on SPIn-NeRF's pavement/gravel/leaves, 0.043-0.055 on the
+    demo room), so those fills keep their texture (docs/BENCHMARKS.md). 0 turns the rule off.
     clamp_tol: the fill is clipped per channel to the 1st-99th percentile range of the ring's known
     colours widened by this (colour units): the synthesised band's overshoot along an edge (a bright
     halo beside a tile joint) is a colour the surroundings do not have."""

@@ -256,3 +256,23 @@ def test_the_object_is_never_copied_even_where_it_covers_pixels_partly():
     for mode in ("hf", "full"):
         out = exemplar_inpaint(small, near, ExemplarConfig(mode=mode, guard_px=1), seed=0)
         assert _magenta_score(out[near]).max() < 0.08, mode
+
+
+def test_plain_surroundings_get_the_smooth_fill_alone():
+    """`plain_rms`: a ring with less texture than the threshold gets the structure fill, no texture."""
+    from coin_cl.diffusion.exemplar import ring_texture
+
+    rng = np.random.default_rng(0)
+    x = np.mgrid[0:80, 0:100][1]
+    img = 0.6 + 0.1 * x[..., None] / 100 + 0.004 * rng.standard_normal((80, 100, 3))
+    img = np.clip(img * np.array([1.0, 0.97, 0.9]), 0, 1).astype(np.float32)
+    m = np.zeros((80, 100), bool)
+    m[25:55, 35:70] = True
+    cfg = ExemplarConfig()
+    assert ring_texture(opencv_inpaint(img, m, cfg.structure), m, cfg) < cfg.plain_rms
+    out = exemplar_inpaint(img, m, seed=0)
+    np.testing.assert_array_equal(out[m], np.clip(opencv_inpaint(img, m, cfg.structure)[m], 0, 1))
+    textured = exemplar_inpaint(img, m, ExemplarConfig(plain_rms=0), seed=0)  # the rule off
+    assert not np.array_equal(textured[m], out[m])
+    rough = np.clip(img + 0.05 * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
+    assert ring_texture(opencv_inpaint(rough, m, cfg.structure), m, cfg) > cfg.plain_rms
