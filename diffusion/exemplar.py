@@ -69,7 +69,7 @@ class ExemplarConfig:
     inscribed radius, at least the patch side) from the hole, in every view (the same pixels): the
     hole's own surroundings, not the rest of the window. source_gate: source patches must also look
     like the hole's boundary ring: their mean colour within the ring's patches' 1st-99th percentile
-    box and their standard deviation at most the ring's 99th percentile, each widened by gate_tol
+    box and their standard deviation at most the ring patches' largest, each widened by gate_tol
     (colour units, [0, 1]); a plain floor is then filled from floor, not from the leaves or shelves
     elsewhere in the window (when fewer than a hole's worth of patches pass, the band alone is used).
     plain_rms: the texture rule. When the RMS of the high band (``x - G_hf_sigma * x``) of the ring's
