@@ -6,7 +6,9 @@ at the hole's own resolution: an image pyramid of a window around the hole is bu
 coarsest level is started from OpenCV's smooth fill (Telea / FSR), and every level alternates
 - search: for each patch overlapping the hole, the nearest patch (sum of squared differences) among the
   patches lying wholly in known pixels of the window, in this view and in the other views given as
-  sources (the same window of each; their own masks excluded), by PatchMatch: propagation from
+  sources (the same window of each; their own masks, grown by a guard ring, excluded), restricted to
+  the hole's surroundings (a band of a few hole radii) and to patches whose colour statistics match
+  the hole's boundary ring (`ExemplarConfig.source_band`, `source_gate`), by PatchMatch: propagation from
   neighbours at 1, 2, 4 and 8 pixels, random search at halving radii and one global random draw;
 - vote: each hole pixel becomes the similarity-weighted mean of the pixels the overlapping patches
   copied (weights exp(-d / 2h^2), h^2 the median patch distance of the level); with the default
@@ -16,6 +18,10 @@ coarsest level is started from OpenCV's smooth fill (Telea / FSR), and every lev
 The nearest-neighbour field is upsampled to the next level. Two outputs (`ExemplarConfig.mode`):
 "full" (the synthesis itself) and "hf" (the smooth solver's fill plus the synthesis's high-frequency
 band, ``X - G_sigma * X``, times ``hf_gain``): the benchmark `benchmarks/inpaint2d.py` measures both.
+The fill is conservative: where the ring around the hole is plain (`ExemplarConfig.plain_rms`) it is
+the smooth fill alone; it never takes a colour outside the ring's range (`clamp_tol`); the pixels a
+mask covers only partly at the working resolution (a guard ring, `guard_px`) are neither copied nor
+used as the smooth fill's boundary, so the object's colours cannot leak into the fill.
 
 Pure numpy + OpenCV, deterministic for a fixed seed (one ``np.random.default_rng(seed)``).
 Images (H, W, 3) float [0, 1]; masks (H, W) bool, True = fill.
@@ -52,7 +58,32 @@ class ExemplarConfig:
     the centre: the mean of several slightly shifted patches blurs the texture they share).
     texture_gain_max: in 'hf' mode the band's gain is raised from hf_gain towards this cap until
     the band inside the hole is as strong (RMS) as the same band in the window's known pixels
-    (`texture_gain`; at or below hf_gain: off)."""
+    (`texture_gain`; at or below hf_gain: off).
+    guard_px: pixels (working resolution) around every view's mask that are never copied from and
+    that the fill itself recomputes (only the mask's pixels are written): for masks that leave pixels
+    the object covers partly outside them (their mixed colours would be copied, or carried into the
+    hole by the smooth fill, as an outline). 0 by default: stage 1's masks are resized conservatively
+    (`coin_cl.scene.types.resize_mask`), and a guard also hides the truest pixels of the surroundings
+    from the smooth fill (demo room, structure alone: m-PSNR 19.86 -> 18.92 dB with 1 px).
+    source_band: source patches are centred at most source_band x the hole's radius (its largest
+    inscribed radius, at least the patch side) from the hole, in every view (the same pixels): the
+    hole's own surroundings, not the rest of the window. source_gate: source patches must also look
+    like the hole's boundary ring: their mean colour within the ring's patches' 1st-99th percentile
+    box and their standard deviation at most the ring patches' largest, each widened by gate_tol
+    (colour units, [0, 1]); a plain floor is then filled from floor, not from the leaves or shelves
+    elsewhere in the window (when fewer than a hole's worth of patches pass, the band alone is used).
+    plain_rms: the texture rule. When the RMS of the high band (``x - G_hf_sigma * x``) of the ring's
+    known pixels (within a patch side of the hole) is below it, in colour units of [0, 1], the
+    surroundings are plain and the fill is the smooth structure fill alone, with no synthesised
+    texture: leaving the texture out departs from the ring by less than the threshold, while a
+    synthesised one can invent structure, and on a plain surface any smooth fill is closer than a
+    collage. 0.012 sits just above a plain surface with
+    sensor noise of about 3/255 (0.0096 for Gaussian noise of 0.01) and below every hole of
+    benchmarks/inpaint2d.py (0.018-0.114 on SPIn-NeRF's pavement/gravel/leaves, 0.043-0.055 on the
+    demo room), so those fills keep their texture (docs/BENCHMARKS.md). 0 turns the rule off.
+    clamp_tol: the fill is clipped per channel to the 1st-99th percentile range of the ring's known
+    colours widened by this (colour units): the synthesised band's overshoot along an edge (a bright
+    halo beside a tile joint) is a colour the surroundings do not have."""
 
     patch: int = 7
     min_coarse: int = 12
@@ -66,6 +97,12 @@ class ExemplarConfig:
     vote_h: float = 1.0
     vote: str = "copy"
     texture_gain_max: float = 1.0
+    guard_px: int = 0
+    source_band: float = 3.0
+    source_gate: bool = True
+    gate_tol: float = 0.06
+    plain_rms: float = 0.012
+    clamp_tol: float = 0.02
 
     def __post_init__(self) -> None:
         if self.patch < 3 or self.patch % 2 == 0:
@@ -78,6 +115,14 @@ class ExemplarConfig:
             raise ValueError(f"ExemplarConfig.vote must be 'mean' or 'copy', got {self.vote!r}")
         if not math.isfinite(self.texture_gain_max):
             raise ValueError(f"ExemplarConfig.texture_gain_max must be finite, got {self.texture_gain_max}")
+        if (
+            self.guard_px < 0
+            or not (self.source_band > 0)
+            or not (self.gate_tol >= 0 and self.clamp_tol >= 0)
+        ):
+            raise ValueError("ExemplarConfig: guard_px >= 0, source_band > 0, gate_tol >= 0, clamp_tol >= 0")
+        if not (math.isfinite(self.plain_rms) and self.plain_rms >= 0):
+            raise ValueError(f"ExemplarConfig.plain_rms must be finite and >= 0, got {self.plain_rms}")
 
 
 def _window(mask: np.ndarray, context: float, margin: int) -> tuple[slice, slice]:
@@ -102,7 +147,9 @@ def _down(img: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class _Level:
     """One pyramid level: N views of the window, padded by the patch radius r, flattened."""
 
-    def __init__(self, imgs: np.ndarray, holes: np.ndarray, target_hole: np.ndarray, r: int):
+    def __init__(
+        self, imgs: np.ndarray, holes: np.ndarray, target_hole: np.ndarray, r: int, allowed: np.ndarray | None
+    ):
         self.r = r
         self.n, self.h, self.w = holes.shape
         pad = ((0, 0), (r, r), (r, r))
@@ -111,6 +158,8 @@ class _Level:
         known = np.pad(~holes, pad, constant_values=False)
         k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
         valid = np.stack([cv2.erode(v.astype(np.uint8), k, borderValue=0) > 0 for v in known])
+        if allowed is not None and (valid & (gated := np.pad(allowed, pad, constant_values=False))).any():
+            valid &= gated
         self.valid = valid.reshape(-1)
         self.valid_idx = np.flatnonzero(self.valid)
         if len(self.valid_idx) == 0:
@@ -123,6 +172,13 @@ class _Level:
         self.act_idx = np.flatnonzero(act)  # patches overlapping the hole
         dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
         self.off = (dy * self.wp + dx).reshape(-1)
+
+    def refresh_pad(self) -> None:
+        """Mirror view 0's current pixels into its padding again (in place): a hole at the image border
+        reaches the padding, whose stale copies would otherwise pull the fill back to its start."""
+        r = self.r
+        v0 = self.S[: self.hp * self.wp].reshape(self.hp, self.wp, 3)
+        v0[...] = np.pad(v0[r:-r, r:-r].copy(), ((r, r), (r, r), (0, 0)), mode="reflect")
 
     def yx(self, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n, rem = np.divmod(f, self.hp * self.wp)
@@ -219,6 +275,60 @@ def _upsample_nnf(Lc: _Level, nnf_c: np.ndarray, Lf: _Level, rng) -> np.ndarray:
     return out
 
 
+def _allowed(imgs: np.ndarray, holes: np.ndarray, cfg: ExemplarConfig, r: int) -> np.ndarray | None:
+    """(N, h, w) bool: where source patches may be centred (`ExemplarConfig.source_band`,
+    `source_gate`). imgs (N, h, w, 3), holes (N, h, w), view 0's hole the target. None: anywhere."""
+    target = holes[0]
+    side = 2 * r + 1
+    radius = float(cv2.distanceTransform(np.pad(target, 1).astype(np.uint8), cv2.DIST_L2, 3).max())
+    dist = cv2.distanceTransform((~target).astype(np.uint8), cv2.DIST_L2, 3)
+    band = dist <= cfg.source_band * max(radius, side) + r
+    allowed = np.broadcast_to(band, holes.shape).copy()
+    if not cfg.source_gate:
+        return allowed
+    k = np.ones((side, side), np.uint8)
+    full = np.stack([cv2.erode((~h).astype(np.uint8), k, borderValue=0) > 0 for h in holes])
+    mean = np.stack([cv2.blur(im, (side, side)) for im in imgs])
+    var = np.stack([cv2.blur(im * im, (side, side)) for im in imgs]) - mean**2
+    std = np.sqrt(np.maximum(var, 0).sum(-1))
+    ring = full[0] & (dist <= side + r)
+    if ring.sum() < 8:
+        return allowed
+    lo, hi = np.percentile(mean[0][ring], [1, 99], axis=0)
+    smax = std[0][ring].max()
+    tol = cfg.gate_tol
+    like = ((mean >= lo - tol) & (mean <= hi + tol)).all(-1) & (std <= smax + tol)
+    if (allowed & like & full).sum() < target.sum():
+        return allowed  # too few ring-like patches to fill the hole from: the band alone
+    return allowed & like
+
+
+def ring_texture(structure: np.ndarray, hole: np.ndarray, cfg: ExemplarConfig) -> float:
+    """RMS (colour units of [0, 1]) of the high band ``x - G_hf_sigma * x`` of the known pixels within a
+    patch side of the hole: the surroundings' texture level (`ExemplarConfig.plain_rms`). structure
+    (h, w, 3): the image with its hole already smoothly filled (so the object's own pixels do not
+    enter the blur), hole (h, w) bool. No ring pixel: inf (not plain)."""
+    side = cfg.patch
+    near = cv2.dilate(hole.astype(np.uint8), np.ones((2 * side + 1, 2 * side + 1), np.uint8)) > 0
+    ring = near & ~hole
+    if not ring.any():
+        return math.inf
+    band = structure - cv2.GaussianBlur(structure, (0, 0), cfg.hf_sigma)
+    return float(np.sqrt((band[ring] ** 2).sum(-1).mean() / 3))
+
+
+def ring_range(window: np.ndarray, hole: np.ndarray, cfg: ExemplarConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel (lo, hi) (3,) of the colours of the known pixels within a patch side of the hole:
+    their 1st and 99th percentiles widened by `cfg.clamp_tol`. The fill is clipped to it."""
+    side = cfg.patch
+    near = cv2.dilate(hole.astype(np.uint8), np.ones((2 * side + 1, 2 * side + 1), np.uint8)) > 0
+    ring = window[near & ~hole]
+    if len(ring) == 0:
+        return np.zeros(3, np.float32), np.ones(3, np.float32)
+    lo, hi = np.percentile(ring, [1, 99], axis=0)
+    return (lo - cfg.clamp_tol).astype(np.float32), (hi + cfg.clamp_tol).astype(np.float32)
+
+
 def _synthesise(
     imgs: np.ndarray, holes: np.ndarray, init: np.ndarray, cfg: ExemplarConfig, rng
 ) -> np.ndarray:
@@ -243,7 +353,9 @@ def _synthesise(
             continue
         im = im.copy()
         im[0][ho[0]] = it[ho[0]]  # never the masked-out object's own pixels
-        L = _Level(im, ho, ho[0], r)
+        for i in range(1, len(im)):
+            im[i][ho[i]] = 0.5  # nor theirs in the other views (never copied; a neutral value for the pad)
+        L = _Level(im, ho, ho[0], r, _allowed(im, ho, cfg, r))
         if prev is None:
             nnf = rng.choice(L.valid_idx, len(L.act_idx))
         else:
@@ -251,6 +363,7 @@ def _synthesise(
             L.S[L.hole_idx] = _vote(L, nnf, np.ones(len(nnf), np.float32))
             if cfg.vote == "copy":
                 _copy_centres(L, nnf)
+            L.refresh_pad()
         rounds = cfg.em_iters * (2 if prev is None else 1)
         for _ in range(rounds):
             tgt = L.S[L.act_idx[:, None] + L.off[None, :]]
@@ -259,6 +372,7 @@ def _synthesise(
             L.S[L.hole_idx] = _vote(L, nnf, cost, cfg.vote_h)
             if cfg.vote == "copy":
                 _copy_centres(L, nnf)
+            L.refresh_pad()
         prev = (L, nnf)
     out = prev[0].S.reshape(prev[0].n, prev[0].hp, prev[0].wp, 3)[0]
     return out[r:-r, r:-r].copy()
@@ -301,14 +415,22 @@ def exemplar_inpaint(
         return image.copy()
     if mask.all():
         raise ValueError("mask covers the whole image: no exemplar patches to copy")
-    structure = opencv_inpaint(image, mask, cfg.structure)
-    win = _window(mask, cfg.context, 2 * cfg.patch)
-    views = [(image, mask)]
+    guard = np.ones((2 * cfg.guard_px + 1,) * 2, np.uint8)
+    work = cv2.dilate(mask.astype(np.uint8), guard) > 0  # the hole as filled: mask + guard ring
+    if work.all():
+        raise ValueError("mask (with its guard ring) covers the whole image: no exemplar patches to copy")
+    structure = opencv_inpaint(image, work, cfg.structure)
+    win = _window(work, cfg.context, 2 * cfg.patch)
+    views = [(image, work)]
     for k, (im, un) in enumerate(sources or []):
         im, un = check_image_mask(im, un)
         if im.shape != image.shape:
             raise ValueError(f"source view {k} is {im.shape}, the image {image.shape}: sources must match")
-        views.append((im, un))
+        views.append((im, cv2.dilate(un.astype(np.uint8), guard) > 0))
+    out = image.copy()
+    if cfg.plain_rms > 0 and ring_texture(structure[win], work[win], cfg) < cfg.plain_rms:
+        out[mask] = np.clip(structure[mask], 0, 1)  # plain surroundings: the smooth fill alone
+        return out
     imgs = np.stack([v[0][win] for v in views])
     holes = np.stack([v[1][win] for v in views])
     rng = np.random.default_rng(seed)
@@ -321,7 +443,8 @@ def exemplar_inpaint(
         fill[win] = synth
     else:
         hf = synth - cv2.GaussianBlur(synth, (0, 0), cfg.hf_sigma)
-        fill[win] = structure[win] + texture_gain(image[win], mask[win], hf, cfg) * hf
-    out = image.copy()
+        fill[win] = structure[win] + texture_gain(image[win], work[win], hf, cfg) * hf
+    lo, hi = ring_range(image[win], work[win], cfg)
+    fill = np.clip(fill, lo, hi)  # no colour the surroundings do not have (the band's overshoot)
     out[mask] = np.clip(fill[mask], 0, 1)
     return out

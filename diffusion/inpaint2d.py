@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 SD2_NAME = "Stable Diffusion 2 inpainting"
 DATASET_NAME = "dataset per-view inpaint"
 PRIOR_NAME = "scene prior"
+FSR_BLOCK = 32  # OpenCV xphoto FSR's block grid (16 px) times 2: images are padded to a multiple of it
 
 
 @dataclass
@@ -118,9 +119,17 @@ def opencv_inpaint(image: np.ndarray, mask: np.ndarray, method: str = "telea", r
         flag = cv2.INPAINT_TELEA if method == "telea" else cv2.INPAINT_NS
         out = cv2.inpaint(u8, m8, radius, flag)  # cv2.inpaint: mask non-zero = fill
     elif method in ("fsr_fast", "fsr_best"):
-        out = np.zeros_like(u8)
+        # FSR works on 16-px blocks and leaves the last (H mod 16) rows / (W mod 16) columns of a hole
+        # unreconstructed, at its YCrCb zero: RGB (0, 135, 0) in the fill. The image and the mask are
+        # therefore mirrored out to a multiple of FSR_BLOCK (the mirrored hole stays a hole) and cropped.
+        H, W = m8.shape
+        pad = ((0, -H % FSR_BLOCK), (0, -W % FSR_BLOCK))
+        u8p = np.pad(u8, pad + ((0, 0),), mode="symmetric")
+        m8p = np.pad(m8, pad, mode="symmetric")
+        out = np.zeros_like(u8p)
         flag = cv2.xphoto.INPAINT_FSR_FAST if method == "fsr_fast" else cv2.xphoto.INPAINT_FSR_BEST
-        cv2.xphoto.inpaint(u8, 255 - m8, out, flag)  # xphoto: mask non-zero = VALID
+        cv2.xphoto.inpaint(u8p, 255 - m8p, out, flag)  # xphoto: mask non-zero = VALID
+        out = out[:H, :W]
     else:
         raise ValueError(f"opencv_method must be telea, ns, fsr_fast or fsr_best, got {method!r}")
     return out.astype(np.float32) / 255.0

@@ -118,3 +118,24 @@ def test_crop_box_centred_and_inside():
 def test_opencv_bad_method():
     with pytest.raises(ValueError, match="opencv_method"):
         opencv_inpaint(_img(), np.ones((48, 64), bool), "lama")
+
+
+@pytest.mark.parametrize("shape", [(70, 96), (64, 101)])
+def test_fsr_fills_holes_at_the_bottom_and_right_border(shape):
+    """OpenCV's FSR leaves the last (size mod 16) rows/columns of a hole at its YCrCb zero, RGB
+    (0, 135, 0); opencv_inpaint pads the image to its block grid so they are reconstructed."""
+    H, W = shape
+    y, x = np.mgrid[0:H, 0:W]
+    img = np.stack(
+        [0.5 + 0.3 * np.sin(x / 5), 0.4 + 0.2 * np.cos(y / 7), 0.6 + 0.2 * np.sin((x + y) / 9)], -1
+    )
+    img = img.astype(np.float32)  # R >= 0.2 and B >= 0.4 everywhere
+    for box in (
+        (slice(H - 30, H), slice(30, 60)),
+        (slice(20, 50), slice(W - 25, W)),
+        (slice(H - 25, H), slice(W - 25, W)),
+    ):
+        m = np.zeros((H, W), bool)
+        m[box] = True
+        fill = opencv_inpaint(img, m, "fsr_fast")[m]
+        assert not ((fill[:, 0] < 0.1) & (fill[:, 2] < 0.1)).any(), box

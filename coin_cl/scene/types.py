@@ -200,7 +200,8 @@ class Scene:
     def resized(self, resolution: float) -> Scene:
         """A copy with images, masks and priors resized by `resolution` (0.5 -> half size).
 
-        Images use area averaging, masks nearest neighbour (a mask stays a set of whole pixels).
+        Images use area averaging; masks are conservative (`resize_mask`: any pixel the object covers
+        even partly stays masked, so no mixed object colour is left outside the mask).
         """
         if resolution == 1.0:
             return self
@@ -241,8 +242,12 @@ def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(H, W) bool -> (height, width) bool with nearest-neighbour sampling."""
+    """(H, W) bool -> (height, width) bool, conservative: shrinking, a pixel is masked when any part of
+    it is (area average > 0), since an area-resized image mixes the object's colours into it;
+    enlarging, nearest neighbour (each pixel lies in one source pixel)."""
     if mask.shape[1] == width and mask.shape[0] == height:
         return mask
+    if width < mask.shape[1] or height < mask.shape[0]:
+        return cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA) > 0
     out = cv2.resize(mask.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST)
     return out.astype(bool)
