@@ -67,3 +67,28 @@ def test_every_stage_shows_progress(tmp_path, capsys):
     assert ("train scaffold", 4) in done and ("train scaffold", 3) in done  # TE-D's two phases
     assert any(name.startswith("CLG") for name in names)
     assert "eval renders" in names and "orbit" in names
+
+
+@pytest.mark.parametrize(
+    ("args", "flag"),
+    [
+        (["--budget", "-1", "--iters", "3"], "--budget"),
+        (["--budget", "nan"], "--budget"),
+        (["--prior-seconds", "-1"], "--prior-seconds"),
+        (["--lama-path", "/nonexistent/big-lama.pt"], "--lama-path"),
+        (["--iters", "0"], "--iters"),
+    ],
+)
+def test_bad_values_are_one_line_naming_the_flag(tmp_path, capsys, args, flag):
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(tmp_path), "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and f"argument {flag}: " in err and args[args.index(flag) + 1] in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_empty_out_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(tmp_path), "--out", ""])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and "argument --out: '' is not a folder name" in err

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(subparsers) -> None:
     """Register `prepare` on the `coin-cl` subparsers."""
@@ -21,7 +23,7 @@ def add_commands(subparsers) -> None:
         "and masks_contact_sheet.png. A second run resumes from what exists.",
     )
     p.add_argument("photos", type=Path, help="folder of photos of one scene (.jpg/.png, one aspect ratio)")
-    p.add_argument("--out", type=Path, required=True, help="scene folder to write")
+    p.add_argument("--out", type=values.folder, required=True, help="scene folder to write")
     p.add_argument("--width", type=int, default=d.width,
                    help=f"working width in px; wider photos are downscaled (default {d.width})")  # fmt: skip
     p.add_argument("--exhaustive-max", type=int, default=d.exhaustive_max,

@@ -6,11 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(subparsers) -> None:
     """Register make-scene and eval on the `coin-cl` subparsers."""
     p = subparsers.add_parser("make-scene", help="generate the synthetic room scene with ground truth")
-    p.add_argument("out_dir", type=Path, help="folder to write (SPIn-NeRF layout)")
+    p.add_argument("out_dir", type=values.folder, help="folder to write (SPIn-NeRF layout)")
     p.add_argument("--coverage", type=int, default=180, choices=(90, 180, 360), help="camera arc in degrees")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--views", type=int, default=40, help="number of views (a quarter are test views)")
@@ -24,7 +26,7 @@ def add_commands(subparsers) -> None:
     e = subparsers.add_parser("eval", help="PSNR/SSIM (+ masked, LPIPS when weights exist) of test views")
     e.add_argument("pred_dir", type=Path, help="one image per test view, named as the view")
     e.add_argument("--scene", type=Path, required=True, help="scene folder with ground truth")
-    e.add_argument("--out", type=Path, default=None, help="output folder (default PRED_DIR/eval)")
+    e.add_argument("--out", type=values.folder, default=None, help="output folder (default PRED_DIR/eval)")
     e.set_defaults(func=cmd_eval)
 
 

@@ -6,6 +6,8 @@ import argparse
 import math
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(subparsers) -> None:
     t = subparsers.add_parser("train", help="train vanilla 3DGS or Scaffold-GS on a scene folder")
@@ -13,7 +15,9 @@ def add_commands(subparsers) -> None:
     t.add_argument("--model", choices=("scaffold", "3dgs"), default="scaffold")
     t.add_argument("--iters", type=int, default=30_000)
     t.add_argument("--resolution", type=float, default=0.5, help="image scale (0.5 = half size)")
-    t.add_argument("--out", type=Path, required=True, help="output folder (resumes if it has ckpt.pt)")
+    t.add_argument(
+        "--out", type=values.folder, required=True, help="output folder (resumes if it has ckpt.pt)"
+    )
     t.add_argument(
         "--holdout",
         type=int,

@@ -70,6 +70,11 @@ class Inpaint2DConfig:
             raise ValueError(f"inpainter must be one of {', '.join(INPAINTERS)}, got {self.inpainter!r}")
         if self.sd2_mode not in SD2_MODES:
             raise ValueError(f"sd2_mode must be one of {', '.join(SD2_MODES)}, got {self.sd2_mode!r}")
+        if self.lama_path is not None and not Path(self.lama_path).expanduser().is_file():
+            # Checked even where the scene's own inpaints make LaMa unneeded: a mistyped path is
+            # said at once, not found out at the run that needs it.
+            raise ValueError(f"--lama-path / lama_path {self.lama_path!r}: no such file; give the path of "
+                             "LaMa's TorchScript big-lama.pt or leave it out")  # fmt: skip
 
 
 INPAINTERS = ("auto", "embedded", "lama", "prior", "telea")

@@ -37,6 +37,10 @@ ANCHOR_GROWTH = 2.0  # anchor growing may add up to this factor over the SfM poi
 BYTES_PER_RENDER_PIXEL = 512  # image, depth, alpha and their gradients + tile lists of one view
 SAFETY = 1.25  # what the estimate is multiplied by before it is compared
 RESOLUTIONS = (0.75, 0.5, 0.375, 0.25, 0.125)  # the scales suggested when a scene does not fit
+# Decoding a view at its file's size holds float32 RGB (12 B/px) and a bool mask (1 B/px) for the
+# whole scene, plus the file's 8-bit pixels and the float copy of the view being converted.
+DECODE_BYTES_PER_PIXEL = 13
+DECODE_TRANSIENT_BYTES_PER_PIXEL = 4 + 12
 ENV_LIMIT = "COIN_MEMORY_LIMIT_GB"  # pretend the machine has this much (tests, shared machines)
 
 
@@ -135,3 +139,42 @@ def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
         f"scene {scene.path}: {n} views of {w}x{h} with {pts} points need about {need / GIB:.1f} GiB "
         f"(estimate: {parts_txt} GiB, x{SAFETY} margin) but {have / GIB:.1f} GiB are available: use {hint}"
     )
+
+
+def check_scene_files(path, resolution: float | None) -> MemoryEstimate:
+    """The memory check made before a scene folder is decoded: from the image headers alone
+    (`coin_cl.scene.image_sizes`; a header declaring more than `scene.io.MAX_IMAGE_PIXELS` is
+    refused there, naming the file) the peak of decoding every view at its file's size
+    (DECODE_BYTES_PER_PIXEL per pixel of all views plus one view's transient copies) and the run's
+    estimate at the working size `resolution` (None: `budget.working_resolution`) without the
+    points (not known before loading; `check_memory` adds them once loaded). Refuses either with
+    `SceneTooLargeError`, one line naming the folder and what to do; returns the larger estimate.
+    """
+    from coin_cl.pipeline.budget import working_resolution
+    from coin_cl.scene import image_sizes
+
+    sizes = image_sizes(path)
+    if not sizes:
+        raise FileNotFoundError(f"no .png/.jpg images in scene {path}")
+    px = [w * h for _, w, h in sizes]
+    decode = BASE_BYTES + DECODE_BYTES_PER_PIXEL * sum(px) + DECODE_TRANSIENT_BYTES_PER_PIXEL * max(px)
+    decode = int(SAFETY * decode)
+    _, w, h = max(sizes, key=lambda s: s[1] * s[2])
+    r = resolution if resolution is not None else working_resolution(w, h)
+    run, parts = estimate_peak_bytes(round(w * r), round(h * r), len(sizes), 0)
+    have = available_bytes()
+    est = MemoryEstimate(max(decode, run), {**parts, "decode": decode}, have)
+    if have is not None and decode > have:
+        raise SceneTooLargeError(
+            f"scene {path}: decoding its {len(sizes)} images ({sum(px) / 1e6:.0f} megapixels, the largest "
+            f"{w}x{h}) needs about {decode / GIB:.1f} GiB before they are scaled down, but {have / GIB:.1f} "
+            "GiB are available: downscale the photos first (e.g. `coin-cl prepare --width 1008`) or use "
+            "fewer of them"
+        )
+    if have is not None and run > have:
+        raise SceneTooLargeError(
+            f"scene {path}: {len(sizes)} views at {round(w * r)}x{round(h * r)} need about {run / GIB:.1f} "
+            f"GiB before counting the points, but {have / GIB:.1f} GiB are available: use a smaller "
+            "--resolution or fewer views"
+        )
+    return est

@@ -55,6 +55,8 @@ from coin_cl.scene.io import view_stem, write_png
 
 log = logging.getLogger(__name__)
 
+MIN_POINTS = 4  # sparse points the Gaussians need to start from
+
 MONOCULAR_PRIOR = "monocular (Depth Anything V2 small, COIN_DEPTH_WEIGHTS)"
 STAGE_JSON = "stage.json"
 
@@ -238,8 +240,14 @@ def run_refgs(
         pts = np.concatenate([pts, sp])
         cols = None if cols is None else np.concatenate([cols, sc])
         log.info("%d seed points added after pruning", len(sp))
-    if len(pts) < 4:
-        raise ValueError(f"only {len(pts)} SfM points left after pruning; lower prune_min_fraction")
+    if len(pts) < MIN_POINTS:
+        src = scene.meta.get("points_file", f"the sparse points of scene {scene.path}")
+        raise ValueError(
+            f"{src}: only {len(pts)} of its {len(scene.points)} sparse points are left outside the "
+            f"object's masks ({n_removed} fell inside), {MIN_POINTS} are needed to seed the Gaussians; "
+            "check that the masks cover only the object, or make a denser point cloud (`coin-cl "
+            "prepare` on the photos)"
+        )
 
     prior = None
     if cfg.depth_loss:
