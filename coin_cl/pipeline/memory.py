@@ -164,17 +164,17 @@ def check_scene_files(path, resolution: float | None) -> MemoryEstimate:
     run, parts = estimate_peak_bytes(round(w * r), round(h * r), len(sizes), 0)
     have = available_bytes()
     est = MemoryEstimate(max(decode, run), {**parts, "decode": decode}, have)
+    if have is not None and run > have:
+        raise SceneTooLargeError(
+            f"scene {path}: {len(sizes)} views at {round(w * r)}x{round(h * r)} (--resolution {r:g}) need "
+            f"about {run / GIB:.1f} GiB before counting the points, but {have / GIB:.1f} GiB are available: "
+            "use a smaller --resolution, fewer views or a machine with more memory"
+        )
     if have is not None and decode > have:
         raise SceneTooLargeError(
             f"scene {path}: decoding its {len(sizes)} images ({sum(px) / 1e6:.0f} megapixels, the largest "
             f"{w}x{h}) needs about {decode / GIB:.1f} GiB before they are scaled down, but {have / GIB:.1f} "
             "GiB are available: downscale the photos first (e.g. `coin-cl prepare --width 1008`) or use "
             "fewer of them"
-        )
-    if have is not None and run > have:
-        raise SceneTooLargeError(
-            f"scene {path}: {len(sizes)} views at {round(w * r)}x{round(h * r)} need about {run / GIB:.1f} "
-            f"GiB before counting the points, but {have / GIB:.1f} GiB are available: use a smaller "
-            "--resolution or fewer views"
         )
     return est
