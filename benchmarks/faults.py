@@ -630,9 +630,10 @@ FIX_WORDS = ("use ", "give ", "delete ", "remove ", "re-run", "rerun", "run ", "
 def vague(msg: str) -> bool:
     """The harness's judgement of an error message: clear (False) when it is one non-empty line
     that (a) names the file or the value: a path (a '/'), a file name with an extension, a --flag
-    or a quoted value (a bare number is not enough: "only 0 points left" names no culprit); and (b) says what to do: one of FIX_WORDS. Vague (True)
-    otherwise: a Python exception's bare text ("list index out of range", "'NoneType' object has
-    no attribute 'get'"), a traceback, or a message that names neither culprit nor remedy."""
+    or a quoted value (a bare number is not enough: "only 0 points left" names no culprit); and
+    (b) says what to do: one of FIX_WORDS. Vague (True) otherwise: a Python exception's bare text
+    ("list index out of range", "'NoneType' object has no attribute 'get'"), a traceback, or a
+    message that names neither culprit nor remedy."""
     import re
 
     msg = msg.strip()
@@ -668,9 +669,16 @@ def _cli(args: list[str], timeout: float = 600, env: dict | None = None) -> dict
         rc, err = p.returncode, p.stderr
     except subprocess.TimeoutExpired as exc:
         rc, err = None, (exc.stderr or b"").decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
-    lines = err.strip().splitlines()
-    return {"rc": rc, "last": lines[-1] if lines else "", "traceback": "Traceback" in err,
+    return {"rc": rc, "last": _last_line(err), "traceback": "Traceback" in err,
             "seconds": round(time.time() - t, 1)}  # fmt: skip
+
+
+def _last_line(err: str) -> str:
+    """The message a command ended with: its last "coin-cl ...: error:" line when there is one (a
+    progress bar may redraw after it), else stderr's last line."""
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("coin-cl ") and ": error:" in ln]
+    return errors[-1] if errors else (lines[-1] if lines else "")
 
 
 def _run_args(scene: Path, out: Path, iters: int) -> list[str]:
@@ -850,8 +858,7 @@ def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
             proc.kill()
             _, err = proc.communicate()
             rc = None
-        lines = err.strip().splitlines()
-        last = lines[-1] if lines else ""
+        last = _last_line(err)
         half = unreadable_files(d)
         cases.append({"name": "ctrl_c", "ok": rc not in (None, 0) and "Traceback" not in err and not half
                       and not vague(last), "rc": rc, "message": last, "traceback": "Traceback" in err,

@@ -169,21 +169,22 @@ def load_json(path: Path, fix: str) -> Any:
         raise SchemaError(f"{path}: nested too deeply to be a coin-cl file; {fix}") from None
 
 
-def validate(doc: Any, spec: Obj, path: Path, fix: str) -> dict:
-    """`doc` when it matches `spec`, else `SchemaError`: "`path`: <field> <problem>; `fix`"."""
-    err = check_obj(doc, spec)
+def validate(doc: Any, spec: Obj | Field, path: Path, fix: str) -> dict:
+    """`doc` when it matches `spec` (an `Obj`, or a `Field` for a file that is one value such as a
+    map), else `SchemaError`: "`path`: <field> <problem>; `fix`"."""
+    err = check_value(doc, spec, "the file") if isinstance(spec, Field) else check_obj(doc, spec)
     if err is not None:
         raise SchemaError(f"{path}: {err}; {fix}")
     return doc
 
 
-def parse(path: str | Path, spec: Obj, fix: str) -> dict:
+def parse(path: str | Path, spec: Obj | Field, fix: str) -> dict:
     """Read the JSON object in `path` and check it against `spec`; `SchemaError` (one line: the
     file, the field, `fix`) otherwise. A missing file raises FileNotFoundError as open() does."""
     return validate(load_json(Path(path), fix), spec, Path(path), fix)
 
 
-def parse_optional(path: str | Path, spec: Obj, fix: str) -> dict | None:
+def parse_optional(path: str | Path, spec: Obj | Field, fix: str) -> dict | None:
     """`parse`, or None when `path` does not exist."""
     path = Path(path)
     if not path.exists():
@@ -227,6 +228,20 @@ MANIFEST = Obj(
         "seconds": Field(float, lo=0, hi=1e9),
     }
 )
+
+
+# A stage's own records, read back when it resumes.
+# 2_refgs/stage.json: the step count the stage was planned with (read back on resume), and the
+# stage's result written beside it when it ends (free-form, reported, never opened).
+REFGS_STAGE = Obj({"iters": Field(int, lo=1, hi=MAX_STEPS)}, extra=True)
+# 2_refgs/depth_prior.json: what made the cached depth prior D_k.
+DEPTH_PRIOR = Obj({"name": Field(str), "view": Field(int, lo=0, hi=1e6), "is_disparity": Field(bool)})
+# 1_inpaint/sources.json: view name -> where its initial inpaint came from.
+INPAINT_SOURCES = Field(dict, items=Field(str))
+# 1_inpaint/sd2.json: how Stable Diffusion 2 was used.
+SD2_PLAN = Obj({"mode": Field(str), "views": Field(list, items=Field(str)), "why": Field(str, nullable=True)})
+# 3_clg/views/<view>.json: one CLG view's record (its figures, reported as they are).
+CLG_VIEW = Obj({"view": Field(int, lo=0, hi=1e6)}, extra=True)
 
 
 def run_folder_fix(path: Path, what: str = "") -> str:

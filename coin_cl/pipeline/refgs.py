@@ -52,6 +52,7 @@ from coin_cl.gs.trainer import TrainConfig, Trainer
 from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
 from coin_cl.scene.io import view_stem, write_png
+from coin_cl.schema import DEPTH_PRIOR, REFGS_STAGE, parse, parse_optional, run_folder_fix
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,8 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed:
     known_depth: see `run_refgs`; its finite pixels replace the prior's."""
     npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
     if npy.is_file() and meta.is_file():
-        return DepthPrior(np.load(npy), json.loads(meta.read_text())["name"])
+        doc = parse(meta, DEPTH_PRIOR, run_folder_fix(meta, "the prior is made again"))
+        return DepthPrior(np.load(npy, allow_pickle=False), doc["name"])
     if known_depth is not None and (getattr(scene, "priors", None) or {}).get("depth"):
         # The dataset's inpainted disparity shows the scene without the object: wrong on an insertion.
         log.info("known depth given: the dataset's (removal) depth prior is not used")
@@ -196,7 +198,8 @@ def run_refgs(
     out.mkdir(parents=True, exist_ok=True)
     cfg = replace(cfg, seed=seed)
     train_idx = list(scene.train_idx) or list(range(len(scene.cameras)))
-    prev_stage = json.loads((out / STAGE_JSON).read_text()) if (out / STAGE_JSON).is_file() else None
+    stage_json = out / STAGE_JSON
+    prev_stage = parse_optional(stage_json, REFGS_STAGE, run_folder_fix(stage_json, "Ref-GS starts over"))
     if iters is None and budget_minutes is not None and prev_stage is not None:
         n_iters = int(prev_stage["iters"])  # the first call's plan (a new probe would time a busier machine)
     else:
