@@ -98,7 +98,7 @@ def read_views_txt(path: Path) -> dict[str, tuple[int, str]]:
                              "remove that line") from None  # fmt: skip
         if not 0 <= index <= MAX_VIEW_INDEX:
             raise ValueError(f"{path}: line {no}: view index {index} is not in 0..{MAX_VIEW_INDEX}; "
-                             "indices count the capture's views from 0")  # fmt: skip
+                             "indices count the capture's views from 0: fix that line")  # fmt: skip
         if split not in ("train", "test"):
             raise ValueError(f"{path}: line {no}: split {split!r} is not train or test; fix that line")
         if Path(name).stem in out:

@@ -101,8 +101,9 @@ def load_native_folder(root: Path) -> Scene:
         gdir = root / group
         if gdir.is_dir():
             for kdir in sorted(p for p in gdir.iterdir() if p.is_dir()):
+                # the arrays must lie inside the folder too (a symlinked kind folder may not lead out)
                 groups[group][kdir.name] = {
-                    i: np.load(kdir / f"{s}.npy")
+                    i: np.load(inside(root, f"{group}/{kdir.name}/{s}.npy", sj, f"{group}/{kdir.name}"))
                     for i, s in enumerate(stems)
                     if (kdir / f"{s}.npy").is_file()
                 }
