@@ -615,6 +615,7 @@ def judge(c: dict) -> dict:
         "api": api.get("message", api["outcome"])[:300],
         "cli": "" if c["expect"] == "handled" and cli["rc"] == 0 else (cli["stderr_tail"] or [""])[0][:300],
         "half_written": c.get("half_written", []),
+        "cli_last": (cli["stderr_tail"] or [""])[0],  # whole, for `vague` (the 300 above are for tables)
     }
 
 
@@ -1007,9 +1008,12 @@ def main() -> int:
     }
     half = (len(ch["half_written"]) + sum(len(r["half_written"]) for r in judged)
             + sum(len(h.get("half_written", [])) for h in hostile))  # fmt: skip
-    messages = [r["cli"] for r in judged if r["expect"] == "error"] + [
+    messages = [r["cli_last"] for r in judged if r["expect"] == "error" and r["cli_ok"] is not None] + [
         h["message"] for h in hostile if h["rc"] not in (0, None)
     ]
+    for m in messages:
+        if vague(m):
+            print(f"  vague: {m[:400]}")
     result = {
         "kills": ch["kills"],
         "kills_per_stage": ch["kills_per_stage"],
