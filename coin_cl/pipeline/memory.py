@@ -103,21 +103,10 @@ def available_bytes() -> int | None:
     return min(cands) if cands else None
 
 
-def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
-    """Estimate `scene`'s peak memory (at its current resolution) and refuse it when it cannot fit.
-
-    Raises `SceneTooLargeError` (a ValueError: one line in the CLI) with the estimate, what is
-    available and the largest `--resolution` that fits (or, when none does, the view count to
-    aim at). Returns the estimate otherwise.
-    """
-    cam = scene.cameras[0]
-    w, h, n = cam.width, cam.height, len(scene)
-    pts = len(scene.points) if n_points is None else n_points
-    need, parts = estimate_peak_bytes(w, h, n, pts)
-    have = available_bytes()
-    est = MemoryEstimate(need, parts, have)
-    if est.fits:
-        return est
+def fit_hint(w: int, h: int, n: int, pts: int, have: int) -> str:
+    """What makes a run of `n` views of `w` x `h` with `pts` points fit in `have` bytes: the
+    largest `--resolution` of RESOLUTIONS that fits, else the view count to aim at, else a machine
+    with more memory."""
     hint = None
     for r in RESOLUTIONS:
         if estimate_peak_bytes(round(w * r), round(h * r), n, pts)[0] <= have:
@@ -134,6 +123,25 @@ def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
             else f"a machine with more memory (2 views at --resolution {min(RESOLUTIONS)} do not fit; "
             "a thinner SfM point cloud helps when the model part is large)"
         )
+    return hint
+
+
+def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
+    """Estimate `scene`'s peak memory (at its current resolution) and refuse it when it cannot fit.
+
+    Raises `SceneTooLargeError` (a ValueError: one line in the CLI) with the estimate, what is
+    available and the largest `--resolution` that fits (or, when none does, the view count to
+    aim at). Returns the estimate otherwise.
+    """
+    cam = scene.cameras[0]
+    w, h, n = cam.width, cam.height, len(scene)
+    pts = len(scene.points) if n_points is None else n_points
+    need, parts = estimate_peak_bytes(w, h, n, pts)
+    have = available_bytes()
+    est = MemoryEstimate(need, parts, have)
+    if est.fits:
+        return est
+    hint = fit_hint(w, h, n, pts, have)
     parts_txt = ", ".join(f"{k} {v / GIB:.2f}" for k, v in parts.items())
     raise SceneTooLargeError(
         f"scene {scene.path}: {n} views of {w}x{h} with {pts} points need about {need / GIB:.1f} GiB "
@@ -165,10 +173,10 @@ def check_scene_files(path, resolution: float | None) -> MemoryEstimate:
     have = available_bytes()
     est = MemoryEstimate(max(decode, run), {**parts, "decode": decode}, have)
     if have is not None and run > have:
+        ww, hh = round(w * r), round(h * r)
         raise SceneTooLargeError(
-            f"scene {path}: {len(sizes)} views at {round(w * r)}x{round(h * r)} (--resolution {r:g}) need "
-            f"about {run / GIB:.1f} GiB before counting the points, but {have / GIB:.1f} GiB are available: "
-            "use a smaller --resolution, fewer views or a machine with more memory"
+            f"scene {path}: {len(sizes)} views of {ww}x{hh} need about {run / GIB:.1f} GiB before counting "
+            f"the points, but {have / GIB:.1f} GiB are available: use {fit_hint(ww, hh, len(sizes), 0, have)}"
         )
     if have is not None and decode > have:
         raise SceneTooLargeError(
