@@ -625,7 +625,7 @@ def judge(c: dict) -> dict:
 FIX_WORDS = ("use ", "give ", "delete ", "remove ", "re-run", "rerun", "run ", "fix ", "pick ", "check ",
              "add ", "replace ", "re-create", "re-export", "downscale", "lower ", "set ", "pass ", "make ",
              "keep ", "rename ", "save ", "wait", "free ", "leave ", "move ", "choose ", "retry",
-             "try ", "install ", "mark ", "point ")  # fmt: skip
+             "try ", "install ", "mark ", "point ", "take ")  # fmt: skip
 
 
 def vague(msg: str) -> bool:
@@ -678,7 +678,8 @@ def _last_line(err: str) -> str:
     """The message a command ended with: its last "coin-cl ...: error:" line when there is one (a
     progress bar may redraw after it), else stderr's last line."""
     lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()]
-    errors = [ln for ln in lines if ln.startswith("coin-cl ") and ": error:" in ln]
+    # a progress bar's cursor moves (ANSI escapes) may sit before the error on its line
+    errors = [ln[ln.index("coin-cl ") :] for ln in lines if "coin-cl " in ln and ": error:" in ln]
     return errors[-1] if errors else (lines[-1] if lines else "")
 
 

@@ -312,7 +312,7 @@ def test_training_masks_are_dilated_unless_declared_exact(room, first_run, tmp_p
         and mask_dilation(plain, CoInConfig(mask_dilate=0)) == 0
     )
     (given / "scene_info.json").write_text("[1, 2")
-    with pytest.raises(ValueError, match="scene_info.json: not a JSON object"):
+    with pytest.raises(ValueError, match="scene_info.json: not valid JSON"):
         load_scene(given)
     with pytest.raises(ValueError, match="mask_dilate must be >= 0"):
         inpaint(room, tmp_path / "bad", config=replace(TINY, mask_dilate=-1))
