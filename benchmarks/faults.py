@@ -16,12 +16,25 @@ fixed so that runs are deterministic):
 4. the bad-input corpus, built from the synthetic scene, each case through `coin-cl run` and
    through `coin_cl.inpaint`: an error case passes when it gives one line naming the culprit
    (CLI: exit code 2, no traceback), a handled case when the run completes (`--cli-cases errors`,
-   the CI test's size, runs the handled ones through `coin_cl.inpaint` only).
+   the CI test's size, runs the handled ones through `coin_cl.inpaint` only);
+5. hostile input (`--skip-hostile` leaves it out), through `coin-cl` on copies of one finished
+   tiny run folder (`hostile_cases`): a checkpoint whose unpickling would run code (planted at
+   each checkpoint site; passes when its marker file was not created: `exec_refused`), prepare
+   with --out the photos' parent and a symlink planted in a run folder pointing outside (the
+   originals / the target hashed before and after: `data_loss` counts what changed), a scene.json
+   path leading out of its folder, malformed JSON of each run-folder file, a plan.json asking
+   for 10^9 steps, a header-only PNG declaring 12000x12000, a second command on a folder in use,
+   and Ctrl-C (SIGINT) in a run.
+
+Every error message (corpus and hostile, CLI's last stderr line) is judged by `vague`: clear when
+it is one line that names the file or value and says what to do (the rule is in its docstring);
+`vague_messages` counts the others.
 
 The step counts, the checkpoint interval ($COIN_CKPT_SECONDS = 0.25, so kills land between
 checkpoints) and the kill moments come from the command line and --seed. The last line is JSON:
-kills, resumed_identical, bad_inputs, clear_errors, tracebacks, half_written_files,
-lock_conflicts_caught and more.
+kills, resumed_identical, bad_inputs, clear_errors, tracebacks (corpus and hostile), half_written_files,
+lock_conflicts_caught, hostile_cases, hostile_ok, exec_refused (of exec_tried), data_loss,
+vague_messages and more. `--skip-chain` leaves out 1-3 (the kill chain and its reference run).
 
     nice -n 15 python benchmarks/faults.py --out /tmp/faults     (about 10 minutes on 2 cores)
 """
@@ -600,10 +613,308 @@ def judge(c: dict) -> dict:
         "api": api.get("message", api["outcome"])[:300],
         "cli": "" if c["expect"] == "handled" and cli["rc"] == 0 else (cli["stderr_tail"] or [""])[0][:300],
         "half_written": c.get("half_written", []),
+        "cli_last": (cli["stderr_tail"] or [""])[0],  # whole, for `vague` (the 300 above are for tables)
     }
 
 
+# ------------------------------------------------------------------------------------------ hostile input
+
+# What a message must contain to say what to do: one of these imperative cues (case-insensitive).
+FIX_WORDS = ("use ", "give ", "delete ", "remove ", "re-run", "rerun", "run ", "fix ", "pick ", "check ",
+             "add ", "replace ", "re-create", "re-export", "downscale", "lower ", "set ", "pass ", "make ",
+             "keep ", "rename ", "save ", "wait", "free ", "leave ", "move ", "choose ", "retry",
+             "try ", "install ", "mark ", "point ", "take ")  # fmt: skip
+
+
+def vague(msg: str) -> bool:
+    """The harness's judgement of an error message: clear (False) when it is one non-empty line
+    that (a) names the file or the value: a path (a '/'), a file name with an extension, a --flag
+    or a quoted value (a bare number is not enough: "only 0 points left" names no culprit); and
+    (b) says what to do: one of FIX_WORDS. Vague (True) otherwise: a Python exception's bare text
+    ("list index out of range", "'NoneType' object has no attribute 'get'"), a traceback, or a
+    message that names neither culprit nor remedy."""
+    import re
+
+    msg = msg.strip()
+    if not msg or "\n" in msg or "Traceback" in msg:
+        return True
+    names = bool(
+        re.search(r"/|\b[\w.-]+\.(json|png|jpe?g|npy|bin|txt|pt|ply)\b|--[a-z]|'[^']*'|\"[^\"]*\"", msg)
+    )
+    fixes = any(w in msg.lower() for w in FIX_WORDS)
+    return not (names and fixes)
+
+
+def _hash_tree(root: Path) -> dict[str, str]:
+    """{relative path: sha256} of every file under `root` (a single file: {"": hash}); symlinks are
+    not followed."""
+    import hashlib
+
+    if root.is_file():
+        return {"": hashlib.sha256(root.read_bytes()).hexdigest()}
+    out = {}
+    for p in sorted(root.rglob("*")):
+        if p.is_file() and not p.is_symlink():
+            out[str(p.relative_to(root))] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def _cli(args: list[str], timeout: float = 600, env: dict | None = None) -> dict:
+    """`python -m coin_cl.cli ARGS`: {rc, last (stderr's last line), traceback, seconds}."""
+    t = time.time()
+    try:
+        p = subprocess.run([sys.executable, "-m", "coin_cl.cli", *args], capture_output=True, text=True,
+                           env={**os.environ, **CHILD_ENV, **(env or {})}, timeout=timeout)  # fmt: skip
+        rc, err = p.returncode, p.stderr
+    except subprocess.TimeoutExpired as exc:
+        rc, err = None, (exc.stderr or b"").decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+    return {"rc": rc, "last": _last_line(err), "traceback": "Traceback" in err,
+            "seconds": round(time.time() - t, 1)}  # fmt: skip
+
+
+def _last_line(err: str) -> str:
+    """The message a command ended with: its last "coin-cl ...: error:" line when there is one (a
+    progress bar may redraw after it), else stderr's last line."""
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()]
+    # a progress bar's cursor moves (ANSI escapes) may sit before the error on its line
+    errors = [ln[ln.index("coin-cl ") :] for ln in lines if "coin-cl " in ln and ": error:" in ln]
+    return errors[-1] if errors else (lines[-1] if lines else "")
+
+
+def _run_args(scene: Path, out: Path, iters: int) -> list[str]:
+    return ["run", str(scene), "--out", str(out), "--iters", str(iters), "--prior-seconds", "2"]
+
+
+class _Exec:
+    """Pickled, runs `open(marker, "w")` on unpickling: the proof that a load executed code."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def _plant_exec(path: Path, marker: Path) -> None:
+    import torch
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.unlink(missing_ok=True)
+    torch.save({"trainer": _Exec(marker), "model": _Exec(marker), "steps": 1}, path)
+
+
+def _error_case(name: str, res: dict, culprit: str, **extra) -> dict:
+    """An error case: passes with exit code 2 and one line naming `culprit`."""
+    ok = res["rc"] == 2 and not res["traceback"] and culprit in res["last"]
+    return {"name": name, "ok": ok, "rc": res["rc"], "message": res["last"], "traceback": res["traceback"],
+            "vague": vague(res["last"]) if res["rc"] != 0 else False, **extra}  # fmt: skip
+
+
+def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
+    """The hostile-input cases (module docstring, 5.), each a dict: name, ok, rc, message,
+    traceback, vague, and where it applies exec_tried / exec_refused / data_loss."""
+    import cv2  # noqa: F401 - imported here so a missing OpenCV fails before the base run
+
+    root.mkdir(parents=True, exist_ok=True)
+    iters = args.corpus_iters
+    base = root / "base"
+    res = _cli(_run_args(scene, base, iters))
+    print(f"  base run: rc {res['rc']} in {res['seconds']} s", flush=True)
+    if res["rc"] != 0:
+        return [{"name": "base_run", "ok": False, "rc": res["rc"], "message": res["last"],
+                 "traceback": res["traceback"], "vague": vague(res["last"])}]  # fmt: skip
+    cases = []
+
+    def copy(name: str) -> Path:
+        return _copy(base, root / name)
+
+    # a checkpoint whose unpickling runs code, at each checkpoint site a resumed run loads
+    # (Ref-GS's trainer, TE-D's, the scene prior CLG loads: the three loaders of a run folder's .pt)
+    sites = [base / "2_refgs" / "gs" / "ckpt.pt", base / "4_ted" / "finetune" / "ckpt.pt"]
+    sites += sorted(base.glob("*/scene_prior_*.pt"))[:1]
+    sites = [p for p in sites if p.is_file()]
+    for site in sites:
+        rel = site.relative_to(base)
+        d = copy(f"ckpt_exec_{'_'.join(rel.parts[:2])}")
+        marker = root / f"EXECUTED_{'_'.join(rel.parts[:2])}"
+        marker.unlink(missing_ok=True)
+        _plant_exec(d / rel, marker)
+        r = _cli(_run_args(scene, d, iters))
+        ran = marker.exists()
+        c = _error_case(f"ckpt_exec {rel}", r, rel.name, exec_tried=1, exec_refused=int(not ran))
+        c["ok"] = not ran and r["rc"] in (0, 2) and not r["traceback"]
+        cases.append(c)
+
+    # prepare with --out the photos' parent: the photos must survive byte for byte
+    photos_parent = root / "prep"
+    shutil.rmtree(photos_parent, ignore_errors=True)
+    (photos_parent / "photos").mkdir(parents=True)
+    for p in sorted((scene / "images_4").glob("*.png")):
+        shutil.copy2(p, photos_parent / "photos" / p.name)
+    before = _hash_tree(photos_parent / "photos")
+    r = _cli(["prepare", str(photos_parent / "photos"), "--out", str(photos_parent)], timeout=300)
+    after = _hash_tree(photos_parent / "photos") if (photos_parent / "photos").is_dir() else {}
+    lost = sum(1 for k, h in before.items() if after.get(k) != h)
+    c = _error_case("prepare_out_is_photos_parent", r, "--out", data_loss=lost)
+    c["ok"] = lost == 0 and not r["traceback"] and (r["rc"] == 2 and not c["vague"] or r["rc"] == 0)
+    cases.append(c)
+
+    # a symlink planted in a run folder pointing outside: a directory of another's files
+    d = copy("symlink_out")
+    victim = root / "victim"
+    shutil.rmtree(victim, ignore_errors=True)
+    stage_dirs = [p for p in sorted(d.glob("3_clg/*")) if p.is_dir()] or [
+        p for p in sorted(d.glob("*/images"))
+    ]
+    if stage_dirs:
+        target = stage_dirs[0]
+        shutil.copytree(target, victim)
+        shutil.rmtree(target)
+        target.symlink_to(victim, target_is_directory=True)
+        before = _hash_tree(victim)
+        r = _cli(_run_args(scene, d, iters))
+        after = _hash_tree(victim) if victim.is_dir() else {}
+        lost = sum(1 for k, h in before.items() if after.get(k) != h)
+        c = _error_case(f"symlink_out {target.relative_to(d)}", r, str(target.relative_to(d)), data_loss=lost)
+        c["ok"] = lost == 0 and not r["traceback"] and (r["rc"] == 2 and not c["vague"] or r["rc"] == 0)
+        cases.append(c)
+
+    # a scene.json naming a file outside its folder
+    from coin_cl.scene import load_scene, save_scene
+
+    nat = save_scene(load_scene(scene), root / "native_scene")
+    secret = root / "secret.png"
+    shutil.copy2(next((nat / "images").glob("*.png")), secret)
+    doc = json.loads((nat / "scene.json").read_text())
+    doc["views"][1]["image"] = "../secret.png"
+    (nat / "scene.json").write_text(json.dumps(doc))
+    r = _cli(_run_args(nat, root / "out_native", iters))
+    cases.append(_error_case("scene_json_path_escapes", r, "scene.json"))
+
+    # malformed JSON of each run-folder file (and a plan asking for 10^9 steps)
+    for rel, content in (
+        ("plan.json", "{half"),
+        ("run.json", "[1, 2]"),
+        ("2_refgs/manifest.json", "{half"),
+        ("2_refgs/started.json", '{"key": 1, "unknown": 2}'),
+        ("plan.json", None),
+    ):
+        tag = "huge_steps" if content is None else "malformed"
+        d = copy(f"json_{tag}_{rel.replace('/', '_')}")
+        if content is None:
+            plan = json.loads((d / rel).read_text())
+            plan["steps"]["refgs"] = 10**9
+            content = json.dumps(plan)
+        if rel.endswith("started.json"):
+            (d / "2_refgs" / "manifest.json").unlink()  # as if killed: started.json decides
+        (d / rel).write_text(content)
+        r = _cli(_run_args(scene, d, iters))
+        cases.append(_error_case(f"{tag} {rel}", r, rel.split("/")[-1]))
+
+    # a header-only PNG declaring 12000x12000 (4 GB as float32 if decoded)
+    d = _copy(scene, root / "huge_png_scene")
+    name = _train_names(scene)[0]
+    _header_only_png(d / "images_4" / name, 12000, 12000)
+    r = _cli(_run_args(d, root / "out_huge", iters))
+    cases.append(_error_case("header_only_12000x12000_png", r, name))
+
+    # two commands on one folder: `coin-cl prepare` into a folder a run holds
+    two = root / "two"
+    first = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, two, iters)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                             env={**os.environ, **CHILD_ENV})  # fmt: skip
+    try:
+        t0 = time.time()
+        while (
+            first.poll() is None
+            and not (two / "0_scene" / "started.json").exists()
+            and time.time() - t0 < 120
+        ):
+            time.sleep(0.05)
+        if first.poll() is None:
+            r = _cli(["prepare", str(scene / "images_4"), "--out", str(two)], timeout=300)
+            c = _error_case("second_command_on_a_run_folder", r, "in use")
+            c["ok"] = c["ok"] and first.poll() is None
+            cases.append(c)
+    finally:
+        first.kill()
+        first.wait()
+
+    # Ctrl-C: SIGINT in the middle of a run: a prompt exit, no traceback, nothing half written
+    d = root / "ctrl_c"
+    proc = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, d, iters)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, **CHILD_ENV})  # fmt: skip
+    t0 = time.time()
+    while proc.poll() is None and not (d / "2_refgs" / "started.json").exists() and time.time() - t0 < 300:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            _, err = proc.communicate(timeout=30)
+            rc = proc.returncode
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+            rc = None
+        last = _last_line(err)
+        half = unreadable_files(d)
+        cases.append({"name": "ctrl_c", "ok": rc not in (None, 0) and "Traceback" not in err and not half
+                      and not vague(last), "rc": rc, "message": last, "traceback": "Traceback" in err,
+                      "vague": vague(last), "half_written": half})  # fmt: skip
+    else:
+        proc.wait()
+    return cases
+
+
+def _header_only_png(path: Path, width: int, height: int) -> None:
+    """A valid PNG signature and IHDR declaring width x height RGB, a tiny IDAT, IEND."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(bytes(4096)))
+                     + chunk(b"IEND", b""))  # fmt: skip
+
+
 # ------------------------------------------------------------------------------------------ main
+
+
+def run_chain(args, scene: Path) -> tuple[float, dict]:
+    """The reference run, the kill chain and the lock conflict (module docstring, 1-3):
+    (reference seconds, the chain's record)."""
+    ref = args.out / "ref"
+    t0 = time.time()
+    rc = spawn(args, scene, ref, args.out / "ref.log").wait()
+    if rc != 0:
+        print((args.out / "ref.log").read_text()[-3000:])
+        raise SystemExit(f"the reference run failed (rc {rc}); see {args.out / 'ref.log'}")
+    ref_s = time.time() - t0
+    logd = json.loads((ref / "log.json").read_text())["stages"]
+    ref_seconds = {k: float(v.get("seconds", 0.0)) for k, v in logd.items()}
+    print(
+        f"reference run: {ref_s:.0f} s; stages " + ", ".join(f"{k} {v:.1f} s" for k, v in ref_seconds.items())
+    )
+    print("kill chain:", flush=True)
+    chain = kill_chain(args, scene, ref, args.out / "killed", ref_seconds)
+    chain["identical"] = chain["final_rc"] == 0 and not chain["differing"]
+    print(
+        "\n| kills | per stage | compared files | differing | unreadable after a kill "
+        "| lock conflicts caught |"
+    )
+    print("|---|---|---|---|---|---|")
+    c = chain
+    print(
+        f"| {c['kills']} | {c['kills_per_stage']} | {c['compared_files']} | {len(c['differing'])} "
+        f"| {len(c['half_written'])} | {c['lock_conflicts_caught']} / {c['lock_conflict_tries']} |"
+    )
+    for d in chain["differing"][:20]:
+        print(f"  differs: {d}")
+    return ref_s, chain
 
 
 def main() -> int:
@@ -616,6 +927,10 @@ def main() -> int:
     ap.add_argument("--kills-per-stage", type=int, default=5)
     ap.add_argument("--corpus-iters", type=int, default=10, help="GS and prior steps of the bad-input runs")
     ap.add_argument("--skip-corpus", action="store_true")
+    ap.add_argument(
+        "--skip-chain", action="store_true", help="leave out the reference run and the kill chain"
+    )
+    ap.add_argument("--skip-hostile", action="store_true", help="leave out the hostile-input cases")
     ap.add_argument(
         "--cli-cases",
         choices=("all", "errors"),
@@ -647,33 +962,9 @@ def main() -> int:
         f"checkpoints every 0.25 s ($COIN_CKPT_SECONDS), seed {args.seed}",
         flush=True,
     )
-    ref = args.out / "ref"
-    t0 = time.time()
-    rc = spawn(args, scene, ref, args.out / "ref.log").wait()
-    if rc != 0:
-        print((args.out / "ref.log").read_text()[-3000:])
-        raise SystemExit(f"the reference run failed (rc {rc}); see {args.out / 'ref.log'}")
-    ref_s = time.time() - t0
-    logd = json.loads((ref / "log.json").read_text())["stages"]
-    ref_seconds = {k: float(v.get("seconds", 0.0)) for k, v in logd.items()}
-    print(
-        f"reference run: {ref_s:.0f} s; stages " + ", ".join(f"{k} {v:.1f} s" for k, v in ref_seconds.items())
-    )
-    print("kill chain:", flush=True)
-    chain = kill_chain(args, scene, ref, args.out / "killed", ref_seconds)
-    identical = chain["final_rc"] == 0 and not chain["differing"]
-    print(
-        "\n| kills | per stage | compared files | differing | unreadable after a kill "
-        "| lock conflicts caught |"
-    )
-    print("|---|---|---|---|---|---|")
-    c = chain
-    print(
-        f"| {c['kills']} | {c['kills_per_stage']} | {c['compared_files']} | {len(c['differing'])} "
-        f"| {len(c['half_written'])} | {c['lock_conflicts_caught']} / {c['lock_conflict_tries']} |"
-    )
-    for d in chain["differing"][:20]:
-        print(f"  differs: {d}")
+    ref_s, chain = 0.0, None
+    if not args.skip_chain:
+        ref_s, chain = run_chain(args, scene)
     rows = []
     if not args.skip_corpus:
         print("\nbad-input corpus:", flush=True)
@@ -692,22 +983,57 @@ def main() -> int:
         for r in rows:
             if "skipped" not in r and not (r["api_ok"] and r["cli_ok"] is not False):
                 print(f"  {r['name']}: api: {r['api']!r}\n  {' ' * len(r['name'])}  cli: {r['cli']!r}")
+    hostile = []
+    if not args.skip_hostile:
+        print("\nhostile input:", flush=True)
+        hostile = hostile_cases(args, scene, args.out / "hostile")
+        print("\n| hostile case | ok | rc | message (CLI) |")
+        print("|---|---|---|---|")
+        for h in hostile:
+            extra = "".join(f", {k} {h[k]}" for k in ("exec_refused", "data_loss") if k in h)
+            print(
+                f"| {h['name']} | {'ok' if h['ok'] else 'FAIL'}{extra} | {h['rc']} | {h['message'][:300]} |"
+            )
     judged = [r for r in rows if "skipped" not in r]
-    half = len(chain["half_written"]) + sum(len(r["half_written"]) for r in judged)
+    ch = chain or {
+        "kills": 0,
+        "kills_per_stage": {},
+        "kills_resumed_mid_stage": 0,
+        "identical": None,
+        "compared_files": 0,
+        "differing": [],
+        "half_written": [],
+        "lock_conflicts_caught": None,
+    }
+    half = (len(ch["half_written"]) + sum(len(r["half_written"]) for r in judged)
+            + sum(len(h.get("half_written", [])) for h in hostile))  # fmt: skip
+    messages = [r["cli_last"] for r in judged if r["expect"] == "error" and r["cli_ok"] is not None] + [
+        h["message"] for h in hostile if h["rc"] not in (0, None)
+    ]
+    for m in messages:
+        if vague(m):
+            print(f"  vague: {m[:400]}")
     result = {
-        "kills": chain["kills"],
-        "kills_per_stage": chain["kills_per_stage"],
-        "kills_resumed_mid_stage": chain["kills_resumed_mid_stage"],
-        "resumed_identical": identical,
-        "compared_files": chain["compared_files"],
-        "differing_files": len(chain["differing"]),
+        "kills": ch["kills"],
+        "kills_per_stage": ch["kills_per_stage"],
+        "kills_resumed_mid_stage": ch["kills_resumed_mid_stage"],
+        "resumed_identical": ch["identical"],
+        "compared_files": ch["compared_files"],
+        "differing_files": len(ch["differing"]),
         "bad_inputs": len(judged),
         "clear_errors": sum(r["api_ok"] and r["cli_ok"] is not False for r in judged),
         "cli_not_run": [r["name"] for r in judged if r["cli_ok"] is None],
         "bad_inputs_skipped": [r["name"] for r in rows if "skipped" in r],
-        "tracebacks": sum(r["tracebacks"] for r in judged),
+        "tracebacks": sum(r["tracebacks"] for r in judged) + sum(int(h["traceback"]) for h in hostile),
         "half_written_files": half,
-        "lock_conflicts_caught": chain["lock_conflicts_caught"],
+        "lock_conflicts_caught": ch["lock_conflicts_caught"],
+        "hostile_cases": len(hostile),
+        "hostile_ok": sum(bool(h["ok"]) for h in hostile),
+        "hostile_failed": [h["name"] for h in hostile if not h["ok"]],
+        "exec_tried": sum(h.get("exec_tried", 0) for h in hostile),
+        "exec_refused": sum(h.get("exec_refused", 0) for h in hostile),
+        "data_loss": sum(h.get("data_loss", 0) for h in hostile),
+        "vague_messages": sum(vague(m) for m in messages),
         "reference_s": round(ref_s, 1),
         "total_s": round(time.time() - t_start, 1),
         "cpu": cpu_model(),

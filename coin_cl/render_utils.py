@@ -148,10 +148,17 @@ def _run_folder(run: Path) -> tuple[Path, dict]:
     """(checkpoint of the final stage, {"train": [...], "test": [...]} camera JSON) of a `coin-cl run`
     folder: the stage its eval rendered (4_ted, or 2_refgs when TE-D was skipped)."""
     from coin_cl.gs.trainer import CKPT_NAME
+    from coin_cl.pipeline.runner import read_manifest
     from coin_cl.scene import load_scene
+    from coin_cl.schema import SchemaError, inside
 
-    man = run / "eval" / "manifest.json"
-    final = json.loads(man.read_text())["settings"]["final"] if man.is_file() else None
+    man = read_manifest(run / "eval")
+    final = None if man is None else man["settings"].get("final")
+    if final is not None:
+        where = run / "eval" / "manifest.json"
+        if not isinstance(final, str):
+            raise SchemaError(f"{where}: settings.final is {final!r}, not a stage folder name; delete it")
+        inside(run, final, where, "settings.final")  # a stage folder of this run, never outside it
     for name in ([final] if final else []) + ["4_ted", "2_refgs"]:
         cands = (
             sorted((run / name).rglob(CKPT_NAME), key=lambda p: p.stat().st_mtime)

@@ -186,13 +186,18 @@ def test_run_steps_reads_back_what_a_run_trains(tmp_path):
     (tmp_path / "2_refgs").mkdir()
     slow = 1.5 * 60 * plan.minutes["refgs"]  # Ref-GS overran: TE-D gets fewer steps
     (tmp_path / "2_refgs" / "manifest.json").write_text(
-        json.dumps({"result": {"steps": plan.steps["refgs"], "train_minutes": slow / 60}})
+        json.dumps(_manifest({"steps": plan.steps["refgs"], "train_minutes": slow / 60}))
     )
     got = B.run_steps(tmp_path)
     assert got == {**plan.steps, **B.replan_ted(plan, plan.steps["refgs"], slow, 30)}
     assert got["ted_finetune"] < plan.steps["ted_finetune"] and got["refgs"] == plan.steps["refgs"]
     with pytest.raises(FileNotFoundError, match="plan.json"):
         B.run_steps(tmp_path / "nothing")
+
+
+def _manifest(result: dict) -> dict:
+    """A stage manifest as the runner writes it (`coin_cl.schema.MANIFEST`), holding `result`."""
+    return {"key": "k", "settings": {}, "outputs": {}, "result": result, "seconds": 1.0}
 
 
 def test_trained_steps_count_what_stopped_at_a_cap(tmp_path):
@@ -207,7 +212,7 @@ def test_trained_steps_count_what_stopped_at_a_cap(tmp_path):
     for stage, result in (("2_refgs", {"steps": plan.steps["refgs"], "train_minutes": planned / 60}),
                           ("4_ted", {"finetune": {"step": 7}, "adversarial": {"step": 5}})):  # fmt: skip
         (tmp_path / stage).mkdir()
-        (tmp_path / stage / "manifest.json").write_text(json.dumps({"result": result}))
+        (tmp_path / stage / "manifest.json").write_text(json.dumps(_manifest(result)))
     got = B.trained_steps(tmp_path)
     assert got == {"refgs": plan.steps["refgs"], "ted_finetune": 7, "ted_adversarial": 5}
     assert B.run_steps(tmp_path)["ted_adversarial"] > 5  # the plan still says what was planned
@@ -309,3 +314,55 @@ def test_run_ted_refuses_counts_left_to_a_plan(tmp_path):
 
     with pytest.raises(ValueError, match="TEDConfig.iters_finetune is None"):
         run_ted(None, [], [], tmp_path, TEDConfig(iters_adversarial=0))
+
+
+def _planted(tmp_path, key, **change):
+    """A plan made by plan_run for `key`, with the fields in `change` replaced (a planted file)."""
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
+    doc = json.loads((tmp_path / "plan.json").read_text())
+    for k, v in change.items():
+        doc[k] = v if not isinstance(v, dict) else {**doc[k], **v}
+    (tmp_path / "plan.json").write_text(json.dumps(doc))
+    return doc
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"steps": {"refgs": 10**9}}, "steps.refgs is 1000000000"),
+        ({"steps": {"refgs": 10**6}}, "steps.refgs is 1000000, more than"),
+        ({"prior_steps": 10**8}, "prior_steps is 100000000"),
+        ({"source": "oracle"}, "source is"),
+        ({"extra": 1}, "unknown key extra"),
+    ],
+)
+def test_a_plan_no_run_could_have_made_is_refused(tmp_path, change, field):
+    """A plan.json asking for steps beyond what its own budget and rate give (or malformed) is an
+    error naming the file and the field, not a schedule that is obeyed."""
+    key = {"budget_minutes": 30, "size": [64, 48]}
+    _planted(tmp_path, key, **change)
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    for read in (
+        lambda: B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25),
+        lambda: B.run_steps(tmp_path),
+    ):
+        with pytest.raises(ValueError) as e:
+            read()
+        msg = str(e.value)
+        assert "\n" not in msg and msg.startswith(str(tmp_path / "plan.json")) and field in msg
+        assert "delete" in msg
+
+
+def test_explicit_counts_win_over_a_planted_plan(tmp_path):
+    """With explicit counts (--iters) a recorded plan of the same key that disagrees is refused; one
+    that agrees is reused unchanged (a resumed run trains what the first planned)."""
+    key = {"budget_minutes": 30, "explicit": [3, 3, 3, None]}
+    counts = {"refgs": 3, "ted_finetune": 3, "ted_adversarial": 3}
+    first = B.plan_run(tmp_path, key, 30, counts, None, lambda: 0.25)
+    assert B.plan_run(tmp_path, key, 30, counts, None, lambda: 0.25) == first
+    doc = json.loads((tmp_path / "plan.json").read_text())
+    doc["steps"]["refgs"] = 10**6
+    (tmp_path / "plan.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="steps.refgs is 1000000 but key.explicit gives 3"):
+        B.plan_run(tmp_path, key, 30, counts, None, lambda: 0.25)

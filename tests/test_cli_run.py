@@ -87,8 +87,7 @@ def test_a_rerun_does_not_resume_from_a_hostile_checkpoint(tmp_path, capsys, mon
 
     with monkeypatch.context() as m:
         m.setattr(Trainer, "train", killed)
-        with pytest.raises(KeyboardInterrupt):
-            main(args)
+        assert main(args) == 130  # Ctrl-C: one line, the finished stages kept
     assert (out / "2_refgs").is_dir() and not (out / "2_refgs" / "manifest.json").exists()
     ckpt = out / "2_refgs" / "gs" / "ckpt.pt"
     hostile_checkpoint(ckpt, marker)
@@ -97,3 +96,28 @@ def test_a_rerun_does_not_resume_from_a_hostile_checkpoint(tmp_path, capsys, mon
     err = [ln for ln in capsys.readouterr().err.splitlines() if "error" in ln]
     assert len(err) == 1 and str(ckpt) in err[0] and "refused" in err[0], err
     assert "Traceback" not in err[0] and not marker.exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "flag"),
+    [
+        (["--budget", "-1", "--iters", "3"], "--budget"),
+        (["--budget", "nan"], "--budget"),
+        (["--prior-seconds", "-1"], "--prior-seconds"),
+        (["--lama-path", "/nonexistent/big-lama.pt"], "--lama-path"),
+        (["--iters", "0"], "--iters"),
+    ],
+)
+def test_bad_values_are_one_line_naming_the_flag(tmp_path, capsys, args, flag):
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(tmp_path), "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and f"argument {flag}: " in err and args[args.index(flag) + 1] in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_empty_out_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(tmp_path), "--out", ""])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and "argument --out: '' is not a folder name" in err

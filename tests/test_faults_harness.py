@@ -17,7 +17,7 @@ def test_kills_resume_identically_and_bad_input_is_clear(tmp_path):
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
     cmd = [sys.executable, str(ROOT / "benchmarks" / "faults.py"), "--out", str(tmp_path / "faults"),
            "--kills-per-stage", "1", "--iters", "20", "--prior-steps", "10",
-           "--corpus-iters", "4", "--cli-cases", "errors"]  # fmt: skip
+           "--corpus-iters", "4", "--cli-cases", "errors", "--skip-hostile"]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -27,3 +27,26 @@ def test_kills_resume_identically_and_bad_input_is_clear(tmp_path):
     assert 0 < len(res["cli_not_run"]) < res["bad_inputs"] - 10
     assert res["tracebacks"] == 0 and res["half_written_files"] == 0
     assert res["lock_conflicts_caught"] == 1
+    assert res["vague_messages"] == 0  # every corpus error names its file or value and what to do
+
+
+def _harness():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("faults", ROOT / "benchmarks" / "faults.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_vague_message_rule():
+    """A message is clear when it is one line naming the file or value and saying what to do."""
+    vague = _harness().vague
+    assert vague("list index out of range")  # a bare Python exception text
+    assert vague("'NoneType' object has no attribute 'get'")  # names nothing to fix
+    assert vague("only 0 SfM points left after pruning; lower prune_min_fraction")  # names no file
+    assert vague("Traceback (most recent call last):")
+    assert vague("/out/plan.json: bad\nsecond line; delete it")
+    assert not vague("coin-cl run: error: /out/plan.json: not valid JSON (Expecting value at line 1); "
+                     "delete /out/plan.json (the next run plans again) or pick another --out")  # fmt: skip
+    assert not vague("coin-cl run: error: argument --budget: '-1' is not a positive number; give one > 0")

@@ -312,7 +312,7 @@ def test_training_masks_are_dilated_unless_declared_exact(room, first_run, tmp_p
         and mask_dilation(plain, CoInConfig(mask_dilate=0)) == 0
     )
     (given / "scene_info.json").write_text("[1, 2")
-    with pytest.raises(ValueError, match="scene_info.json: not a JSON object"):
+    with pytest.raises(ValueError, match="scene_info.json: not valid JSON"):
         load_scene(given)
     with pytest.raises(ValueError, match="mask_dilate must be >= 0"):
         inpaint(room, tmp_path / "bad", config=replace(TINY, mask_dilate=-1))
@@ -370,3 +370,35 @@ def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_pa
     assert n_out > 0  # the wide arc's masks have an observed part: something was left out
     with pytest.raises(ValueError, match="observed must be"):
         inpaint(room, tmp_path / "bad", config=replace(cfg, observed="render"))
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [({"budget_minutes": -1.0}, "--budget"), ({"budget_minutes": float("nan")}, "--budget"),
+     ({"prior_seconds": -1.0}, "--prior-seconds"), ({"iters_refgs": 0}, "--iters"),
+     ({"resolution": 0.0}, "--resolution")],
+)  # fmt: skip
+def test_config_refuses_values_the_cli_would_refuse(change, named):
+    """The API gets the CLI's checks: CoInConfig's __post_init__, one line naming the flag."""
+    with pytest.raises(ValueError, match=named):
+        CoInConfig(**change)
+    with pytest.raises(ValueError, match="--lama-path"):
+        Inpaint2DConfig(lama_path="/nonexistent/big-lama.pt")
+
+
+def test_a_scene_without_usable_points_names_its_points_file(tmp_path):
+    """No sparse points (or NaN ones): refused before any stage, naming the scene's points file
+    and `coin-cl prepare`, not a setting the CLI lacks."""
+    from coin_cl.pipeline.coin import check_points
+    from coin_cl.scene import load_scene, write_synthetic
+
+    root = write_synthetic(tmp_path / "s", n_views=4, width=32, height=24, seed=1)
+    (root / "sparse" / "0" / "points3D.bin").write_bytes(bytes(8))  # a model with 0 points
+    scene = load_scene(root)
+    with pytest.raises(ValueError) as e:
+        check_points(scene)
+    msg = str(e.value)
+    assert "\n" not in msg and str(root / "sparse" / "0" / "points3D.bin") in msg and "coin-cl prepare" in msg
+    with pytest.raises(ValueError, match="points3D.bin"):
+        inpaint(root, tmp_path / "out", config=CoInConfig(iters_refgs=2))
+    assert not (tmp_path / "out").exists()

@@ -118,6 +118,8 @@ def test_cli_flags_reach_the_config(monkeypatch, tmp_path):
     from coin_cl.cli import main
 
     seen = {}
+    lama = tmp_path / "x.pt"  # --lama-path must name a file that exists (its content is not read here)
+    lama.write_bytes(b"")
 
     def fake_inpaint(scene, out, **kw):
         seen["cfg"] = kw["config"]
@@ -134,10 +136,10 @@ def test_cli_flags_reach_the_config(monkeypatch, tmp_path):
                 "--inpainter",
                 "telea",
                 "--lama-path",
-                "x.pt",
+                str(lama),
             ]
         )
-    assert seen["cfg"].inpaint2d.inpainter == "telea" and seen["cfg"].inpaint2d.lama_path == "x.pt"
+    assert seen["cfg"].inpaint2d.inpainter == "telea" and seen["cfg"].inpaint2d.lama_path == str(lama)
 
 
 def test_sd2_estimate_logged_before_sd2_run(scene, tmp_path, caplog):

@@ -70,3 +70,28 @@ def test_no_resolution_fits_suggests_fewer_views_or_more_memory(monkeypatch):
         check_memory(scene(8000, 6000, 400, 1000))
     with pytest.raises(SceneTooLargeError, match="more memory"):
         check_memory(scene(64, 48, 4, 200_000_000))
+
+
+def test_the_check_before_loading_reads_headers_only(tmp_path, monkeypatch):
+    """8 phone photos (4032x2268) under a 1.5 GB limit: refused from their headers, before any
+    decode (imageio's decoder is never called), with the decode estimate; a header beyond the
+    pixel limit is refused naming the file."""
+    from test_scene_io import header_only_png
+
+    from coin_cl.scene import io as scene_io
+
+    monkeypatch.setattr(scene_io.iio, "imread", lambda *a, **k: pytest.fail("decoded"))
+    (tmp_path / "s" / "images").mkdir(parents=True)
+    for i in range(8):
+        header_only_png(tmp_path / "s" / "images" / f"p{i}.png", 4032, 2268)
+    monkeypatch.setenv("COIN_MEMORY_LIMIT_GB", "1.5")
+    with pytest.raises(memory.SceneTooLargeError) as e:
+        memory.check_scene_files(tmp_path / "s", None)
+    msg = str(e.value)
+    assert "\n" not in msg and "decoding its 8 images" in msg and "4032x2268" in msg and "downscale" in msg
+    monkeypatch.setenv("COIN_MEMORY_LIMIT_GB", "64")
+    est = memory.check_scene_files(tmp_path / "s", None)
+    assert est.parts["decode"] > 8 * 4032 * 2268 * 12  # the float32 RGB of every view at file size
+    header_only_png(tmp_path / "s" / "images" / "p9.png", 12000, 12000)
+    with pytest.raises(ValueError, match="p9.png declares 12000x12000"):
+        memory.check_scene_files(tmp_path / "s", None)

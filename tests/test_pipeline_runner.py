@@ -161,3 +161,24 @@ def test_read_only_output_folder_is_one_line_naming_it(tmp_path, monkeypatch):
         OutputWriteError, match=f"cannot write in {tmp_path / 'out'}: the file system is read-only"
     ):
         check_output_folder(tmp_path / "out", {"scene": "a"})
+
+
+@pytest.mark.parametrize("name", ["manifest.json", "started.json", "run.json"])
+@pytest.mark.parametrize("content", ["{half", "[1, 2]", '{"key": "k", "surprise": 1}'])
+def test_a_malformed_run_folder_file_is_one_line_naming_it(tmp_path, name, content):
+    """A run folder's own JSON that is not JSON, not an object or carries unknown keys: a ValueError
+    (one line in the CLI) naming the file and what to do, never a traceback."""
+    calls = Calls()
+    check_output_folder(tmp_path, {"scene": "a"})
+    run_stages(tmp_path, chain(calls))
+    path = tmp_path / name if name == "run.json" else tmp_path / "2_b" / name
+    path.write_text(content)
+    if name == "started.json":
+        (tmp_path / "2_b" / "manifest.json").unlink()  # as if killed: started.json is read
+    with pytest.raises(ValueError) as e:
+        if name == "run.json":
+            check_output_folder(tmp_path, {"scene": "a"})
+        else:
+            run_stages(tmp_path, chain(calls))
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: ") and ("delete" in msg or "pick another" in msg)

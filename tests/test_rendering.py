@@ -225,3 +225,14 @@ def test_bad_arguments_raise_clear_errors(bad, match):
     args.update(bad)
     with pytest.raises(ValueError, match=match):
         rasterize(**args)
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_non_finite_background_is_a_clear_value_error(value):
+    """A NaN or Inf background would fill every uncovered pixel: refused before any work, naming
+    the argument (a ValueError, the engine's NonFiniteInputError)."""
+    from coin_cl.engine.errors import NonFiniteInputError
+
+    with pytest.raises(NonFiniteInputError, match=r"background is \[0.0, .*must be finite") as e:
+        render(one(), background=torch.tensor([0.0, value, 1.0]), backend="torch")
+    assert isinstance(e.value, ValueError)

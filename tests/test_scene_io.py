@@ -87,3 +87,35 @@ def test_list_images_and_view_stem(tmp_path):
     assert [p.name for p in list_images(tmp_path)] == ["a.png", "b.JPG", "c.jpeg"]
     assert view_stem("images/view_007.png", 3) == "view_007"
     assert view_stem("", 3) == "view_003"
+
+
+def header_only_png(path, width, height):
+    """A PNG whose IHDR declares width x height RGB and whose IDAT holds a few hundred bytes: what a
+    decoder would allocate width*height*3 bytes for (4 GB as float32 at 12000x12000)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    body = chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 4096)) + chunk(b"IEND", b"")
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + body)
+    return path
+
+
+def test_huge_declared_size_is_refused_before_any_decode(tmp_path, monkeypatch):
+    from coin_cl.scene import io as scene_io
+
+    p = header_only_png(tmp_path / "bomb.png", 12000, 12000)
+    assert p.stat().st_size < 1000
+
+    def no_decode(*a, **k):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(scene_io.iio, "imread", no_decode)
+    with pytest.raises(ValueError) as e:
+        read_image(p)
+    msg = str(e.value)
+    assert "\n" not in msg and str(p) in msg and "12000x12000" in msg and "downscale it" in msg
+    assert scene_io.image_header(header_only_png(tmp_path / "ok.png", 640, 480)) == (640, 480, 3)

@@ -1,5 +1,6 @@
 """load_scene on the real SPIn-NeRF scene, plain COLMAP folders, our own format, and bad input."""
 
+import json
 import logging
 import shutil
 
@@ -441,3 +442,143 @@ def test_usid_layout(syn, tmp_path):
         want = syn.absent[j] if syn.is_test[j] else syn.present[j]
         np.testing.assert_allclose(s.images[i], want, atol=1 / 255)
     assert s.cameras[s.ref_view].name == ref
+
+
+# ---------------------------------------------------------------- hostile files: one line naming them
+
+
+def _one_line(exc, *parts):
+    msg = str(exc.value)
+    assert "\n" not in msg, msg
+    for p in parts:
+        assert str(p) in msg, (p, msg)
+    return msg
+
+
+def test_scene_json_path_leading_outside_the_folder_is_refused(syn, tmp_path):
+    """Every path scene.json names must resolve inside the scene folder: "../x.png", an absolute
+    path or a symlink out is refused before anything is read."""
+    root = save_scene(load_scene(write_synthetic(tmp_path / "w", syn)), tmp_path / "native")
+    secret = tmp_path / "secret.png"
+    write_png(secret, np.zeros((4, 4, 3), np.float32))
+    doc = json.loads((root / "scene.json").read_text())
+    for field, bad in (("image", "../secret.png"), ("image", str(secret)), ("mask", "../secret.png")):
+        d = json.loads(json.dumps(doc))
+        d["views"][1][field] = bad
+        (root / "scene.json").write_text(json.dumps(d))
+        with pytest.raises(ValueError) as e:
+            load_scene(root)
+        _one_line(e, root / "scene.json", f"views[1].{field}", "outside the scene folder")
+    d = json.loads(json.dumps(doc))
+    d["points"] = "../../points.ply"
+    (root / "scene.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError) as e:
+        load_scene(root)
+    _one_line(e, root / "scene.json", "points")
+
+
+def test_scene_json_malformed_or_unknown_keys_name_the_field(syn, tmp_path):
+    root = save_scene(load_scene(write_synthetic(tmp_path / "w", syn)), tmp_path / "native")
+    doc = json.loads((root / "scene.json").read_text())
+    for change, field in (({"views": {}}, "views is"), ({"train_idx": [0, 99]}, "train_idx holds view 99"),
+                          ({"bogus": 1}, "unknown key bogus")):  # fmt: skip
+        (root / "scene.json").write_text(json.dumps({**doc, **change}))
+        with pytest.raises(ValueError) as e:
+            load_scene(root)
+        _one_line(e, root / "scene.json", field)
+    d = json.loads(json.dumps(doc))
+    d["views"][0]["K"][0][0] = 0.0
+    (root / "scene.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError) as e:
+        load_scene(root)
+    _one_line(e, root / "scene.json", "views[0]", "focal length 0")
+
+
+@pytest.mark.parametrize(
+    ("line", "what"),
+    [("-1  view_001.png  train", "view index -1"), ("1  view_001.png", "line 3 is not"),
+     ("x  view_001.png  train", "line 3 is not"), ("1  view_001.png  maybe", "split 'maybe'"),
+     ("99  view_001.png  train", "view index 99 has no pose")],
+)  # fmt: skip
+def test_views_txt_bad_line_or_index_names_file_and_line(scene_copy, line, what):
+    """A views.txt index out of range (negative included: it must not take the last pose row) or a
+    malformed line: one line naming views.txt."""
+    (scene_copy / "sparse" / "0" / "images.bin").unlink()  # poses from poses_bounds.npy by index
+    lines = (scene_copy / "views.txt").read_text().splitlines()
+    lines[2] = line  # the line of view_001 (after the header and view_000)
+    (scene_copy / "views.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError) as e:
+        load_scene(scene_copy)
+    _one_line(e, "views.txt", what)
+
+
+@pytest.mark.parametrize("bad", ["garbage", "pickle", "shape"])
+def test_poses_bounds_that_is_not_an_array_names_the_file(scene_copy, bad):
+    (scene_copy / "sparse" / "0" / "images.bin").unlink()
+    pb = scene_copy / "poses_bounds.npy"
+    if bad == "garbage":
+        pb.write_bytes(b"\x93NUMPY garbage" * 3)
+    elif bad == "pickle":
+        np.save(pb, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    else:
+        np.save(pb, np.zeros((6, 5)))
+    with pytest.raises(ValueError) as e:
+        load_scene(scene_copy)
+    _one_line(e, pb, "re-create it")
+
+
+@pytest.mark.parametrize(("value", "shown"), [(0.0, "focal length 0"), (np.nan, "parameters [nan"),
+                                              (-5.0, "focal length -5")])  # fmt: skip
+def test_llff_focal_not_positive_names_file_and_value(scene_copy, value, shown):
+    (scene_copy / "sparse" / "0" / "images.bin").unlink()
+    (scene_copy / "sparse" / "0" / "cameras.bin").unlink()  # the focal comes from poses_bounds.npy
+    pb = np.load(scene_copy / "poses_bounds.npy")
+    pb[:, 14] = value
+    np.save(scene_copy / "poses_bounds.npy", pb)
+    with pytest.raises(ValueError) as e:
+        load_scene(scene_copy)
+    _one_line(e, "poses_bounds.npy", shown)
+
+
+def test_all_zero_rotation_names_file_and_image(scene_copy):
+    (scene_copy / "sparse" / "0" / "images.bin").unlink()
+    pb = np.load(scene_copy / "poses_bounds.npy")
+    pb[2, [0, 1, 2, 5, 6, 7, 10, 11, 12]] = 0.0
+    np.save(scene_copy / "poses_bounds.npy", pb)
+    with pytest.raises(ValueError) as e:
+        load_scene(scene_copy)
+    _one_line(e, "poses_bounds.npy", "view_002.png", "is not a rotation matrix")
+
+
+def test_colmap_text_focal_zero_and_bad_lines_name_file_and_line(syn, tmp_path):
+    root = _plain_colmap(syn, tmp_path / "c")
+    cams = root / "sparse" / "0" / "cameras.txt"
+    text = cams.read_text()
+    line = next(ln for ln in text.splitlines() if ln and not ln.startswith("#"))
+    t = line.split()
+    cams.write_text(text.replace(line, " ".join([*t[:4], "0", *t[5:]])))
+    with pytest.raises(ValueError) as e:
+        load_scene(root)
+    _one_line(e, "sparse/0", "focal length 0")
+    cams.write_text(text.replace(line, " ".join(t[:3])))
+    from coin_cl.scene.colmap import read_cameras, read_points3d
+
+    with pytest.raises(ValueError) as e:
+        read_cameras(root / "sparse" / "0")
+    _one_line(e, cams, "is not 'CAMERA_ID MODEL")
+    pts = root / "sparse" / "0" / "points3D.txt"
+    pts.write_text("# header\n1 0.5 0.5 nope 1 2 3 0.1\n")
+    with pytest.raises(ValueError) as e:
+        read_points3d(root / "sparse" / "0")
+    _one_line(e, pts, "line 2 is not")
+
+
+def test_colmap_binary_truncated_names_the_file(scene_copy):
+    from coin_cl.scene.colmap import read_cameras, read_points3d
+
+    for name, read in (("cameras.bin", read_cameras), ("points3D.bin", read_points3d)):
+        p = scene_copy / "sparse" / "0" / name
+        p.write_bytes(p.read_bytes()[:30])
+        with pytest.raises(ValueError) as e:
+            read(scene_copy / "sparse" / "0")
+        _one_line(e, p, "truncated or not a COLMAP")

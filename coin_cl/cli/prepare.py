@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(subparsers) -> None:
     """Register `prepare` on the `coin-cl` subparsers."""
@@ -21,7 +23,7 @@ def add_commands(subparsers) -> None:
         "and masks_contact_sheet.png. A second run resumes from what exists.",
     )
     p.add_argument("photos", type=Path, help="folder of photos of one scene (.jpg/.png, one aspect ratio)")
-    p.add_argument("--out", type=Path, required=True,
+    p.add_argument("--out", type=values.folder, required=True,
                    help="scene folder to write: new, empty, one prepare made (it resumes), or the "
                         "photos' parent (the photos are kept; the images go to "
                         "images_prepared/)")  # fmt: skip

@@ -5,13 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="CoIn on a scene: 2D inpainting, Ref-GS, CLG, TE-D, evaluation")
     p.add_argument("scene", type=Path, help="a folder load_scene reads (SPIn-NeRF, COLMAP, coin-cl)")
     p.add_argument(
         "--out",
-        type=Path,
+        type=values.folder,
         required=True,
         help="run folder: new, empty, or one coin-cl run made (a rerun resumes); another folder is refused",
     )
@@ -39,19 +41,19 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="insertion without weights: the reference view edited in a 2D tool (the object "
                         "painted in; the masks cover where it goes in every view); its view is --ref or "
                         "the one it matches")  # fmt: skip
-    p.add_argument("--budget", type=float, default=30.0,
+    p.add_argument("--budget", type=values.positive_float, default=30.0,
                    help="training minutes (scene prior, Ref-GS, TE-D; CLG and eval come on top); a timing "
                         "probe turns them into steps, recorded in OUT/plan.json (default 30)")  # fmt: skip
-    p.add_argument("--resolution", type=float, default=None,
+    p.add_argument("--resolution", type=values.positive_float, default=None,
                    help="image scale (0.5 = half); default: picked from the image size (at most "
                         "160k pixels a view, logged)")  # fmt: skip
     p.add_argument("--skip-stage", action="append", default=[], choices=("refgs", "clg", "ted"),
                    help="the paper's ablations, repeatable: clg / ted leave that stage out; refgs trains the "
                         "coarse GS (stage 2_refgs, which CLG and TE-D stand on) as plain Scaffold-GS, "
                         "without Ref-GS's four pieces")  # fmt: skip
-    p.add_argument("--iters", type=int, default=None,
+    p.add_argument("--iters", type=values.positive_int, default=None,
                    help="steps of each GS training stage (replaces the budget's plan)")  # fmt: skip
-    p.add_argument("--prior-seconds", type=float, default=None,
+    p.add_argument("--prior-seconds", type=values.nonneg_float, default=None,
                    help="training seconds of the embedded scene prior (replaces the budget's share; >= 120 "
                         "to be useful)")  # fmt: skip
     p.add_argument("--sd-path", default=None, help="Stable Diffusion 2 inpainting folder (diffusers format)")
@@ -63,7 +65,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inpainter", choices=("auto", "embedded", "telea", "lama"), default="auto",
                    help="stage 1 without SD2 or dataset inpaints: auto = lama when a file is named, else "
                         "embedded (exemplar patches + smooth structure, no weights)")  # fmt: skip
-    p.add_argument("--lama-path", default=None,
+    p.add_argument("--lama-path", type=values.existing_file, default=None,
                    help="LaMa TorchScript big-lama.pt (or COIN_LAMA_PATH). TorchScript is a program: "
                         "the file runs as code, so name only a file you trust (IOPaint's own)")  # fmt: skip
     p.add_argument("--dino-path", default=None, help="DINO ViT-S/16 checkpoint")

@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(subparsers) -> None:
     """Register make-scene and eval on the `coin-cl` subparsers."""
@@ -15,8 +17,8 @@ def add_commands(subparsers) -> None:
         help="generate the synthetic room scene with ground truth, or (--from-capture) a removal scene "
         "from a posed real capture with a virtual box painted into its training views",
     )
-    p.add_argument("out_dir", type=Path, nargs="?", default=None, help="folder to write (or --out)")
-    p.add_argument("--out", type=Path, default=None, help="folder to write (same as OUT_DIR)")
+    p.add_argument("out_dir", type=values.folder, nargs="?", default=None, help="folder to write (or --out)")
+    p.add_argument("--out", type=values.folder, default=None, help="folder to write (same as OUT_DIR)")
     p.add_argument("--from-capture", type=Path, default=None, metavar="CAPTURE",
                    help="posed capture folder (COLMAP / SPIn-NeRF layout, pinhole cameras): paint a virtual "
                         "box into its training views; every --test-every-th view stays untouched as a test "
@@ -50,7 +52,7 @@ def add_commands(subparsers) -> None:
     e.add_argument("--scene", type=Path, required=True, help="scene folder with ground truth")
     e.add_argument(
         "--out",
-        type=Path,
+        type=values.folder,
         default=None,
         help="output folder (default PRED_DIR/eval): new, empty, or one coin-cl eval made",
     )

@@ -6,6 +6,8 @@ import argparse
 import math
 from pathlib import Path
 
+from coin_cl.cli import values
+
 
 def add_commands(subparsers) -> None:
     t = subparsers.add_parser("train", help="train vanilla 3DGS or Scaffold-GS on a scene folder")
@@ -15,7 +17,7 @@ def add_commands(subparsers) -> None:
     t.add_argument("--resolution", type=float, default=0.5, help="image scale (0.5 = half size)")
     t.add_argument(
         "--out",
-        type=Path,
+        type=values.folder,
         required=True,
         help="output folder: new, empty, or one coin-cl train made (resumes if it has ckpt.pt)",
     )

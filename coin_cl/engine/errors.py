@@ -21,3 +21,8 @@ class PairOverflowError(RuntimeError):
 class DeviceLimitError(RuntimeError):
     """A device limit (work-group size, local memory, allocation size) is below what a kernel
     needs, and no smaller variant fits: the message names the device, the limit and what to do."""
+
+
+class NonFiniteInputError(ValueError):
+    """A renderer input that must be finite (the camera, the background colour) holds NaN or Inf:
+    the message names the argument and its value. A ValueError: bad input, not a device fault."""

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from coin_cl.engine import constants as cst
+from coin_cl.engine.errors import NonFiniteInputError
 from coin_cl.engine.geometry import finite_rows
 
 log = logging.getLogger(__name__)
@@ -147,7 +148,12 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, he
         raise ValueError(f"image size {width}x{height} must be at least 1x1")
     for name, t in (("viewmat", viewmat), ("K", K)):
         if not torch.isfinite(t).all():
-            raise ValueError(f"{name} has non-finite entries: the camera must be finite")
+            raise NonFiniteInputError(f"{name} has non-finite entries: the camera must be finite")
+    if background is not None and not torch.isfinite(background.detach()).all():
+        raise NonFiniteInputError(
+            f"background is {background.detach().cpu().tolist()}: it must be finite (NaN or Inf would "
+            "fill every pixel the splats leave uncovered); pass a colour such as zeros or ones"
+        )
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError(f"K has non-positive focal lengths fx={K[0, 0]}, fy={K[1, 1]}")
 

@@ -32,11 +32,12 @@ import json
 import logging
 import math
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from coin_cl.atomic import write_text
+from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
 
 log = logging.getLogger(__name__)
@@ -114,6 +115,51 @@ class Plan:
             parts.append(f"{k} {n} steps" + ("" if m is None else f" (~{m:.1f} min)"))
         prior = "" if self.prior_steps is None else f" ({self.prior_steps} steps)"
         return ", ".join(parts) + f", scene prior {self.prior_seconds:.0f} s{prior}"
+
+
+# A recorded plan's probe-planned step count may exceed what its own recorded rate gives by this factor
+# (the cost constants above may be re-measured between versions); beyond it the file was not made
+# by `plan_run`.
+PLAN_SLACK = 4.0
+
+
+def read_plan(path: Path) -> Plan:
+    """The plan in `path` (a run folder's plan.json), checked: the schema (`coin_cl.schema.PLAN`), and
+    step counts that `plan_run` could have made: an explicit count equal to the one its key records,
+    a probe-planned one at most PLAN_SLACK x what its budget at its recorded rate gives. Anything
+    else is a `SchemaError` naming the file and the field (a planted plan asking for 10^9 steps is
+    refused, not obeyed)."""
+    fix = run_folder_fix(path, "the next run plans again")
+    doc = parse(path, PLAN, fix)
+    plan = Plan(**doc)
+    explicit = plan.key.get("explicit")
+    for i, k in enumerate(("refgs", "ted_finetune", "ted_adversarial")):
+        n, minutes = plan.steps[k], plan.minutes[k]
+        given = explicit[i] if isinstance(explicit, list) and len(explicit) == 4 else None
+        if minutes is None:  # an explicit count
+            if given is not None and n != given:
+                raise SchemaError(f"{path}: steps.{k} is {n} but key.explicit gives {given}; {fix}")
+            continue
+        spp = plan.probe_seconds_per_step
+        if spp is None:
+            raise SchemaError(f"{path}: steps.{k} was planned from minutes.{k} but "
+                              f"probe_seconds_per_step is null; {fix}")  # fmt: skip
+        most = max(1, int(PLAN_SLACK * minutes * 60.0 / (spp * STEP_COST[k])) + 1)
+        if n > most:
+            raise SchemaError(f"{path}: steps.{k} is {n}, more than {minutes:g} minutes at {spp:.4g} s/step "
+                              f"could plan (at most {most}); {fix}")  # fmt: skip
+    if plan.prior_steps is not None and plan.prior_seconds_per_step is not None:
+        from coin_cl.diffusion.scene_prior import steps_for_seconds
+
+        floor = steps_for_seconds(PRIOR_MIN_SECONDS)  # the minimum's steps at the fixed 2-core rate
+        most = int(PLAN_SLACK * max(plan.prior_seconds / plan.prior_seconds_per_step, floor)) + 1
+        if plan.prior_steps > most:
+            raise SchemaError(
+                f"{path}: prior_steps is {plan.prior_steps}, more than {plan.prior_seconds:g} s "
+                f"at {plan.prior_seconds_per_step:.4g} s/step could plan (at most {most}); "
+                f"{fix}"
+            )
+    return plan
 
 
 def steps_from_rate(
@@ -215,12 +261,12 @@ def plan_run(
     disc_probe: () -> seconds TE-D's discriminator adds to an adversarial step, called likewise
     unless the adversarial count is explicit."""
     path = Path(out) / PLAN_FILE
-    try:
-        have = json.loads(path.read_text())
-    except (OSError, ValueError):
-        have = None
-    if have is not None and have.get("key") == json.loads(json.dumps(key, default=str)):
-        plan = Plan(**have)
+    have = read_plan(path) if path.exists() else None
+    if have is not None and have.key == json.loads(json.dumps(key, default=str)):
+        # Explicit counts win over the file's; `read_plan` has checked they agree, so a resumed run
+        # trains exactly what the first one planned.
+        steps = {k: int(explicit[k]) if explicit.get(k) is not None else n for k, n in have.steps.items()}
+        plan = replace(have, steps=steps)
         log.info("plan reused from %s: %s", path, plan.describe())
         return plan
     spp = None
@@ -338,14 +384,13 @@ def inherited_rates(run: Path, probe: Any, prior: Any, disc: Any) -> tuple[Any, 
     rate the plan lacks (not probed there) is measured here; a probe this run does not need
     (None) stays None."""
     path = Path(run) / PLAN_FILE
-    try:
-        have = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise FileNotFoundError(f"{path}: cannot read the plan to take the rates from ({e}); "
-                                "run that folder first or leave rates_from unset") from e  # fmt: skip
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: cannot take the rates from it; run that folder "
+                                "first or leave rates_from unset")  # fmt: skip
+    have = read_plan(path)
 
     def take(name: str, own: Any) -> Any:
-        value = have.get(name)
+        value = getattr(have, name)
         if own is None or value is None:
             return own
         return lambda: float(value)
@@ -396,11 +441,19 @@ def explicit_steps(cfg: Any) -> dict[str, int | None]:
 def refgs_rate(out: Path) -> tuple[int, float]:
     """(steps, training seconds) that Ref-GS recorded in OUT/2_refgs/manifest.json; (0, 0.0) when it
     has not run."""
-    man = Path(out) / "2_refgs" / "manifest.json"
-    if not man.is_file():
+    from coin_cl.pipeline.runner import read_manifest
+
+    man = read_manifest(Path(out) / "2_refgs")
+    if man is None:
         return 0, 0.0
-    res = json.loads(man.read_text()).get("result", {})
-    return int(res.get("steps", 0)), 60.0 * float(res.get("train_minutes", 0.0))
+    res = man["result"]
+    steps, minutes = res.get("steps", 0), res.get("train_minutes", 0.0)
+    if not (isinstance(steps, int) and 0 <= steps <= MAX_STEPS and isinstance(minutes, int | float)
+            and math.isfinite(minutes) and minutes >= 0):  # fmt: skip
+        path = Path(out) / "2_refgs" / "manifest.json"
+        raise SchemaError(f"{path}: result.steps {steps!r} / result.train_minutes {minutes!r} are not a "
+                          f"step count and minutes; {run_folder_fix(path, 'Ref-GS runs again')}")  # fmt: skip
+    return int(steps), 60.0 * float(minutes)
 
 
 def run_steps(out: Path) -> dict[str, int]:
@@ -409,7 +462,7 @@ def run_steps(out: Path) -> dict[str, int]:
     path = Path(out) / PLAN_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: not a CoIn run folder (coin-cl run writes it)")
-    plan = Plan(**json.loads(path.read_text()))
+    plan = read_plan(path)
     n, seconds = refgs_rate(out)
     return {**plan.steps, **replan_ted(plan, n, seconds, plan.key["budget_minutes"])}
 
@@ -421,9 +474,11 @@ def trained_steps(out: Path) -> dict[str, int]:
     out = Path(out)
     got = dict(run_steps(out))
 
+    from coin_cl.pipeline.runner import read_manifest
+
     def result(stage: str) -> dict | None:
-        man = out / stage / "manifest.json"
-        return json.loads(man.read_text()).get("result") if man.is_file() else None
+        man = read_manifest(out / stage)
+        return None if man is None else man["result"]
 
     refgs, ted = result("2_refgs"), result("4_ted")
     if refgs is not None and "steps" in refgs:

@@ -41,6 +41,7 @@ from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.clg_guard import pick
 from coin_cl.pipeline.clg_view import ReferenceView, sample_view, warp_view
 from coin_cl.scene.io import atomic_write, view_stem, write_png
+from coin_cl.schema import CLG_VIEW, SD2_PLAN, parse_optional, run_folder_fix
 
 log = logging.getLogger(__name__)
 
@@ -178,7 +179,9 @@ def run_clg(
             continue
         png, js = out_dir / "images" / f"{stem}.png", out_dir / "views" / f"{stem}.json"
         if png.is_file():
-            rec = json.loads(js.read_text()) if js.is_file() else {"view": n}
+            rec = parse_optional(js, CLG_VIEW, run_folder_fix(js, "its view is recorded again")) or {
+                "view": n
+            }
             records[stem] = rec | {"status": "resumed"}
             log.info("CLG: view %d (%s) already written: kept", n, stem)
             continue
@@ -309,7 +312,8 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
         ctx.note("edited reference: no sampler (no model here can draw the inserted object); each hole pixel "
                  "takes the reference warped through P_k, or R_n where P_k does not reach")  # fmt: skip
     sd2_plan = ctx.inputs["1_inpaint"] / "sd2.json"
-    if cfg.sample and sd2_plan.is_file() and json.loads(sd2_plan.read_text())["mode"] == "reference_only":
+    sd2 = parse_optional(sd2_plan, SD2_PLAN, run_folder_fix(sd2_plan, "stage 1 runs again"))
+    if cfg.sample and sd2 is not None and sd2["mode"] == "reference_only":
         # SD2's CPU-practical mode (issue 22): stage 1 ran SD2 on the reference only; no view here calls
         # it: each hole pixel takes the reference warped through P_k where it reaches, and the view's
         # initial (embedded) inpaint elsewhere, which stands in for R_n in `warp_fill`

@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,7 @@ from coin_cl.pipeline.stages import (
     stage_ted,
 )
 from coin_cl.pipeline.ted import TEDConfig
+from coin_cl.schema import MAX_STEPS
 
 log = logging.getLogger(__name__)
 
@@ -144,6 +146,26 @@ class CoInConfig:
     carve_cfg: CarveConfig = field(default_factory=CarveConfig)
     observed: str = "captures"
     rates_from: str | None = None
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.budget_minutes, int | float) and math.isfinite(self.budget_minutes)
+                and self.budget_minutes > 0):  # fmt: skip
+            raise ValueError(
+                f"--budget / budget_minutes is {self.budget_minutes!r}: give a positive number "
+                "of minutes (the step counts of --iters do not need it, but it must be valid)"
+            )
+        if self.prior_seconds is not None and not (
+            math.isfinite(self.prior_seconds) and self.prior_seconds >= 0
+        ):
+            raise ValueError(f"--prior-seconds / prior_seconds is {self.prior_seconds!r}: give a number of "
+                             "seconds >= 0, or leave it out for the budget's share")  # fmt: skip
+        if self.resolution is not None and not (math.isfinite(self.resolution) and self.resolution > 0):
+            raise ValueError(f"--resolution / resolution is {self.resolution!r}: give a positive scale, "
+                             "e.g. 0.5 for half size")  # fmt: skip
+        for name in ("iters_refgs", "iters_ted_finetune", "iters_ted_adversarial"):
+            n, low = getattr(self, name), 1 if name == "iters_refgs" else 0
+            if n is not None and not (isinstance(n, int | np.integer) and low <= n <= MAX_STEPS):
+                raise ValueError(f"--iters / {name} is {n!r}: give a step count in {low}..{MAX_STEPS}")
 
     def with_iters(self, n: int | None) -> CoInConfig:
         """This config with every GS training stage set to `n` steps (None: unchanged)."""
@@ -279,6 +301,11 @@ def inpaint(
     if device is not None:
         cfg = replace(cfg, device=device if isinstance(device, str) else getattr(device, "name", None))
     if isinstance(scene, str | Path):
+        from coin_cl.pipeline.memory import check_scene_files
+
+        pre = check_scene_files(scene, cfg.resolution)  # headers only: before any image is decoded
+        log.info("memory before loading: about %.1f GiB to decode the images, %.1f GiB for the run "
+                 "without its points", pre.parts["decode"] / 2**30, pre.bytes / 2**30)  # fmt: skip
         scene = load_scene(scene)
     if isinstance(masks, list):
         if len(masks) != len(scene):
@@ -329,6 +356,7 @@ def inpaint(
             f"scene {scene.path} has no training view with a mask: nothing to inpaint "
             "(give masks, e.g. a label/ or masks/ folder)"
         )
+    check_points(scene)
     from coin_cl.pipeline.memory import check_memory
 
     log.info("memory: about %.1f GiB needed at most", check_memory(scene).bytes / 2**30)  # issue 25
@@ -347,6 +375,22 @@ def inpaint(
     with folder_lock(out):
         check_output_folder(out, captured)
         return _run(scene, out, cfg, force, edited)
+
+
+def check_points(scene) -> None:
+    """Refuse a scene without enough finite sparse points to seed the Gaussians (before any stage):
+    one line naming its points file and what to do."""
+    from coin_cl.pipeline.refgs import MIN_POINTS
+
+    pts = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    n = int(np.isfinite(pts).all(axis=1).sum())
+    if n < MIN_POINTS or n < len(pts):
+        src = scene.meta.get("points_file", f"the sparse points of scene {scene.path}")
+        what = f"has {len(pts) - n} points with NaN or Inf" if n < len(pts) else f"has only {n} sparse points"
+        raise ValueError(
+            f"{src}: {what} ({MIN_POINTS} finite ones are needed to seed the Gaussians); make the "
+            "scene's point cloud again: `coin-cl prepare PHOTOS --out SCENE` (or COLMAP's mapper)"
+        )
 
 
 def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:

@@ -32,6 +32,7 @@ from coin_cl.diffusion.inpaint2d import InpaintConfig, inpaint_image, paste
 from coin_cl.diffusion.lama import LAMA_ENV, LAMA_NAME, lama_inpaint, load_lama
 from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds, train_scene_prior
 from coin_cl.scene.io import read_image, to_uint8, write_png, write_text
+from coin_cl.schema import INPAINT_SOURCES, parse_optional, run_folder_fix
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,11 @@ class Inpaint2DConfig:
             raise ValueError(f"inpainter must be one of {', '.join(INPAINTERS)}, got {self.inpainter!r}")
         if self.sd2_mode not in SD2_MODES:
             raise ValueError(f"sd2_mode must be one of {', '.join(SD2_MODES)}, got {self.sd2_mode!r}")
+        if self.lama_path is not None and not Path(self.lama_path).expanduser().is_file():
+            # Checked even where the scene's own inpaints make LaMa unneeded: a mistyped path is
+            # said at once, not found out at the run that needs it.
+            raise ValueError(f"--lama-path / lama_path {self.lama_path!r}: no such file; give the path of "
+                             "LaMa's TorchScript big-lama.pt or leave it out")  # fmt: skip
 
 
 INPAINTERS = ("auto", "embedded", "lama", "prior", "telea")
@@ -200,7 +206,9 @@ def run_inpaint2d(
     record = out_dir / "sources.json"
     # Recorded view by view, before its image: a killed run's resumption keeps each finished view's
     # source (a kill between the two redoes the view).
-    done: dict[str, str] = json.loads(record.read_text()) if record.is_file() else {}
+    done: dict[str, str] = (
+        parse_optional(record, INPAINT_SOURCES, run_folder_fix(record, "stage 1 runs again")) or {}
+    )
 
     def note(name: str, src: str) -> None:
         sources[name] = done[name] = src

@@ -37,6 +37,10 @@ ANCHOR_GROWTH = 2.0  # anchor growing may add up to this factor over the SfM poi
 BYTES_PER_RENDER_PIXEL = 512  # image, depth, alpha and their gradients + tile lists of one view
 SAFETY = 1.25  # what the estimate is multiplied by before it is compared
 RESOLUTIONS = (0.75, 0.5, 0.375, 0.25, 0.125)  # the scales suggested when a scene does not fit
+# Decoding a view at its file's size holds float32 RGB (12 B/px) and a bool mask (1 B/px) for the
+# whole scene, plus the file's 8-bit pixels and the float copy of the view being converted.
+DECODE_BYTES_PER_PIXEL = 13
+DECODE_TRANSIENT_BYTES_PER_PIXEL = 4 + 12
 ENV_LIMIT = "COIN_MEMORY_LIMIT_GB"  # pretend the machine has this much (tests, shared machines)
 
 
@@ -99,21 +103,10 @@ def available_bytes() -> int | None:
     return min(cands) if cands else None
 
 
-def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
-    """Estimate `scene`'s peak memory (at its current resolution) and refuse it when it cannot fit.
-
-    Raises `SceneTooLargeError` (a ValueError: one line in the CLI) with the estimate, what is
-    available and the largest `--resolution` that fits (or, when none does, the view count to
-    aim at). Returns the estimate otherwise.
-    """
-    cam = scene.cameras[0]
-    w, h, n = cam.width, cam.height, len(scene)
-    pts = len(scene.points) if n_points is None else n_points
-    need, parts = estimate_peak_bytes(w, h, n, pts)
-    have = available_bytes()
-    est = MemoryEstimate(need, parts, have)
-    if est.fits:
-        return est
+def fit_hint(w: int, h: int, n: int, pts: int, have: int) -> str:
+    """What makes a run of `n` views of `w` x `h` with `pts` points fit in `have` bytes: the
+    largest `--resolution` of RESOLUTIONS that fits, else the view count to aim at, else a machine
+    with more memory."""
     hint = None
     for r in RESOLUTIONS:
         if estimate_peak_bytes(round(w * r), round(h * r), n, pts)[0] <= have:
@@ -130,8 +123,66 @@ def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
             else f"a machine with more memory (2 views at --resolution {min(RESOLUTIONS)} do not fit; "
             "a thinner SfM point cloud helps when the model part is large)"
         )
+    return hint
+
+
+def check_memory(scene, n_points: int | None = None) -> MemoryEstimate:
+    """Estimate `scene`'s peak memory (at its current resolution) and refuse it when it cannot fit.
+
+    Raises `SceneTooLargeError` (a ValueError: one line in the CLI) with the estimate, what is
+    available and the largest `--resolution` that fits (or, when none does, the view count to
+    aim at). Returns the estimate otherwise.
+    """
+    cam = scene.cameras[0]
+    w, h, n = cam.width, cam.height, len(scene)
+    pts = len(scene.points) if n_points is None else n_points
+    need, parts = estimate_peak_bytes(w, h, n, pts)
+    have = available_bytes()
+    est = MemoryEstimate(need, parts, have)
+    if est.fits:
+        return est
+    hint = fit_hint(w, h, n, pts, have)
     parts_txt = ", ".join(f"{k} {v / GIB:.2f}" for k, v in parts.items())
     raise SceneTooLargeError(
         f"scene {scene.path}: {n} views of {w}x{h} with {pts} points need about {need / GIB:.1f} GiB "
         f"(estimate: {parts_txt} GiB, x{SAFETY} margin) but {have / GIB:.1f} GiB are available: use {hint}"
     )
+
+
+def check_scene_files(path, resolution: float | None) -> MemoryEstimate:
+    """The memory check made before a scene folder is decoded: from the image headers alone
+    (`coin_cl.scene.image_sizes`; a header declaring more than `scene.io.MAX_IMAGE_PIXELS` is
+    refused there, naming the file) the peak of decoding every view at its file's size
+    (DECODE_BYTES_PER_PIXEL per pixel of all views plus one view's transient copies) and the run's
+    estimate at the working size `resolution` (None: `budget.working_resolution`) without the
+    points (not known before loading; `check_memory` adds them once loaded). Refuses either with
+    `SceneTooLargeError`, one line naming the folder and what to do; returns the larger estimate.
+    """
+    from coin_cl.pipeline.budget import working_resolution
+    from coin_cl.scene import image_sizes
+
+    sizes = image_sizes(path)
+    if not sizes:
+        raise FileNotFoundError(f"no .png/.jpg images in scene {path}")
+    px = [w * h for _, w, h in sizes]
+    decode = BASE_BYTES + DECODE_BYTES_PER_PIXEL * sum(px) + DECODE_TRANSIENT_BYTES_PER_PIXEL * max(px)
+    decode = int(SAFETY * decode)
+    _, w, h = max(sizes, key=lambda s: s[1] * s[2])
+    r = resolution if resolution is not None else working_resolution(w, h)
+    run, parts = estimate_peak_bytes(round(w * r), round(h * r), len(sizes), 0)
+    have = available_bytes()
+    est = MemoryEstimate(max(decode, run), {**parts, "decode": decode}, have)
+    if have is not None and run > have:
+        ww, hh = round(w * r), round(h * r)
+        raise SceneTooLargeError(
+            f"scene {path}: {len(sizes)} views of {ww}x{hh} need about {run / GIB:.1f} GiB before counting "
+            f"the points, but {have / GIB:.1f} GiB are available: use {fit_hint(ww, hh, len(sizes), 0, have)}"
+        )
+    if have is not None and decode > have:
+        raise SceneTooLargeError(
+            f"scene {path}: decoding its {len(sizes)} images ({sum(px) / 1e6:.0f} megapixels, the largest "
+            f"{w}x{h}) needs about {decode / GIB:.1f} GiB before they are scaled down, but {have / GIB:.1f} "
+            "GiB are available: downscale the photos first (e.g. `coin-cl prepare --width 1008`) or use "
+            "fewer of them"
+        )
+    return est

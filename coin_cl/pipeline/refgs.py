@@ -52,8 +52,11 @@ from coin_cl.gs.trainer import TrainConfig, Trainer
 from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
 from coin_cl.scene.io import view_stem, write_npy, write_png, write_text
+from coin_cl.schema import DEPTH_PRIOR, REFGS_STAGE, parse, parse_optional, run_folder_fix
 
 log = logging.getLogger(__name__)
+
+MIN_POINTS = 4  # sparse points the Gaussians need to start from
 
 MONOCULAR_PRIOR = "monocular (Depth Anything V2 small, COIN_DEPTH_WEIGHTS)"
 STAGE_JSON = "stage.json"
@@ -101,7 +104,8 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed:
     known_depth: see `run_refgs`; its finite pixels replace the prior's."""
     npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
     if npy.is_file() and meta.is_file():
-        return DepthPrior(np.load(npy), json.loads(meta.read_text())["name"])
+        doc = parse(meta, DEPTH_PRIOR, run_folder_fix(meta, "the prior is made again"))
+        return DepthPrior(np.load(npy, allow_pickle=False), doc["name"])
     if known_depth is not None and (getattr(scene, "priors", None) or {}).get("depth"):
         # The dataset's inpainted disparity shows the scene without the object: wrong on an insertion.
         log.info("known depth given: the dataset's (removal) depth prior is not used")
@@ -194,7 +198,8 @@ def run_refgs(
     out.mkdir(parents=True, exist_ok=True)
     cfg = replace(cfg, seed=seed)
     train_idx = list(scene.train_idx) or list(range(len(scene.cameras)))
-    prev_stage = json.loads((out / STAGE_JSON).read_text()) if (out / STAGE_JSON).is_file() else None
+    stage_json = out / STAGE_JSON
+    prev_stage = parse_optional(stage_json, REFGS_STAGE, run_folder_fix(stage_json, "Ref-GS starts over"))
     if iters is None and budget_minutes is not None and prev_stage is not None:
         n_iters = int(prev_stage["iters"])  # the first call's plan (a new probe would time a busier machine)
     else:
@@ -238,8 +243,14 @@ def run_refgs(
         pts = np.concatenate([pts, sp])
         cols = None if cols is None else np.concatenate([cols, sc])
         log.info("%d seed points added after pruning", len(sp))
-    if len(pts) < 4:
-        raise ValueError(f"only {len(pts)} SfM points left after pruning; lower prune_min_fraction")
+    if len(pts) < MIN_POINTS:
+        src = scene.meta.get("points_file", f"the sparse points of scene {scene.path}")
+        raise ValueError(
+            f"{src}: only {len(pts)} of its {len(scene.points)} sparse points are left outside the "
+            f"object's masks ({n_removed} fell inside), {MIN_POINTS} are needed to seed the Gaussians; "
+            "check that the masks cover only the object, or make a denser point cloud (`coin-cl "
+            "prepare` on the photos)"
+        )
 
     prior = None
     if cfg.depth_loss:

@@ -4,7 +4,6 @@ person opens next."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +46,11 @@ def run_report(res: Any) -> str:
     lines += stage_table(res.stages)
     plan_path = out / "plan.json"
     if plan_path.is_file():
-        plan = json.loads(plan_path.read_text())
+        from dataclasses import asdict
+
+        from coin_cl.pipeline.budget import read_plan
+
+        plan = asdict(read_plan(plan_path))
         given = ", ".join(f"{k} {n}" for k, n in plan["steps"].items())
         probe = plan.get("probe_seconds_per_step")
         prior = "" if plan.get("prior_steps") is None else f", {plan['prior_steps']} steps"

@@ -33,6 +33,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from coin_cl import schema
+from coin_cl.schema import parse_optional, run_folder_fix
+
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
@@ -99,11 +102,26 @@ def _write_json(path: Path, obj: Any) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str))
 
 
-def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+def read_manifest(folder: Path) -> dict | None:
+    """A stage folder's manifest.json checked against `coin_cl.schema.MANIFEST`; None when absent.
+    A malformed one is a `SchemaError` naming it (deleting it makes the stage run again)."""
+    path = Path(folder) / MANIFEST
+    return parse_optional(path, schema.MANIFEST, run_folder_fix(path, "that stage runs again"))
+
+
+def read_started(folder: Path) -> dict | None:
+    """A stage folder's started.json checked against `coin_cl.schema.STARTED`; None when absent."""
+    path = Path(folder) / STARTED
+    return parse_optional(path, schema.STARTED, run_folder_fix(path, "that stage starts over"))
+
+
+def read_run_record(out: Path) -> dict | None:
+    """OUT/run.json (the scene the folder belongs to) checked against `coin_cl.schema.RUN`; None
+    when absent."""
+    path = Path(out) / "run.json"
+    return parse_optional(
+        path, schema.RUN, f"pick another --out, or delete {path} if that folder is your own run"
+    )
 
 
 def check_output_folder(out: Path, scene_id: dict[str, Any]) -> None:
@@ -115,7 +133,7 @@ def check_output_folder(out: Path, scene_id: dict[str, Any]) -> None:
     except OSError as exc:  # a read-only or full disk: one line naming the folder
         raise (disk_error(exc, out) or exc) from None
     run = out / "run.json"
-    have = _read_json(run)
+    have = read_run_record(out)
     if have is None:
         if any(p.name[0].isdigit() for p in out.iterdir()):
             raise OutputFolderError(
@@ -184,7 +202,7 @@ def _run_stages(
                 {"settings": st.settings, "inputs": {r: manifests[r]["outputs"] for r in st.reads}}
             ).encode()
         ).hexdigest()
-        man = _read_json(folder / MANIFEST)
+        man = read_manifest(folder)
         if (
             st.name not in force
             and man is not None
@@ -197,7 +215,7 @@ def _run_stages(
             records[st.name] = {"status": "skipped: up to date", "result": man.get("result", {}),
                                 "seconds_when_run": man.get("seconds")}  # fmt: skip
             continue
-        started = _read_json(folder / STARTED)
+        started = read_started(folder)
         if folder.exists() and (started is None or started.get("key") != key or st.name in force):
             if st.name in force:
                 log.info("[%s] clearing %s (forced)", st.name, folder)

@@ -14,6 +14,7 @@ import numpy as np
 from .conventions import (
     COLMAP_MODEL_IDS,
     COLMAP_MODEL_PARAMS,
+    check_quaternion,
     colmap_to_pinhole,
     k_for_opencv,
     make_viewmat,
@@ -23,6 +24,20 @@ from .conventions import (
 )
 
 log = logging.getLogger(__name__)
+
+
+# What to do about a COLMAP file that cannot be parsed.
+REEXPORT = (
+    "re-export the model with COLMAP (`colmap model_converter --output_type BIN`) or re-run `coin-cl prepare`"
+)
+
+
+def _text_lines(path: Path) -> list[str]:
+    """The lines of a text file; ValueError naming it when it is not text."""
+    try:
+        return path.read_bytes().decode("utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file; {REEXPORT}") from None
 
 
 @dataclass
@@ -67,37 +82,50 @@ def read_cameras(model_dir: Path) -> dict[int, ColmapCamera]:
     cams: dict[int, ColmapCamera] = {}
     if binf.is_file():
         data = binf.read_bytes()
-        (n,) = struct.unpack_from("<Q", data, 0)
-        off = 8
-        for _ in range(n):
-            cid, mid, w, h = struct.unpack_from("<iiQQ", data, off)
-            off += 24
-            model = COLMAP_MODEL_IDS.get(mid)
-            if model is None:
-                raise ValueError(
-                    f"{binf}: unknown camera model id {mid}; re-export the model with COLMAP "
-                    "(`colmap model_converter`) or convert it to PINHOLE"
-                )
-            k = COLMAP_MODEL_PARAMS[model]
-            params = np.array(struct.unpack_from(f"<{k}d", data, off))
-            off += 8 * k
-            cams[cid] = ColmapCamera(model, w, h, params)
+        rec = 0
+        try:
+            (n,) = struct.unpack_from("<Q", data, 0)
+            off = 8
+            for rec in range(n):  # noqa: B007 - the record a struct.error names
+                cid, mid, w, h = struct.unpack_from("<iiQQ", data, off)
+                off += 24
+                model = COLMAP_MODEL_IDS.get(mid)
+                if model is None:
+                    raise ValueError(
+                        f"{binf}: unknown camera model id {mid}; re-export the model with COLMAP "
+                        "(`colmap model_converter`) or convert it to PINHOLE"
+                    )
+                k = COLMAP_MODEL_PARAMS[model]
+                params = np.array(struct.unpack_from(f"<{k}d", data, off))
+                off += 8 * k
+                cams[cid] = ColmapCamera(model, w, h, params)
+        except struct.error:
+            raise ValueError(f"{binf}: truncated or not a COLMAP cameras.bin (record {rec} of "
+                             f"{len(data)} bytes); {REEXPORT}") from None  # fmt: skip
         return cams
     if txtf.is_file():
-        for line in txtf.read_text().splitlines():
+        for no, line in enumerate(_text_lines(txtf), 1):
             line = line.strip()
             if not line or line.startswith("#"):
                 continue
             tok = line.split()
-            model = tok[1]
+            model = tok[1] if len(tok) > 1 else ""
             if model not in COLMAP_MODEL_PARAMS:
                 raise ValueError(
-                    f"{txtf}: unknown camera model {model!r}; use a COLMAP model name such as "
+                    f"{txtf}: line {no}: unknown camera model {model!r}; use a COLMAP model name such as "
                     "PINHOLE or SIMPLE_RADIAL"
                 )
-            cams[int(tok[0])] = ColmapCamera(
-                model, int(tok[2]), int(tok[3]), np.array([float(t) for t in tok[4:]])
-            )
+            try:
+                cams[int(tok[0])] = ColmapCamera(
+                    model, int(tok[2]), int(tok[3]), np.array([float(t) for t in tok[4:]])
+                )
+            except (ValueError, IndexError):
+                raise ValueError(f"{txtf}: line {no} is not 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...' "
+                                 f"({line[:60]!r}); {REEXPORT}") from None  # fmt: skip
+            if cams[int(tok[0])].width < 1 or cams[int(tok[0])].height < 1:
+                raise ValueError(
+                    f"{txtf}: line {no}: image size {tok[2]}x{tok[3]} is not positive; {REEXPORT}"
+                )
         return cams
     raise FileNotFoundError(f"no cameras.bin or cameras.txt in {model_dir}")
 
@@ -129,6 +157,7 @@ def read_model(model_dir: Path) -> ColmapModel:
         pose = im.cam_from_world()
         # pycolmap 4.x quaternions are xyzw; go through our own conversion to keep one convention.
         q = quat_xyzw_to_wxyz(np.asarray(pose.rotation.quat))
+        check_quaternion(q, f"{model_dir}: image {im.name}")
         images[im.name] = (im.camera_id, make_viewmat(quat_wxyz_to_rotmat(q), pose.translation))
     # Sorted by id: pycolmap's map iteration order is not the order points were written in.
     pts = [(p.xyz, p.color) for _, p in sorted(rec.points3D.items(), key=lambda kv: kv[0])]
@@ -214,21 +243,37 @@ def read_points3d(model_dir: Path) -> tuple[np.ndarray, np.ndarray | None] | Non
     rgb: list[tuple[int, int, int]] = []
     if binf.is_file():
         data = binf.read_bytes()
-        (n,) = struct.unpack_from("<Q", data, 0)
-        off = 8
-        for _ in range(n):
-            vals = struct.unpack_from("<Q3d3BdQ", data, off)
-            off += struct.calcsize("<Q3d3BdQ") + 8 * vals[-1]
-            xyz.append(vals[1:4])
-            rgb.append(vals[4:7])
+        rec = 0
+        try:
+            (n,) = struct.unpack_from("<Q", data, 0)
+            off = 8
+            for rec in range(n):  # noqa: B007 - the record a struct.error names
+                vals = struct.unpack_from("<Q3d3BdQ", data, off)
+                off += struct.calcsize("<Q3d3BdQ") + 8 * vals[-1]
+                xyz.append(vals[1:4])
+                rgb.append(vals[4:7])
+        except struct.error:
+            raise ValueError(f"{binf}: truncated or not a COLMAP points3D.bin (record {rec}); "
+                             f"{REEXPORT}") from None  # fmt: skip
     elif txtf.is_file():
-        for line in txtf.read_text().splitlines():
+        for no, line in enumerate(_text_lines(txtf), 1):
             if line.startswith("#") or not line.strip():
                 continue
             t = line.split()
-            xyz.append((float(t[1]), float(t[2]), float(t[3])))
-            rgb.append((int(t[4]), int(t[5]), int(t[6])))
+            try:
+                xyz.append((float(t[1]), float(t[2]), float(t[3])))
+                rgb.append((int(t[4]), int(t[5]), int(t[6])))
+            except (ValueError, IndexError):
+                raise ValueError(f"{txtf}: line {no} is not 'POINT3D_ID X Y Z R G B ERROR TRACK...' "
+                                 f"({line[:60]!r}); {REEXPORT}") from None  # fmt: skip
     else:
         return None
-    colors = np.array(rgb, np.uint8).reshape(-1, 3)
-    return np.array(xyz, np.float64).reshape(-1, 3), colors if colors.any() else None
+    src = binf if binf.is_file() else txtf
+    rgb_a, xyz_a = np.array(rgb, np.int64).reshape(-1, 3), np.array(xyz, np.float64).reshape(-1, 3)
+    if ((rgb_a < 0) | (rgb_a > 255)).any():
+        raise ValueError(f"{src}: point colours outside 0..255; {REEXPORT}")
+    if not np.isfinite(xyz_a).all():
+        k = int(np.flatnonzero(~np.isfinite(xyz_a).all(axis=1))[0])
+        raise ValueError(f"{src}: point {k} has a NaN or Inf coordinate; {REEXPORT}")
+    colors = rgb_a.astype(np.uint8)
+    return xyz_a, colors if colors.any() else None

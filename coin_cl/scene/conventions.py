@@ -193,10 +193,16 @@ def colmap_to_pinhole(
         )
     if len(p) != n:
         raise ValueError(f"{source}: camera model {model} needs {n} parameters, got {len(p)}")
+    if not np.isfinite(p).all():
+        raise ValueError(
+            f"{source}: camera model {model} has parameters {p.tolist()} with NaN or Inf; "
+            "re-run COLMAP (or fix the camera's line) so that every parameter is a number"
+        )
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         K = intrinsics_matrix(p[0], p[0], p[1], p[2])
     else:
         K = intrinsics_matrix(p[0], p[1], p[2], p[3])
+    check_intrinsics(K, source)
     dist: np.ndarray | None
     if model in ("SIMPLE_PINHOLE", "PINHOLE"):
         dist = None
@@ -214,6 +220,54 @@ def colmap_to_pinhole(
     if dist is not None and not np.any(dist):
         dist = None
     return K, dist, model in FISHEYE_MODELS
+
+
+# A loaded rotation may differ from an orthonormal matrix by this much (max abs of R^T R - I): poses
+# stored as text or float32 (LLFF) are orthonormal to ~1e-6; an all-zero or scaled matrix is not.
+ROTATION_TOL = 1e-3
+
+
+def check_intrinsics(K: np.ndarray, source: str) -> None:
+    """Refuse a (3, 3) K whose focal lengths are not finite and > 0 or whose centre is not finite:
+    ValueError naming `source` and the value (a focal of 0 projects every point to the centre)."""
+    K = np.asarray(K, dtype=np.float64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise ValueError(
+            f"{source}: focal length {fx:g}, {fy:g} (centre {cx:g}, {cy:g}) is not a positive finite "
+            "number; fix the camera's intrinsics (re-run COLMAP, or correct the focal in the file)"
+        )
+
+
+def check_rotation(R: np.ndarray, source: str) -> None:
+    """Refuse a (3, 3) rotation that is not finite, orthonormal (within ROTATION_TOL) with det +1:
+    ValueError naming `source` (an all-zero rotation would collapse the camera to a point)."""
+    R = np.asarray(R, dtype=np.float64)
+    if not np.isfinite(R).all() or np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOL or np.linalg.det(R) <= 0:
+        rows = np.array2string(R, precision=3, separator=",", max_line_width=10**6).replace("\n", "")
+        raise ValueError(
+            f"{source}: rotation {rows} is not a rotation matrix (finite, orthonormal, det +1); "
+            "re-run COLMAP or fix that pose"
+        )
+
+
+def check_camera(K: np.ndarray, viewmat: np.ndarray, source: str) -> None:
+    """`check_intrinsics` and `check_rotation` of a camera's K (3, 3) and viewmat (4, 4), plus a
+    finite translation; errors name `source`."""
+    check_intrinsics(K, source)
+    V = np.asarray(viewmat, dtype=np.float64)
+    check_rotation(V[:3, :3], source)
+    if not np.isfinite(V[:3, 3]).all():
+        raise ValueError(f"{source}: translation {V[:3, 3].tolist()} holds NaN or Inf; fix that pose")
+
+
+def check_quaternion(q: np.ndarray, source: str) -> None:
+    """Refuse a quaternion that is not finite or has (near) zero norm: ValueError naming `source`."""
+    q = np.asarray(q, dtype=np.float64)
+    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-8:
+        raise ValueError(
+            f"{source}: quaternion {q.tolist()} is zero or not finite; re-run COLMAP or fix that image's line"
+        )
 
 
 def _check_viewmat(V: np.ndarray, name: str) -> np.ndarray:

@@ -6,13 +6,14 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from coin_cl.schema import SCENE_INFO, parse
 
 from .colmap import (
     ColmapCamera,
@@ -24,7 +25,7 @@ from .colmap import (
     read_model,
     read_points3d,
 )
-from .conventions import invert_rigid, llff_to_camtoworld, scale_intrinsics
+from .conventions import check_rotation, invert_rigid, llff_to_camtoworld, scale_intrinsics
 from .io import read_image
 from .masks import check_mask, dilate_mask, read_mask
 from .ply import read_points_ply
@@ -81,15 +82,57 @@ def image_dir(root: Path, images: str | None) -> Path:
     raise FileNotFoundError(f"no image folder in {root}: expected images_4/ (SPIn-NeRF) or images/ (COLMAP)")
 
 
+# The largest view index views.txt may give (a capture of a million photos).
+MAX_VIEW_INDEX = 1_000_000
+
+
 def read_views_txt(path: Path) -> dict[str, tuple[int, str]]:
-    """views.txt -> stem -> (view index among all views, split)."""
+    """views.txt -> stem -> (view index among all views, split). Each line is `INDEX NAME SPLIT`
+    (INDEX 0-based, SPLIT train or test); a line that is not is a ValueError naming the file and
+    the line."""
     out = {}
-    for line in path.read_text().splitlines():
+    try:
+        lines = path.read_bytes().decode("utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file; write it as lines 'INDEX NAME train|test'") from None
+    for no, line in enumerate(lines, 1):
         if line.startswith("#") or not line.strip():
             continue
         t = line.split()
-        out[Path(t[1]).stem] = (int(t[0]), t[2])
+        try:
+            index = int(t[0])
+            name, split = t[1], t[2]
+        except (ValueError, IndexError):
+            raise ValueError(f"{path}: line {no} is not 'INDEX NAME train|test' ({line[:60]!r}); fix or "
+                             "remove that line") from None  # fmt: skip
+        if not 0 <= index <= MAX_VIEW_INDEX:
+            raise ValueError(f"{path}: line {no}: view index {index} is not in 0..{MAX_VIEW_INDEX}; "
+                             "indices count the capture's views from 0: fix that line")  # fmt: skip
+        if split not in ("train", "test"):
+            raise ValueError(f"{path}: line {no}: split {split!r} is not train or test; fix that line")
+        if Path(name).stem in out:
+            raise ValueError(f"{path}: line {no}: {name} is listed twice; keep one line per view")
+        out[Path(name).stem] = (index, split)
     return out
+
+
+def read_poses_bounds(path: Path) -> np.ndarray:
+    """LLFF poses_bounds.npy -> (N, 17) float64; ValueError naming the file when it is not a
+    numeric (N, 17) array (never unpickled: allow_pickle stays False)."""
+    try:
+        pb = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"{path}: not a readable .npy array ({msg}); re-create it (LLFF's "
+                         "imgs2poses.py) or remove it to use sparse/0") from None  # fmt: skip
+    if not isinstance(pb, np.ndarray) or pb.ndim != 2 or pb.shape[1] != 17 or pb.dtype.kind not in "fiu":
+        raise ValueError(
+            f"{path}: holds a {getattr(pb, 'dtype', '?')} array of shape "
+            f"{getattr(pb, 'shape', '?')}, not LLFF's (N, 17) numbers; re-create it"
+        )
+    if len(pb) == 0:
+        raise ValueError(f"{path}: holds no poses; re-create it")
+    return pb.astype(np.float64)
 
 
 def open_folder(root: Path, imgdir: Path, files: list[Path]) -> ImageFolder:
@@ -183,14 +226,16 @@ def llff_poses(folder: ImageFolder, pb_path: Path, undistort: bool | None) -> Po
     """Poses from LLFF `poses_bounds.npy` (row = view index), one shared camera (the model's
     cameras file, else the file's H, W, focal); no undistortion by default (as LLFF loaders)."""
     names, vindex, model_dir = folder.names, folder.vindex, folder.model_dir
-    c2w, hwf, bnds = llff_to_camtoworld(np.load(pb_path))
+    c2w, hwf, bnds = llff_to_camtoworld(read_poses_bounds(pb_path))
     if folder.views is None and len(c2w) != len(names):
         raise ValueError(
             f"{pb_path} has {len(c2w)} poses but {folder.imgdir} holds {len(names)} images; with a "
             "subset of the views add views.txt (index name split) mapping names to rows"
         )
     if max(vindex) >= len(c2w):
-        raise ValueError(f"view index {max(vindex)} has no pose: {pb_path} has only {len(c2w)} rows")
+        where = folder.root / "views.txt" if folder.views is not None else folder.imgdir
+        raise ValueError(f"{where}: view index {max(vindex)} has no pose: {pb_path} has only {len(c2w)} rows "
+                         f"(0..{len(c2w) - 1}); fix views.txt or the poses")  # fmt: skip
     if len(c2w) > len(names):
         log.info(
             "%s: %d of its %d poses have no image in %s (subset of the capture)",
@@ -203,6 +248,10 @@ def llff_poses(folder: ImageFolder, pb_path: Path, undistort: bool | None) -> Po
         cams = read_cameras(model_dir)
     else:
         h, w, f = hwf[0]
+        if not (np.isfinite([h, w]).all() and h >= 1 and w >= 1):
+            raise ValueError(
+                f"{pb_path}: image size {w}x{h} (row 0, columns H W) is not positive; re-create it"
+            )
         cams = {1: ColmapCamera("SIMPLE_PINHOLE", int(w), int(h), np.array([f, w / 2, h / 2]))}
     if len(cams) != 1:
         raise ValueError(f"{model_dir}: LLFF poses need a single shared camera, found {len(cams)}")
@@ -240,6 +289,16 @@ def sparse_points(folder: ImageFolder, poses: Poses) -> tuple[np.ndarray, np.nda
         log.warning("%s: no sparse points (points3D.bin/.txt/.ply); scene.points is empty", folder.root)
         pts = np.zeros((0, 3))
     return pts, None if cols is None else np.asarray(cols, np.float32) / 255.0
+
+
+def points_file(folder: ImageFolder) -> str:
+    """Where the scene's sparse points come from (for messages): the model folder's points3D file,
+    else where one is expected."""
+    d = folder.model_dir if folder.model_dir is not None else folder.root / "sparse" / "0"
+    for name in ("points3D.bin", "points3D.txt", "points3D.ply"):
+        if (d / name).is_file():
+            return str(d / name)
+    return str(d / "points3D.bin")
 
 
 # ---------------------------------------------------------------------------------------------- split
@@ -509,6 +568,7 @@ def check_poses(folder: ImageFolder, poses: Poses) -> None:
                 f"the pose of image {n} in {poses.source} holds NaN or Inf; re-run COLMAP (or fix that "
                 "row) or remove the image"
             )
+        check_rotation(V[:3, :3], f"{poses.source}: the pose of image {n}")
     if poses.bounds is not None:
         b = np.asarray(poses.bounds, np.float64)
         bad = ~(np.isfinite(b).all(axis=1) & (b[:, 0] > 0) & (b[:, 1] > b[:, 0]))
@@ -571,6 +631,7 @@ def _load_image_folder(
             "split": split_source,
             "undistorted": bool(poses.undistort),
             "view_index": folder.vindex,
+            "points_file": points_file(folder),
             **masks_declared(folder.root),
         },
     )
@@ -583,10 +644,7 @@ def masks_declared(root: Path) -> dict[str, str]:
     path = Path(root) / "scene_info.json"
     if not path.is_file():
         return {}
-    try:
-        value = json.loads(path.read_text()).get("masks")
-    except (json.JSONDecodeError, AttributeError) as exc:
-        raise ValueError(f"{path}: not a JSON object ({exc}); fix or delete the file") from None
+    value = parse(path, SCENE_INFO, "fix or delete the file").get("masks")
     return {"masks": str(value)} if value is not None else {}
 
 

@@ -10,22 +10,73 @@ import numpy as np
 from coin_cl.atomic import atomic_write, write_text  # noqa: F401  (re-exported: the scene modules' writers)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
+# The largest image coin-cl decodes, in pixels (width x height): 100 megapixels, above any phone or
+# DSLR photo (a 61 MP full-frame sensor is 9504x6336) and ~1.2 GB as float32 RGB. A larger size
+# declared in a header is refused before any decode: a 100 KB PNG may declare 12000x12000.
+MAX_IMAGE_PIXELS = 100_000_000
+
+
+def _unreadable(what: str, path: Path, exc: BaseException) -> ValueError:
+    msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return ValueError(
+        f"{what} {path} cannot be read ({msg}): it is truncated or not an image; "
+        "replace it (re-export or re-copy it) or remove it from the folder"
+    )
+
+
+def image_header(path: str | Path, what: str = "image") -> tuple[int, int, int]:
+    """(width, height, channels) of an image file from its header alone, nothing decoded; a
+    ValueError naming the file when it is not an image or declares more than MAX_IMAGE_PIXELS.
+
+    Pillow's `Image.open` is lazy: it parses the header (PNG IHDR, JPEG SOF) and leaves the pixel
+    data unread until `load()`, so this costs a few hundred bytes of reading whatever the size the
+    file declares. (imageio's `improps` may decode to learn the dtype; OpenCV has no header-only
+    read.)"""
+    import warnings
+
+    from PIL import Image
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} not found")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                (w, h), bands = im.size, len(im.getbands())
+    except Image.DecompressionBombError:
+        w, h, bands = -1, -1, 0  # beyond Pillow's own bound: refused below with ours
+    except Image.UnidentifiedImageError as exc:
+        if path.suffix in IMAGE_EXTS:
+            raise _unreadable(what, path, exc) from None
+        # Formats Pillow lacks (float TIFF, EXR): imageio's metadata, which its plugins read
+        # from the header for these.
+        try:
+            shape = iio.improps(path).shape
+        except Exception as exc2:  # noqa: BLE001
+            raise _unreadable(what, path, exc2) from None
+        h, w = (int(shape[0]), int(shape[1])) if len(shape) >= 2 else (0, 0)
+        bands = int(shape[2]) if len(shape) > 2 else 1
+    except Exception as exc:  # noqa: BLE001 - every format plugin raises its own kind
+        raise _unreadable(what, path, exc) from None
+    if w < 1 or h < 1 or w * h > MAX_IMAGE_PIXELS:
+        size = f"{w}x{h}" if w > 0 else "more than twice that"
+        raise ValueError(
+            f"{what} {path} declares {size} pixels, more than the {MAX_IMAGE_PIXELS // 10**6} megapixels "
+            "coin-cl decodes; downscale it (e.g. `coin-cl prepare --width 1008`) or remove it"
+        )
+    return w, h, bands
 
 
 def imread_checked(path: str | Path, what: str = "image") -> np.ndarray:
     """`imageio.imread` with one clear error for a missing, truncated or unreadable file: a
     FileNotFoundError / ValueError naming it and what to do (never a decoder traceback)."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} {path} not found")
+    image_header(path, what)  # the declared size is checked before anything is decoded
     try:
         a = np.asarray(iio.imread(path))
     except Exception as exc:  # every decoder raises its own kind (OSError, ValueError, SyntaxError...)
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ValueError(
-            f"{what} {path} cannot be read ({msg}): it is truncated or not an image; "
-            "replace it (re-export or re-copy it) or remove it from the folder"
-        ) from None
+        raise _unreadable(what, path, exc) from None
     if a.ndim not in (2, 3) or a.size == 0 or a.dtype.kind not in "uif" or (a.ndim == 3 and a.shape[2] > 4):
         raise ValueError(
             f"{what} {path} is not a single 2D picture (array {a.shape} {a.dtype}); "

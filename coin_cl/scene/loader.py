@@ -24,13 +24,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from .folder import LAMA_INPUT, image_dir, load_colmap_folder, load_spinnerf_folder, open_folder
-from .io import list_images
+from .io import image_header, list_images
 from .native import load_native_folder, save_scene
 from .nerfstudio import TRANSFORMS, load_nerfstudio_folder
 from .types import Scene
 from .usid import is_usid, load_usid_folder
 
-__all__ = ["LAYOUTS", "detect_layout", "load_scene", "save_scene"]
+__all__ = ["LAYOUTS", "detect_layout", "image_sizes", "load_scene", "save_scene"]
 
 # layout name -> loader of an image folder (the native format has no image-folder step)
 LAYOUTS = {"spinnerf": load_spinnerf_folder, "colmap": load_colmap_folder, "360-usid": load_usid_folder}
@@ -94,3 +94,23 @@ def load_scene(
         priors=priors,
     )
     return scene.resized(resolution)
+
+
+def image_sizes(path: str | Path, *, images: str | None = None) -> list[tuple[Path, int, int]]:
+    """[(file, width, height)] of every view image `load_scene(path, images=images)` would decode,
+    from the files' headers alone (`scene.io.image_header`: nothing decoded; a header declaring
+    more than `io.MAX_IMAGE_PIXELS` is a ValueError naming the file). What a memory estimate made
+    before loading reads."""
+    from coin_cl.schema import SCENE, inside, parse
+
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"scene folder {root} not found")
+    if (root / "scene.json").is_file():
+        sj = root / "scene.json"
+        doc = parse(sj, SCENE, "re-create it with save_scene")
+        files = [inside(root, v["image"], sj, f"views[{i}].image") for i, v in enumerate(doc["views"])]
+    else:
+        imgdir = image_dir(root, images)
+        files = list_images(imgdir)
+    return [(f, *image_header(f)[:2]) for f in files]

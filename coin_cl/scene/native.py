@@ -8,6 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from coin_cl.schema import SCENE, SchemaError, inside, parse
+
+from .conventions import check_camera
 from .io import read_image, write_npy, write_png, write_text
 from .masks import check_mask, read_mask
 from .ply import read_points_ply, write_points_ply
@@ -65,29 +68,42 @@ def load_native_folder(root: Path) -> Scene:
     """A folder written by `save_scene` (scene.json + images/ + masks/ + points3D.ply + priors/ and
     extras/ .npy), at its stored resolution."""
     sj = root / "scene.json"
-    try:
-        doc = json.loads(sj.read_text())
-        views = doc["views"]
-    except (json.JSONDecodeError, KeyError) as exc:
-        raise ValueError(f"{sj} is not a coin-cl scene file ({exc}); re-create it with save_scene") from exc
+    fix = "re-create it with save_scene"
+    doc = parse(sj, SCENE, fix)
+    views = doc["views"]
+    n = len(views)
+    for key in ("train_idx", "test_idx"):
+        bad = [i for i in doc[key] if i >= n]
+        if bad:
+            raise SchemaError(f"{sj}: {key} holds view {bad[0]}, but the file lists {n} views; {fix}")
+    if doc["ref_view"] is not None and doc["ref_view"] >= n:
+        raise SchemaError(f"{sj}: ref_view is {doc['ref_view']}, but the file lists {n} views; {fix}")
+    for key in ("near", "far"):
+        if doc[key] is not None and len(doc[key]) != n:
+            raise SchemaError(f"{sj}: {key} has {len(doc[key])} values for {n} views; {fix}")
     cameras, imgs, masks = [], [], []
-    for v in views:
-        img = read_image(root / v["image"])
+    for i, v in enumerate(views):
+        # Every file the scene names must lie inside its folder: checked before any is opened.
+        img_path = inside(root, v["image"], sj, f"views[{i}].image")
+        mask_path = inside(root, v["mask"], sj, f"views[{i}].mask")
+        check_camera(np.array(v["K"]), np.array(v["viewmat"]), f"{sj}: views[{i}]")
+        img = read_image(img_path)
         if img.shape[:2] != (v["height"], v["width"]):
-            raise ValueError(f"{root / v['image']} is not {v['width']}x{v['height']} as {sj} says")
+            raise ValueError(f"{img_path} is not {v['width']}x{v['height']} as {sj} says")
         cameras.append(Camera.from_json(v))
         imgs.append(img)
-        m = read_mask(root / v["mask"], img.shape[:2])
-        masks.append(check_mask(m, str(root / v["mask"])) if m.any() else m)
-    pts, cols = read_points_ply(root / doc.get("points", "points3D.ply"))
+        m = read_mask(mask_path, img.shape[:2])
+        masks.append(check_mask(m, str(mask_path)) if m.any() else m)
+    pts, cols = read_points_ply(inside(root, doc["points"], sj, "points"))
     groups: dict[str, dict[str, dict[int, np.ndarray]]] = {"priors": {}, "extras": {}}
     stems = [Path(c.name).stem for c in cameras]
     for group in groups:
         gdir = root / group
         if gdir.is_dir():
             for kdir in sorted(p for p in gdir.iterdir() if p.is_dir()):
+                # the arrays must lie inside the folder too (a symlinked kind folder may not lead out)
                 groups[group][kdir.name] = {
-                    i: np.load(kdir / f"{s}.npy")
+                    i: np.load(inside(root, f"{group}/{kdir.name}/{s}.npy", sj, f"{group}/{kdir.name}"))
                     for i, s in enumerate(stems)
                     if (kdir / f"{s}.npy").is_file()
                 }
@@ -105,5 +121,5 @@ def load_native_folder(root: Path) -> Scene:
         near=None if doc.get("near") is None else np.array(doc["near"]),
         far=None if doc.get("far") is None else np.array(doc["far"]),
         path=root,
-        meta={**doc.get("meta", {}), "layout": "coin-cl"},
+        meta={**doc.get("meta", {}), "layout": "coin-cl", "points_file": str(root / doc["points"])},
     )
