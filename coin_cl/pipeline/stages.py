@@ -27,7 +27,7 @@ from coin_cl.pipeline.runner import StageContext, jsonable
 
 if TYPE_CHECKING:
     from coin_cl.pipeline.budget import Plan
-    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.config import CoInConfig
 
 log = logging.getLogger(__name__)
 
