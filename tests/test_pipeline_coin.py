@@ -314,7 +314,7 @@ def test_training_masks_are_dilated_unless_declared_exact(room, first_run, tmp_p
     (given / "scene_info.json").write_text("[1, 2")
     with pytest.raises(ValueError, match="scene_info.json: not valid JSON"):
         load_scene(given)
-    with pytest.raises(ValueError, match="mask_dilate must be >= 0"):
+    with pytest.raises(ValueError, match="CoInConfig.mask_dilate is -1: give an integer >= 0"):
         inpaint(room, tmp_path / "bad", config=replace(TINY, mask_dilate=-1))
 
 
@@ -368,7 +368,7 @@ def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_pa
         assert np.array_equal(ex_refgs[i], want) and np.array_equal(ex_ted[j], want)
         n_out += int(want.sum())
     assert n_out > 0  # the wide arc's masks have an observed part: something was left out
-    with pytest.raises(ValueError, match="observed must be"):
+    with pytest.raises(ValueError, match="CoInConfig.observed is .render.: give one of captures, target"):
         inpaint(room, tmp_path / "bad", config=replace(cfg, observed="render"))
 
 

@@ -295,8 +295,7 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
     train = list(scene.train_idx)
     k = int(ctx.shared["ref"])
     ccfg = ctx.shared["cfg"]
-    cfg: CLGConfig = ccfg.clg or CLGConfig()
-    cfg = replace(cfg, seed=ccfg.seed, prompt=cfg.prompt or ccfg.prompt)
+    cfg: CLGConfig = ccfg.clg_settings()  # the run's seed and prompt where CLGConfig leaves them None
     inpaints, renders, depths = _stage_inputs(ctx, scene, masks, train)
     ply = ctx.inputs["2_refgs"] / "reference_points.ply"
     if ply.is_file():

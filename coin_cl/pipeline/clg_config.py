@@ -29,9 +29,10 @@ class CLGConfig:
     sampler: the DDIM sampler's settings (`coin_cl.diffusion.SamplerConfig`, defaults `clg_sampler`):
         discretization 'quad' (paper) or 'uniform', eta, FreeDoM's guidance_scale c (0 = unguided)
         and its window guidance_start/end, time travel (travel_repeats 1 = off), cfg_scale
-        (classifier-free guidance, SD2 with a prompt only). Its num_steps must stay at the default:
-        the count depends on the model, so `steps` sets it (a changed num_steps is an error).
-    prompt: text (SD2 only).
+        (classifier-free guidance, SD2 with a prompt only). Its num_steps is the step count when set
+        to anything but SamplerConfig's default (50, which reads as unset): then it is `steps`
+        (given both, they must agree); the count CLG uses is `steps` / `num_steps(denoiser)`.
+    prompt: text (SD2 only). None (default): the run's (`CoInConfig.prompt`); "" = no text.
     alpha: position of the intermediate pose phi between k (0) and n (1) (paper 0.5).
     context: crop side >= context x the mask's bounding box side (as stage 1).
     w_hr, w_rgb: weights of the cosine and RGB terms of L3D (paper: 1 and 1).
@@ -39,7 +40,8 @@ class CLGConfig:
     max_points: P_k is thinned to at most this many points (evenly by index) for speed; at the
         sampler's scale many points share a pixel anyway.
     feather_px: inward feather of the paste (outside the mask is untouched either way).
-    seed: view n samples with seed + n. progress: tqdm bars over views and steps.
+    seed: view n samples with seed + n. None (default): the run's seed (`CoInConfig.seed`; 0 outside a
+        run); the resolved value is in log.json's 3_clg settings. progress: tqdm bars over views and steps.
     sample: False = no diffusion sampler: every hole pixel takes the energy's own target, the
         reference's colour warped through P_k where supported (S) and R_n elsewhere, i.e. the
         minimiser of E(X) with the RGB term alone (`warp_fill`). The pipeline uses it for an
@@ -88,7 +90,7 @@ class CLGConfig:
 
     steps: int | None = None
     sampler: SamplerConfig = field(default_factory=clg_sampler)
-    prompt: str = ""
+    prompt: str | None = None
     alpha: float = 0.5
     context: float = 1.5
     w_hr: float = 1.0
@@ -98,7 +100,7 @@ class CLGConfig:
     footprint: str = "bilinear"
     max_points: int = 400_000
     feather_px: int = 2
-    seed: int = 0
+    seed: int | None = None
     progress: bool = True
     sample: bool = True
     detail: str = "reference"
@@ -123,11 +125,32 @@ class CLGConfig:
             )
         if not 0.0 < self.strength <= 1.0:
             raise ValueError(f"CLGConfig.strength must be in (0, 1], got {self.strength}")
-        if self.sampler.num_steps != SamplerConfig().num_steps:
-            raise ValueError(
-                f"CLGConfig.sampler.num_steps = {self.sampler.num_steps} is not read: set CLGConfig.steps "
-                "(None picks the model's default)"
-            )
+        n = self.sampler.num_steps
+        if n != SamplerConfig().num_steps:
+            if self.steps is None:
+                self.steps = n  # the sampler's count, set: it is the step count
+            elif self.steps != n:
+                raise ValueError(f"CLGConfig.steps is {self.steps} and CLGConfig.sampler.num_steps {n}: "
+                                 "give one of them (steps; None picks the model's default)")  # fmt: skip
+        if self.steps is not None and not (isinstance(self.steps, int) and self.steps >= 1):
+            raise ValueError(f"CLGConfig.steps is {self.steps!r}: give a step count >= 1, or None")
+        self.sampler.validate()
+        for name, ok, what in (
+            ("alpha", 0.0 <= self.alpha <= 1.0, "in [0, 1]"),
+            ("context", self.context >= 1.0, ">= 1"),
+            ("w_hr", self.w_hr >= 0, ">= 0"),
+            ("w_rgb", self.w_rgb >= 0, ">= 0"),
+            ("depth_tol", self.depth_tol > 0, "> 0"),
+            ("src_depth_tol", self.src_depth_tol > 0, "> 0"),
+            ("max_points", self.max_points >= 1, ">= 1"),
+            ("feather_px", self.feather_px >= 0, ">= 0"),
+            ("texture_tol", 0.0 <= self.texture_tol < 1.0, "in [0, 1)"),
+            ("colour_tol", self.colour_tol >= 0, ">= 0"),
+        ):
+            if not ok:
+                raise ValueError(f"CLGConfig.{name} is {getattr(self, name)!r}: give a value {what}")
+        if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
+            raise ValueError(f"CLGConfig.seed is {self.seed!r}: give an integer, or None for the run's seed")
 
     def num_steps(self, denoiser: Denoiser) -> int:
         if self.steps is not None:

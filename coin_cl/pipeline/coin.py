@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 
-from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.budget import (
     MAX_WORK_PIXELS,
     PRIOR_MIN_SECONDS,
@@ -40,7 +39,6 @@ from coin_cl.pipeline.budget import (
     ted_iters,
     working_resolution,
 )
-from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
@@ -215,14 +213,8 @@ def inpaint(
 
         env = resolve_sd2_path(None)  # COIN_SD2_PATH
         cfg = replace(cfg, sd_path=None if env is None else str(env))
-    if cfg.observed not in ("target", "captures"):
-        raise ValueError(f"observed must be 'target' or 'captures', got {cfg.observed!r}")
-    if cfg.inpaint_region not in ("input", "refined", "auto"):
-        raise ValueError(f"inpaint_region must be 'auto', 'input' or 'refined', got {cfg.inpaint_region!r}")
     if cfg.inpaint_region == "auto" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
         cfg = replace(cfg, inpaint_region="input")  # insertion: nothing to recover from other views
-    if cfg.mask_kind not in ("seg", "bbox", "scribble"):
-        raise ValueError(f"mask_kind must be 'seg', 'bbox' or 'scribble', got {cfg.mask_kind!r}")
     if cfg.inpaint_region == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
         raise ValueError(
             "refined masks are for removal: they cannot be combined with a prompt or --edited-ref"
@@ -339,7 +331,7 @@ def _run(
     # Ref-GS trains around the pipeline's reference, the one CLG warps from: left to its own rule it
     # would choose again from the masks it is given (refined masks, insertion footprints), or ignore
     # --ref, and P_k would then come from another view than CLG's camera k.
-    refgs_cfg = replace(cfg.refgs or RefGSConfig(), ref=ref)
+    refgs_cfg = cfg.refgs_settings(ref)
     shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg,
               "edited": edited, "plan": plan}  # fmt: skip
     log.info(
@@ -352,7 +344,7 @@ def _run(
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
                                         "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
     refined = cfg.inpaint_region == "refined"
-    clg_cfg = cfg.clg or CLGConfig()  # the defaults in the key too: a changed default reruns CLG
+    clg_cfg = cfg.clg_settings()  # the defaults in the key too: a changed default reruns CLG
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     # only "captures" enters the keys: "target" runs made before the option keep their stages
     observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}

@@ -158,6 +158,7 @@ def stage_refgs(ctx: StageContext) -> dict:
             prune_points=False,
             bg_depth=False,
             ref=ctx.shared["ref"],
+            seed=rcfg.seed,
         )
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
     scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])

@@ -68,6 +68,28 @@ class TEDConfig:
     betas_d: tuple[float, float] = (0.5, 0.999)
     seed: int | None = None
 
+    def __post_init__(self) -> None:
+        for name in ("iters_finetune", "iters_adversarial"):
+            n = getattr(self, name)
+            if n is not None and not (isinstance(n, int) and n >= 0):
+                raise ValueError(f"TEDConfig.{name} is {n!r}: give a step count >= 0 (0 skips the phase), "
+                                 "or None for the run's plan")  # fmt: skip
+        for name, ok, what in (
+            ("lambda_gen", self.lambda_gen >= 0, ">= 0"),
+            ("patch", isinstance(self.patch, int) and self.patch >= 32 and self.patch % 8 == 0,
+             "a multiple of 8, >= 32"),
+            ("n_patches", isinstance(self.n_patches, int) and self.n_patches >= 1, ">= 1"),
+            ("margin", isinstance(self.margin, int) and self.margin >= 0, ">= 0"),
+            ("p_near", 0.0 <= self.p_near <= 1.0, "in [0, 1]"),
+            ("lr_d", self.lr_d > 0, "> 0"),
+            ("betas_d", len(self.betas_d) == 2 and all(0.0 <= b < 1.0 for b in self.betas_d),
+             "two numbers in [0, 1)"),
+        ):  # fmt: skip
+            if not ok:
+                raise ValueError(f"TEDConfig.{name} is {getattr(self, name)!r}: give {what}")
+        if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
+            raise ValueError(f"TEDConfig.seed is {self.seed!r}: give an integer, or None for the run's seed")
+
 
 def patch_size(cfg: TEDConfig, height: int, width: int) -> int:
     """The patch side for an image: cfg.patch, or the largest multiple of 8 that fits (>= 32)."""
