@@ -28,7 +28,7 @@ import json
 import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -56,6 +56,10 @@ from coin_cl.pipeline.stages import (
     stage_ted,
 )
 
+if TYPE_CHECKING:
+    from coin_cl.gs.base import Model
+    from coin_cl.scene import Scene
+
 log = logging.getLogger(__name__)
 
 # Share of the masks that other views must see (estimated) for "auto" to choose refined masks:
@@ -76,11 +80,11 @@ class CoInResult:
     ply: Path | None
     renders: Path | None
     metrics: dict | None
-    model: Any
+    model: Model
     stages: dict[str, dict]
 
 
-def scene_id(scene) -> dict[str, Any]:
+def scene_id(scene: Scene) -> dict[str, Any]:
     """What names a scene for the output folder check: its view count, names and a hash of its
     pixels as captured (before any resizing). Not its path: the same folder under another spelling
     (a symlink, `./`) is the same scene, and another resolution of it is the same scene too (its
@@ -95,7 +99,7 @@ def scene_id(scene) -> dict[str, Any]:
     }
 
 
-def mask_dilation(scene, cfg: CoInConfig) -> int:
+def mask_dilation(scene: Scene, cfg: CoInConfig) -> int:
     """The training masks' dilation (iterations of a 5x5 kernel): `cfg.mask_dilate`, or when None
     0 for a scene that declares its masks exact (`scene.meta["masks"]`, the synthetic rooms), else
     `scene.masks.auto_dilation` of the working size (logged)."""
@@ -116,7 +120,7 @@ def mask_dilation(scene, cfg: CoInConfig) -> int:
     return n
 
 
-def _train_masks(scene, cfg: CoInConfig) -> list[np.ndarray]:
+def _train_masks(scene: Scene, cfg: CoInConfig) -> list[np.ndarray]:
     from coin_cl.scene.masks import derive_mask
 
     dilate = mask_dilation(scene, cfg)
@@ -144,7 +148,7 @@ def _stage_names(force: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 
 def inpaint(
-    scene,
+    scene: Scene | str | Path,
     out: str | Path,
     *,
     mask_kind: str | None = None,
@@ -263,7 +267,7 @@ def inpaint(
         return _run(scene, out, cfg, force, edited)
 
 
-def check_points(scene) -> None:
+def check_points(scene: Scene) -> None:
     """Refuse a scene without enough finite sparse points to seed the Gaussians (before any stage):
     one line naming its points file and what to do."""
     from coin_cl.pipeline.refgs import MIN_POINTS
@@ -279,7 +283,7 @@ def check_points(scene) -> None:
         )
 
 
-def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
+def _choose_region(scene: Scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
     """'refined' when other views see at least AUTO_REFINE_SHARE of the masks (a cheap estimate from
     the cameras and the sparse points, seconds; `coin_cl.gs.carve.observed_share`), else 'input'."""
     from coin_cl.gs.carve import build_carve, observed_share
@@ -301,7 +305,7 @@ def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
 
 
 def _run(
-    scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
+    scene: Scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
 ) -> CoInResult:
     from coin_cl.pipeline.reference import choose_reference
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -209,7 +209,7 @@ def _observed_excluded(ctx: StageContext, refined: list[np.ndarray]) -> list[np.
             for i in range(len(scene))]  # fmt: skip
 
 
-def carves(cfg: CoInConfig, edited: Any) -> bool:
+def carves(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
     """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
     return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
 
