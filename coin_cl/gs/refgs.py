@@ -69,7 +69,7 @@ class RefGSConfig:
     attn_from: float = 0.5  # fraction of the run before attention starts (GScream: 15k of 30k,
     #                         once anchor growth has stopped and the sets stay put); 0 = always
     attn_lr_init: float = 0.01  # query/key projections: GScream's log-linear schedule
-    attn_lr_final: float = 1e-5
+    attn_lr_final: float = 1e-5  # ... its value at the run's end
     # -- reference depth loss
     depth_loss: bool = True
     lambda_depth: float = 10.0  # supplement: lambda_D = 10
@@ -79,7 +79,7 @@ class RefGSConfig:
     # -- background depth in every view's mask (issue 21; `coin_cl.gs.background_depth`): removal
     #    only (an insertion's masks hold the new object, not the background)
     bg_depth: bool = True
-    lambda_bg_depth: float = 3.0
+    lambda_bg_depth: float = 3.0  # weight of the background depth term (>= 0; 0 = off)
     bg_depth_margin: float = 0.05  # relative band around D_bg left free
     bg_depth_behind: float = 0.1  # weight of the behind side (0: penalise only what is in front)
     # D_bg continues the planes around each mask (`coin_cl.gs.surface_planes`) where they pass in
