@@ -222,3 +222,29 @@ def test_a_flag_default_that_drifts_is_caught(monkeypatch):
     with pytest.raises(AssertionError, match="--budget defaults to 30.0, budget_minutes to 45.0"):
         test_every_run_flag_has_its_config_fields_default()
     assert config.CoInConfig().budget_minutes == 30.0
+
+
+@pytest.mark.parametrize(
+    "make, change, named",
+    [
+        ("carve", {"dilate_px": -1}, "CarveConfig.dilate_px"),
+        ("carve", {"cell": 0}, "CarveConfig.cell"),
+        ("carve", {"margin": 1.0}, "CarveConfig.margin"),
+        ("carve", {"min_fraction": 0.0}, "CarveConfig.min_fraction"),
+        ("carve", {"min_views": 0}, "CarveConfig.min_views"),
+        ("carve", {"scale": 1.5}, "CarveConfig.scale"),
+        ("insert", {"edit_tol": -0.1}, "InsertConfig.edit_tol"),
+        ("insert", {"hull_fraction": 0.0}, "InsertConfig.hull_fraction"),
+        ("insert", {"min_views": 0}, "InsertConfig.min_views"),
+        ("insert", {"hull_samples": 1}, "InsertConfig.hull_samples"),
+        ("insert", {"ref_match_tol": 0.0}, "InsertConfig.ref_match_tol"),
+    ],
+)
+def test_carve_and_insert_configs_refuse_bad_values_naming_the_field(make, change, named):
+    from coin_cl.gs.carve import CarveConfig
+    from coin_cl.pipeline.insert import InsertConfig
+
+    cls = {"carve": CarveConfig, "insert": InsertConfig}[make]
+    cls()  # the defaults pass
+    with pytest.raises(ValueError, match=named):
+        cls(**change)

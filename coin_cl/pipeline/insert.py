@@ -67,6 +67,21 @@ class InsertConfig:
     ref_match_tol: float = 0.08
     propagate: bool = True
 
+    def __post_init__(self) -> None:
+        for name, ok, what in (
+            ("edit_tol", 0.0 <= self.edit_tol < 1.0, "in [0, 1)"),
+            ("hull_fraction", 0.0 < self.hull_fraction <= 1.0, "in (0, 1]"),
+            ("min_views", isinstance(self.min_views, int) and self.min_views >= 1, "an integer >= 1"),
+            (
+                "hull_samples",
+                isinstance(self.hull_samples, int) and self.hull_samples >= 2,
+                "an integer >= 2",
+            ),
+            ("ref_match_tol", self.ref_match_tol > 0, "> 0"),
+        ):
+            if not ok:
+                raise ValueError(f"InsertConfig.{name} is {getattr(self, name)!r}: give {what}")
+
 
 class EditLift(NamedTuple):
     """The edit lifted to 3D: points [M, 3] float32 world, colors [M, 3] float32 in [0, 1],
