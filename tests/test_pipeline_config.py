@@ -248,3 +248,24 @@ def test_carve_and_insert_configs_refuse_bad_values_naming_the_field(make, chang
     cls()  # the defaults pass
     with pytest.raises(ValueError, match=named):
         cls(**change)
+
+
+@pytest.mark.parametrize(
+    "change, named",
+    [
+        ({"patch": 30}, "ScenePriorConfig.patch"),
+        ({"base": 12}, "ScenePriorConfig.base"),
+        ({"scales": ()}, "ScenePriorConfig.scales"),
+        ({"scales": (1, 0)}, "ScenePriorConfig.scales"),
+        ({"batch": 0}, "ScenePriorConfig.batch"),
+        ({"lr": 0.0}, "ScenePriorConfig.lr"),
+        ({"train_seconds": -1.0}, "ScenePriorConfig.train_seconds"),
+        ({"train_steps": -1}, "ScenePriorConfig.train_steps"),
+        ({"max_steps": 1.5}, "ScenePriorConfig.max_steps"),
+        ({"hole_weight": -1.0}, "ScenePriorConfig.hole_weight"),
+        ({"prediction_type": "x0"}, "ScenePriorConfig.prediction_type"),
+    ],
+)
+def test_scene_prior_config_refuses_bad_values_naming_the_field(change, named):
+    with pytest.raises(ValueError, match=named):
+        ScenePriorConfig(**change)
