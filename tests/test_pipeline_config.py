@@ -269,3 +269,25 @@ def test_carve_and_insert_configs_refuse_bad_values_naming_the_field(make, chang
 def test_scene_prior_config_refuses_bad_values_naming_the_field(change, named):
     with pytest.raises(ValueError, match=named):
         ScenePriorConfig(**change)
+
+
+@pytest.mark.parametrize(
+    "change, named",
+    [
+        ({"iters": 0}, "RefineConfig.iters"),
+        ({"model": "nerf"}, "RefineConfig.model"),
+        ({"min_fraction": 0.0}, "RefineConfig.min_fraction"),
+        ({"splat_px": 0.0}, "RefineConfig.splat_px"),
+        ({"alpha_thresh": 1.5}, "RefineConfig.alpha_thresh"),
+        ({"grow_px": -1}, "RefineConfig.grow_px"),
+        ({"see_through": -0.1}, "RefineConfig.see_through"),
+        ({"view_check": -0.1}, "RefineConfig.view_check"),
+        ({"ray_samples": 0}, "RefineConfig.ray_samples"),
+        ({"warp_tol": float("nan")}, "RefineConfig.warp_tol"),
+    ],
+)
+def test_refine_config_refuses_bad_values_naming_the_field(change, named):
+    from coin_cl.pipeline.refine_masks import RefineConfig
+
+    with pytest.raises(ValueError, match=named):
+        RefineConfig(**change)
