@@ -96,34 +96,60 @@ def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 2, 
 
 @dataclass
 class ScenePriorConfig:
-    """Settings of the scene prior (all part of the cache key).
+    """Settings of the scene prior (all part of the cache key); each field says what it means where
+    it is declared. Values are checked here: a bad one is an error naming the field."""
 
-    patch: P, the working size in pixels (square patches and inpainting crops).
-    base: channels at full resolution; the 3 levels have (1, 2, 4) x base.
-    scales: patch scales s (a P s crop area-averaged to P), so the prior also fills larger holes.
-    batch: patches per step. lr: AdamW learning rate (cosine-free, constant: the budget is in seconds).
-    train_steps: optimizer steps to train (the pipeline's setting: a fixed count gives the same
-    model on any machine and lets a killed run resume to exactly the model it would have made);
-    None: train for `train_seconds` of wall-clock time (kept for compatibility; a resumed run then
-    differs). `steps_for_seconds` converts a time budget at the measured 2-core rate.
-    max_steps: optional cap on optimizer steps in either mode (tests).
-    hole_weight: loss weight inside the synthetic hole (outside: 1), since the hole is what it must do.
-    prediction_type: 'v' (better conditioned than eps at high noise for a small pixel-space model).
-    seed: RNG seed for init and sampling of patches/holes.
-    """
-
+    # P, the working size in pixels (square patches and inpainting crops; a multiple of 4, >= 8).
     patch: int = 64
+    # Channels at full resolution (a multiple of 8, for GroupNorm); the 3 levels have (1, 2, 4) x base.
     base: int = 32
+    # Patch scales s (a P s crop area-averaged to P; each >= 1), so the prior also fills larger holes.
     scales: tuple[int, ...] = (1, 2, 4)
+    # Patches per optimizer step (>= 1).
     batch: int = 16
+    # AdamW learning rate (> 0; constant: the budget is in seconds).
     lr: float = 1e-3
+    # Seconds of wall-clock training when `train_steps` is None (>= 0). In a CoIn run the run sets it
+    # (`CoInConfig.prior_seconds`) and converts it to `train_steps`.
     train_seconds: float = 300.0
+    # Optimizer steps to train (>= 0; the pipeline's setting: a fixed count gives the same model on
+    # any machine and lets a killed run resume to exactly the model it would have made). None: train
+    # for `train_seconds` (a resumed run then differs); `steps_for_seconds` converts a time budget
+    # at the measured 2-core rate.
     train_steps: int | None = None
+    # Optional cap on optimizer steps in either mode (>= 0; tests). None: no cap.
     max_steps: int | None = None
+    # Loss weight inside the synthetic hole (>= 0; outside: 1), since the hole is what it must do.
     hole_weight: float = 4.0
+    # "v" (default: better conditioned than eps at high noise for a small pixel-space model) or "eps".
     prediction_type: str = "v"
+    # RNG seed for init and sampling of patches/holes. In a CoIn run the run's seed.
     seed: int = 0
+    # The training noise schedule.
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+
+    def __post_init__(self) -> None:
+        def whole(x: object, low: int) -> bool:
+            return isinstance(x, int) and not isinstance(x, bool) and x >= low
+
+        for name, ok, what in (
+            ("patch", whole(self.patch, 8) and self.patch % 4 == 0, "a multiple of 4, >= 8"),
+            ("base", whole(self.base, 8) and self.base % 8 == 0, "a multiple of 8, >= 8"),
+            ("scales", len(self.scales) > 0 and all(whole(x, 1) for x in self.scales), "integers >= 1"),
+            ("batch", whole(self.batch, 1), "an integer >= 1"),
+            ("lr", self.lr > 0, "> 0"),
+            ("train_seconds", self.train_seconds >= 0, ">= 0"),
+            (
+                "train_steps",
+                self.train_steps is None or whole(self.train_steps, 0),
+                "an integer >= 0 or None",
+            ),
+            ("max_steps", self.max_steps is None or whole(self.max_steps, 0), "an integer >= 0 or None"),
+            ("hole_weight", self.hole_weight >= 0, ">= 0"),
+            ("prediction_type", self.prediction_type in ("v", "eps"), "'v' or 'eps'"),
+        ):
+            if not ok:
+                raise ValueError(f"ScenePriorConfig.{name} is {getattr(self, name)!r}: give {what}")
 
 
 def _timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:

@@ -71,6 +71,7 @@ def test_state_round_trip_and_empty_masks(room):
 
 
 def test_scaffold_with_a_carve_never_draws_inside_it(room):
+    from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.scaffold import ScaffoldModel
 
     s, train, vol = room
@@ -92,8 +93,7 @@ def test_scaffold_with_a_carve_never_draws_inside_it(room):
     assert r.alpha[m].mean() < r0.alpha[m].mean()
     model.carve = vol
     sd = model.state_dict()
-    fresh = ScaffoldModel(pts, None, extent=3.0, seed=0)
-    fresh.load_state_dict(sd)
+    fresh = model_from_state(sd)  # the volume comes back with the checkpoint
     assert fresh.carve is not None and torch.equal(fresh.carve.masks, vol.masks)
 
 

@@ -1,6 +1,7 @@
 """The layers stay one-way: checked on the import statements of every module (AST, any depth)."""
 
 import ast
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -127,3 +128,121 @@ def test_public_names_rule_catches_a_private_import(tmp_path):
     assert private_engine_imports(probe, public) == {
         "coin_cl.engine.ops.warp", "coin_cl.engine.ops.warp.support_mask", "coin_cl.engine.constants"
     }  # fmt: skip
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_edges(path: Path, known: set[str]) -> set[str]:
+    """The modules of `known` that `path` imports, at any depth (functions, TYPE_CHECKING blocks
+    included): `from a.b import c` is an edge to the module a.b.c where that is a module, else to
+    a.b; a name is taken at its longest prefix that is a module."""
+    tree = ast.parse(path.read_text())
+    pkg = module_name(path) if path.name == "__init__.py" else module_name(path).rpartition(".")[0]
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
+                base = ".".join([*parts, base]) if base else ".".join(parts)
+            subs = {f"{base}.{a.name}" for a in node.names}
+            names |= {n for n in subs if n in known} or {base}
+            if any(n not in known for n in subs):
+                names.add(base)
+    out = set()
+    for n in names:
+        parts = n.split(".")
+        hit = next(
+            (".".join(parts[:i]) for i in range(len(parts), 0, -1) if ".".join(parts[:i]) in known), None
+        )
+        if hit is not None:
+            out.add(hit)
+    return out - {module_name(path)}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in graph:
+                    continue
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    found.append(sorted(comp))
+    return found
+
+
+def import_graph(folders: tuple[str, ...] = ("coin_cl", "diffusion")) -> dict[str, set[str]]:
+    files = {module_name(f): f for folder in folders for f in modules(folder)}
+    known = set(files)
+    return {m: import_edges(f, known) for m, f in files.items()}
+
+
+def test_no_import_cycles():
+    """No module reaches itself through imports (type-only and function-level ones count: a cycle
+    is a cycle for a reader even where Python would tolerate it)."""
+    graph = import_graph()
+    assert len(graph) > 100 and "coin_cl.pipeline.coin" in graph
+    assert "coin_cl.pipeline.config" in graph["coin_cl.pipeline.stages"]  # a TYPE_CHECKING import
+    assert cycles(graph) == []
+
+
+def test_cycle_rule_finds_a_planted_cycle(tmp_path, monkeypatch):
+    """The checker can fail: on a fake graph, and on a fake package with a lazy + a TYPE_CHECKING edge."""
+    fake = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"e", "d"}, "f": {"g"}, "g": {"f"}}
+    assert cycles(fake) == [["a", "b", "c"], ["f", "g"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+    pkg = tmp_path / "fakepkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "top.py").write_text("from fakepkg import config\ndef f():\n    from fakepkg.low import g\n")
+    (pkg / "low.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                "    from fakepkg.top import f\n")  # fmt: skip
+    (pkg / "config.py").write_text("from . import low\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    graph = import_graph(("fakepkg",))
+    assert graph["fakepkg.top"] == {"fakepkg.config", "fakepkg.low"}
+    assert cycles(graph) == [["fakepkg.config", "fakepkg.low", "fakepkg.top"]]
+
+
+def test_scaffold_imports_nothing_of_carving():
+    """The generic Scaffold-GS model knows a volume to keep empty, not the experimental carve that
+    makes one (the pipeline sets it; `model_kinds` restores it from a checkpoint)."""
+    assert not hits(imports(ROOT / "coin_cl/gs/scaffold.py"), "coin_cl.gs.carve")

@@ -1,5 +1,5 @@
 """CLG's settings (coin_cl.pipeline.clg_config): the nested sampler's defaults, the step count by
-model, and a sampler step count that would be ignored refused."""
+model, the sampler's own step count taken as the count, bad values refused naming the field."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import replace
 import pytest
 from coin_cl.diffusion.sampling import SamplerConfig
 
-from coin_cl.pipeline.clg_config import PAPER_STEPS, PRIOR_STEPS, CLGConfig
+from coin_cl.pipeline.clg_config import PAPER_STEPS, PRIOR_STEPS, CLGConfig, clg_sampler
 
 
 class _Model:
@@ -30,9 +30,43 @@ def test_sampler_defaults_and_steps_by_model():
     assert fixed.sampler.num_steps == SamplerConfig().num_steps  # the config itself is not rewritten
 
 
-def test_sampler_num_steps_is_refused():
-    with pytest.raises(ValueError, match="CLGConfig.steps"):
-        CLGConfig(sampler=SamplerConfig(num_steps=12))
+def test_sampler_num_steps_is_the_step_count():
+    """A step count set on the nested sampler is used (it is `steps`); given both, they must agree."""
+    cfg = CLGConfig(sampler=replace(clg_sampler(), num_steps=12))
+    assert cfg.steps == 12
+    assert cfg.sampler_config(_Model("scene prior")).num_steps == 12
+    assert cfg.sampler_config(_Model("Stable Diffusion 2 inpainting")).num_steps == 12
+    assert CLGConfig(steps=12, sampler=replace(clg_sampler(), num_steps=12)).steps == 12
+    with pytest.raises(ValueError, match="CLGConfig.steps .* CLGConfig.sampler.num_steps"):
+        CLGConfig(steps=5, sampler=replace(clg_sampler(), num_steps=12))
+
+
+@pytest.mark.parametrize(
+    "change, named",
+    [({"steps": 0}, "CLGConfig.steps"), ({"alpha": 1.5}, "CLGConfig.alpha"),
+     ({"context": 0.5}, "CLGConfig.context"),
+     ({"w_rgb": -1.0}, "CLGConfig.w_rgb"), ({"depth_tol": 0.0}, "CLGConfig.depth_tol"),
+     ({"max_points": 0}, "CLGConfig.max_points"), ({"feather_px": -1}, "CLGConfig.feather_px"),
+     ({"texture_tol": 1.0}, "CLGConfig.texture_tol"), ({"colour_tol": -0.1}, "CLGConfig.colour_tol"),
+     ({"seed": 1.5}, "CLGConfig.seed"), ({"detail": "all"}, "CLGConfig.detail"),
+     ({"strength": 0.0}, "CLGConfig.strength"), ({"sampler": SamplerConfig(eta=-1.0)}, "eta")],
+)  # fmt: skip
+def test_bad_values_are_refused_naming_the_field(change, named):
+    with pytest.raises(ValueError, match=named):
+        CLGConfig(**change)
+
+
+def test_seed_and_prompt_are_the_runs_unless_set():
+    """None (the defaults) = the run's seed and prompt, resolved by `CoInConfig.clg_settings`, which is
+    what the 3_clg stage key records; a value set here is used as given."""
+    from coin_cl.pipeline.config import CoInConfig
+
+    assert (CLGConfig().seed, CLGConfig().prompt) == (None, None)
+    run = CoInConfig(seed=3, prompt="a vase")
+    assert (run.clg_settings().seed, run.clg_settings().prompt) == (3, "a vase")
+    own = CoInConfig(seed=3, prompt="a vase", clg=CLGConfig(seed=9, prompt=""))
+    assert (own.clg_settings().seed, own.clg_settings().prompt) == (9, "")
+    assert (CoInConfig().clg_settings().seed, CoInConfig().clg_settings().prompt) == (0, "")  # as before
 
 
 @pytest.mark.parametrize("gain", [0.5, float("nan"), float("inf")])

@@ -59,6 +59,18 @@ class CarveConfig:
     min_views: int = 2
     scale: float = 0.5
 
+    def __post_init__(self) -> None:
+        for name, ok, what in (
+            ("dilate_px", isinstance(self.dilate_px, int) and self.dilate_px >= 0, "an integer >= 0"),
+            ("cell", isinstance(self.cell, int) and self.cell >= 1, "an integer >= 1"),
+            ("margin", 0.0 <= self.margin < 1.0, "in [0, 1)"),
+            ("min_fraction", 0.0 < self.min_fraction <= 1.0, "in (0, 1]"),
+            ("min_views", isinstance(self.min_views, int) and self.min_views >= 1, "an integer >= 1"),
+            ("scale", 0.0 < self.scale <= 1.0, "in (0, 1]"),
+        ):
+            if not ok:
+                raise ValueError(f"CarveConfig.{name} is {getattr(self, name)!r}: give {what}")
+
 
 class CarveVolume:
     """The carve volume of a scene: per training view its camera, mask and background depth.

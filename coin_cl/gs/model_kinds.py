@@ -111,4 +111,8 @@ def model_from_state(sd: dict[str, Any]) -> Model:
     else:
         raise ValueError(f"checkpoint holds an unknown model kind {sd['kind']!r}")
     m.load_state_dict(sd)
+    if "carve" in sd:  # the volume a removal keeps empty (`ScaffoldModel.carve`)
+        from coin_cl.gs.carve import CarveVolume
+
+        m.carve = CarveVolume.from_state(sd["carve"])
     return m

@@ -42,7 +42,9 @@ class RefGSConfig:
     `depth_loss=False`; all three plus `prune_points=False` is plain training on the inpaints.
     """
 
-    # -- reference view: name or index; None = the rule of `coin_cl.pipeline.reference.choose_reference`
+    # -- reference view: name or index; None = the rule of `coin_cl.pipeline.reference.choose_reference`.
+    #    In a CoIn run it is the run's reference (`CoInConfig.ref`, recorded in log.json's 2_refgs
+    #    settings), and setting another one here is an error.
     ref: str | int | None = None
     # -- targets: inpaint inside the mask, captured image outside (paper 5.1)
     composite: bool = True
@@ -67,7 +69,7 @@ class RefGSConfig:
     attn_from: float = 0.5  # fraction of the run before attention starts (GScream: 15k of 30k,
     #                         once anchor growth has stopped and the sets stay put); 0 = always
     attn_lr_init: float = 0.01  # query/key projections: GScream's log-linear schedule
-    attn_lr_final: float = 1e-5
+    attn_lr_final: float = 1e-5  # ... its value at the run's end
     # -- reference depth loss
     depth_loss: bool = True
     lambda_depth: float = 10.0  # supplement: lambda_D = 10
@@ -77,13 +79,15 @@ class RefGSConfig:
     # -- background depth in every view's mask (issue 21; `coin_cl.gs.background_depth`): removal
     #    only (an insertion's masks hold the new object, not the background)
     bg_depth: bool = True
-    lambda_bg_depth: float = 3.0
+    lambda_bg_depth: float = 3.0  # weight of the background depth term (>= 0; 0 = off)
     bg_depth_margin: float = 0.05  # relative band around D_bg left free
     bg_depth_behind: float = 0.1  # weight of the behind side (0: penalise only what is in front)
     # D_bg continues the planes around each mask (`coin_cl.gs.surface_planes`) where they pass in
     # front of its 2D fill; False: the 2D fill alone (the code before 2026-11-25)
     bg_depth_planes: bool = True
-    seed: int = 0
+    # RNG seed of Ref-GS (model init, training, attention). None (default): the run's seed (`seed` of
+    # `run_refgs`, `CoInConfig.seed` in a CoIn run; the resolved value is in log.json's 2_refgs settings).
+    seed: int | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.prune_min_fraction <= 1.0:
@@ -110,6 +114,11 @@ class RefGSConfig:
             raise ValueError(f"attn_from must be in [0, 1], got {self.attn_from}")
         if not (self.attn_lr_init > 0 and self.attn_lr_final > 0):
             raise ValueError("attn_lr_init and attn_lr_final must be > 0")
+        if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
+            raise ValueError(f"RefGSConfig.seed is {self.seed!r}: give an integer, or None (the run's)")
+        if self.depth_prior_iters is not None and self.depth_prior_iters < 1:
+            raise ValueError(f"RefGSConfig.depth_prior_iters is {self.depth_prior_iters!r}: give a step "
+                             "count >= 1, or None")  # fmt: skip
 
     def attention_active(self, step: int, iters: int) -> bool:
         """Whether anchor attention runs at 0-based `step` of a run of `iters` steps."""
@@ -141,7 +150,7 @@ def anchor_attention(cfg: RefGSConfig, feat_dim: int = 32) -> AnchorAttention:
         cfg.attn_max_in,
         cfg.attn_max_side,
         cfg.attn_mix,
-        cfg.seed,
+        0 if cfg.seed is None else cfg.seed,  # None outside a run (`run_refgs` resolves it): 0
     )
 
 

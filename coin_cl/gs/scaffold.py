@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import asdict, dataclass, fields
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -25,7 +25,6 @@ from coin_cl.engine import Gaussians
 from coin_cl.engine import constants as cst
 from coin_cl.engine.rendering import decode_neural_gaussians
 from coin_cl.gs.base import Model, RenderOutput, splat
-from coin_cl.gs.carve import CarveVolume
 from coin_cl.gs.data import Camera
 from coin_cl.gs.gaussians import knn_mean_dist
 from coin_cl.gs.optim import ExpSchedule, ParamOptimizer
@@ -80,6 +79,19 @@ def voxelize(points: np.ndarray, voxel: float) -> np.ndarray:
     """[M, 3] centres of the occupied voxels of size `voxel` (sorted, unique)."""
     g = np.unique(np.round(np.asarray(points, np.float64) / voxel), axis=0)
     return (g * voxel).astype(np.float32)
+
+
+class KeptEmpty(Protocol):
+    """A volume the model keeps free of Gaussians (`ScaffoldModel.carve`; `coin_cl.gs.carve.CarveVolume`
+    is the one the pipeline sets)."""
+
+    def contains(self, points: Tensor) -> Tensor:
+        """[N] bool: which of `points` [N, 3] lie inside."""
+        ...
+
+    def state_dict(self) -> dict[str, Any]:
+        """What a checkpoint saves of it."""
+        ...
 
 
 def _mlp(d_in: int, d_hidden: int, d_out: int, act: nn.Module | None) -> nn.Sequential:
@@ -156,9 +168,10 @@ class ScaffoldModel(Model):
                 params[f"{mname}.{pname}"] = prm
                 lrs[f"{mname}.{pname}"] = getattr(c, f"lr_{mname}")
         self.optimizer = ParamOptimizer(params, lrs)
-        # The removed object's volume (`coin_cl.gs.carve`): neural Gaussians inside it get zero
-        # opacity at every render and are left out of exports, whatever densification grows there.
-        self.carve: CarveVolume | None = None
+        # A volume kept empty (the pipeline's carve of a removed object, `coin_cl.gs.carve`, sets
+        # it): neural Gaussians inside it get zero opacity at every render and are left out of
+        # exports, whatever densification grows there. None: nothing is kept empty.
+        self.carve: KeptEmpty | None = None
 
     def _carved(self, g: dict[str, Tensor]) -> dict[str, Tensor]:
         if self.carve is None or g["means"].shape[0] == 0:
@@ -335,6 +348,7 @@ class ScaffoldModel(Model):
             "voxel_size": self.voxel_size,
             "cfg": asdict(self.cfg),
             "optimizer": self.optimizer.state_dict(),
+            # restored by `model_kinds.model_from_state`, which knows the volume's class
             **({} if self.carve is None else {"carve": self.carve.state_dict()}),
         }
 
@@ -342,4 +356,4 @@ class ScaffoldModel(Model):
         self.extent = sd["extent"]
         self.voxel_size = sd["voxel_size"]
         self.optimizer.load_state_dict(sd["optimizer"])
-        self.carve = CarveVolume.from_state(sd["carve"]) if "carve" in sd else None
+        self.carve = None  # a saved volume ("carve") is restored by `model_kinds.model_from_state`

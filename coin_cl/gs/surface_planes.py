@@ -38,6 +38,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
+from coin_cl.scene.masks import dilate_mask
+
 # The ring of surroundings whose points are fitted: this fraction of sqrt(mask area) in pixels.
 RING_SCALE = 0.5
 RING_MIN_PX = 6
@@ -215,10 +217,9 @@ def continuation_depth(cam: Any, mask: np.ndarray, points: np.ndarray, region: n
     area = int(mask.sum())
     if area == 0:
         return np.full((H, W), np.inf)
-    from coin_cl.gs.background_depth import dilate_mask
-
     px, ok = cam.pixels(points)
-    near = dilate_mask(mask, max(RING_MIN_PX, int(RING_SCALE * np.sqrt(area))))
+    grow = max(RING_MIN_PX, int(RING_SCALE * np.sqrt(area)))
+    near = dilate_mask(mask, kernel=2 * grow + 1, iterations=1)  # grown by `grow` px, a square
     sel = ok & near[px[:, 1], px[:, 0]]
     ring = np.asarray(points, np.float64)[sel]
     if len(ring) < MIN_PATCH_POINTS:

@@ -34,11 +34,17 @@ import math
 import tempfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from coin_cl.atomic import write_text
 from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
+
+# A `CoInConfig` (not imported even for type checking: config -> refine_masks -> budget).
+CoInConfigLike = Any
+
+if TYPE_CHECKING:
+    from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +221,7 @@ def prior_seconds(budget_minutes: float) -> float:
     return max(PRIOR_MIN_SECONDS, 60.0 * BUDGET_SHARES["prior"] * budget_minutes)
 
 
-def probe_seconds_per_step(scene: Any, train_idx: list[int], device: Any = None, seed: int = 0) -> float:
+def probe_seconds_per_step(scene: Scene, train_idx: list[int], device: Any = None, seed: int = 0) -> float:
     """Seconds per step of a plain Scaffold-GS trained on `scene`'s captured training views (the
     model every GS stage of CoIn trains), measured over PROBE_STEPS steps after PROBE_WARMUP.
     The model is thrown away."""
@@ -360,7 +366,7 @@ def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> f
 # the plan of a CoIn run (`coin_cl.pipeline.coin`)
 
 
-def plan_for(scene, out: Path, cfg: Any, train: list[int]) -> Plan:
+def plan_for(scene: Scene, out: Path, cfg: CoInConfigLike, train: list[int]) -> Plan:
     """The plan of a CoIn run (`cfg` a `CoInConfig`, `train` its training views): `plan_run` keyed by
     the settings the step counts depend on, probing `scene` at its working size."""
     cam = scene.cameras[train[0]]
@@ -400,8 +406,8 @@ def inherited_rates(run: Path, probe: Any, prior: Any, disc: Any) -> tuple[Any, 
             take("disc_seconds_per_step", disc))  # fmt: skip
 
 
-def disc_probe(cfg: Any, width: int, height: int) -> Any:
-    """TE-D's discriminator probe for a CoIn run (`cfg` a `CoInConfig`): a callable -> seconds it
+def disc_probe(cfg: CoInConfigLike, width: int, height: int) -> Any:
+    """TE-D's discriminator probe for a CoIn run: a callable -> seconds it
     adds to an adversarial step at this image size; None where TE-D is skipped."""
     if "ted" in cfg.skip:
         return None
@@ -411,8 +417,8 @@ def disc_probe(cfg: Any, width: int, height: int) -> Any:
     return lambda: probe_discriminator_seconds(ted, height, width)
 
 
-def prior_probe(cfg: Any, width: int, height: int) -> Any:
-    """The scene prior's timing probe for a CoIn run (`cfg` a `CoInConfig`, views `width` x `height`):
+def prior_probe(cfg: CoInConfigLike, width: int, height: int) -> Any:
+    """The scene prior's timing probe for a CoIn run (views `width` x `height`):
     a callable -> seconds per step of the prior stage 1 and CLG will train; None where no prior is
     trained (SD2 given) or its step count is fixed (`ScenePriorConfig.train_steps`)."""
     if cfg.sd_path or cfg.inpaint2d.prior.train_steps is not None:
@@ -424,8 +430,8 @@ def prior_probe(cfg: Any, width: int, height: int) -> Any:
     return lambda: prior_rate(prior_cfg)
 
 
-def explicit_steps(cfg: Any) -> dict[str, int | None]:
-    """{"refgs", "ted_finetune", "ted_adversarial": the step count `cfg` (a `CoInConfig`) gives, or
+def explicit_steps(cfg: CoInConfigLike) -> dict[str, int | None]:
+    """{"refgs", "ted_finetune", "ted_adversarial": the step count `cfg` gives, or
     None for the plan's}. TE-D's may come from `CoInConfig.iters_ted_*` or `cfg.ted.iters_*`; set in
     both, they must agree (ValueError naming both)."""
     out = {"refgs": cfg.iters_refgs}

@@ -32,7 +32,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,6 +42,10 @@ from coin_cl.pipeline.clg_guard import pick
 from coin_cl.pipeline.clg_view import ReferenceView, sample_view, warp_view
 from coin_cl.scene.io import atomic_write, view_stem, write_png
 from coin_cl.schema import CLG_VIEW, SD2_PLAN, parse_optional, run_folder_fix
+
+if TYPE_CHECKING:
+    from coin_cl.pipeline.runner import StageContext
+    from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +241,9 @@ def run_clg(
 # the pipeline stage
 
 
-def _stage_inputs(ctx: Any, scene: Any, masks: list[np.ndarray], train: list[int]) -> tuple[list, list, list]:
+def _stage_inputs(
+    ctx: StageContext, scene: Scene, masks: list[np.ndarray], train: list[int]
+) -> tuple[list, list, list]:
     """(inpaints I^_n composited, renders R_n, depths masked to alpha > 0.5) per scene view, None
     outside the training views, from the stage folders 1_inpaint and 2_refgs."""
     from coin_cl.gs.targets import composite_targets
@@ -262,7 +268,7 @@ def _stage_inputs(ctx: Any, scene: Any, masks: list[np.ndarray], train: list[int
     return inpaints, renders, depths
 
 
-def _stage_denoiser(ctx: Any, scene: Any, masks: list[np.ndarray], train: list[int]) -> Denoiser:
+def _stage_denoiser(ctx: StageContext, scene: Scene, masks: list[np.ndarray], train: list[int]) -> Denoiser:
     """Stable Diffusion 2 when configured, else the scene prior of stage 1 (trained here when its
     cache is not in 1_inpaint: never written into an earlier stage's folder)."""
     from coin_cl.diffusion.scene_prior import cache_key
@@ -282,7 +288,9 @@ def _stage_denoiser(ctx: Any, scene: Any, masks: list[np.ndarray], train: list[i
     return stage_prior(scene, masks, train, icfg, folder)
 
 
-def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None) -> dict[str, Any]:
+def stage_clg(
+    ctx: StageContext, scene: Scene | None = None, masks: list[np.ndarray] | None = None
+) -> dict[str, Any]:
     """Stage 3_clg of `coin_cl.pipeline.coin`: reads 1_inpaint (I^_n, the scene prior's cache) and
     2_refgs (renders/, depths/, alphas/, reference_points.ply); writes images/<stem>.png per guided view.
     scene, masks: the views as the pipeline's stages see them (default `ctx.shared`'s)."""
@@ -295,8 +303,7 @@ def stage_clg(ctx: Any, scene: Any = None, masks: list[np.ndarray] | None = None
     train = list(scene.train_idx)
     k = int(ctx.shared["ref"])
     ccfg = ctx.shared["cfg"]
-    cfg: CLGConfig = ccfg.clg or CLGConfig()
-    cfg = replace(cfg, seed=ccfg.seed, prompt=cfg.prompt or ccfg.prompt)
+    cfg: CLGConfig = ccfg.clg_settings()  # the run's seed and prompt where CLGConfig leaves them None
     inpaints, renders, depths = _stage_inputs(ctx, scene, masks, train)
     ply = ctx.inputs["2_refgs"] / "reference_points.ply"
     if ply.is_file():

@@ -22,94 +22,96 @@ def clg_sampler() -> SamplerConfig:
 
 @dataclass
 class CLGConfig:
-    """Settings of the CLG stage.
+    """Settings of the CLG stage; each field says what it means where it is declared. Values are
+    checked here: a bad one is an error naming the field.
 
-    steps: DDIM steps; None = PAPER_STEPS (200) for Stable Diffusion 2, PRIOR_STEPS (25) for the
-        scene prior (the named smaller default: 200 steps of the prior cost minutes per view here).
-    sampler: the DDIM sampler's settings (`coin_cl.diffusion.SamplerConfig`, defaults `clg_sampler`):
-        discretization 'quad' (paper) or 'uniform', eta, FreeDoM's guidance_scale c (0 = unguided)
-        and its window guidance_start/end, time travel (travel_repeats 1 = off), cfg_scale
-        (classifier-free guidance, SD2 with a prompt only). Its num_steps must stay at the default:
-        the count depends on the model, so `steps` sets it (a changed num_steps is an error).
-    prompt: text (SD2 only).
-    alpha: position of the intermediate pose phi between k (0) and n (1) (paper 0.5).
-    context: crop side >= context x the mask's bounding box side (as stage 1).
-    w_hr, w_rgb: weights of the cosine and RGB terms of L3D (paper: 1 and 1).
-    depth_tol, src_depth_tol, footprint: the warp op's knobs (see `coin_cl.engine.warp_features`).
-    max_points: P_k is thinned to at most this many points (evenly by index) for speed; at the
-        sampler's scale many points share a pixel anyway.
-    feather_px: inward feather of the paste (outside the mask is untouched either way).
-    seed: view n samples with seed + n. progress: tqdm bars over views and steps.
-    sample: False = no diffusion sampler: every hole pixel takes the energy's own target, the
-        reference's colour warped through P_k where supported (S) and R_n elsewhere, i.e. the
-        minimiser of E(X) with the RGB term alone (`warp_fill`). The pipeline uses it for an
-        edited reference (`coin_cl.pipeline.insert`), where no model can draw the inserted object
-        and a sampler would paint the hole with the scene's own textures.
-    detail: where the output's band above the sampler's working resolution comes from
-        (`coin_cl.pipeline.clg_detail`): "reference" (default) the reference's detail warped through
-        P_k where the warp supports it and the initial inpaint's elsewhere, "input" the initial
-        inpaint's everywhere, "none" the upsampled sample alone (blurry at 64 px: issue 22).
-    detail_split: where the band split lies, as a share of the working size (0.5: the output's
-        band above half the working resolution comes from `detail`'s source, below it from the
-        guided sample).
-    colour_match: match the Lab mean and deviation of the sample's low band inside the hole to the
-        energy's target (the reference warped through P_k where supported, I^_n elsewhere), the gain
-        capped at 1 (`clg_detail.match_colour`): the 64 px scene prior draws the reference's structure
-        with drifting hues. Not applied with detail "none".
-    chroma_from_target: with colour_match, the low band's chroma (Lab a, b) inside the hole is the
-        target's own low band's and only its lightness comes from the sample (matched in mean and
-        deviation): the global match left 64 px hue blotches in the accepted views.
-    strength: the share of the trajectory sampled (SDEdit): 1 = from pure noise (paper); below 1
-        the sampler starts from the initial inpaint's crop noised to that level, so what guidance
-        does not constrain stays near I^_n instead of a fresh draw.
-        Defaults (detail "reference", split 0.5, strength 0.5) measured on the shared scene's LaMa
-        inpaints (benchmarks/clg.py, docs/RESULTS.md): the only variant whose images are closer to
-        the reference than the inputs (residual lifted with the views' depths) while as textured;
-        sampling from noise at 64 px and pasting (the paper's way at this size) lost to the input in
-        29 of 33 views.
-    keep_if_worse: a view's output must not be worse than its input I^_n on what can be measured
-        without ground truth (issue 22): a larger consistency residual to the reference, less
-        texture inside the mask (below (1 - texture_tol) x the input's), or colours further from the
-        mask's surroundings (more than (1 + colour_tol) x the input's distance). Such a view keeps
-        I^_n, logged and recorded with the reason (`coin_cl.pipeline.clg_guard.no_worse`).
-    detail_gain_max: the detail band's top-up (`clg_detail.texture_gain`): a candidate whose texture
-        inside the mask (`metrics.mask_texture`) falls below the input's gets its high band (the
-        reference's warped detail, I^_n's elsewhere) multiplied by the smallest gain up to this that
-        brings it back to the input's. Why: the warp resamples the reference's detail and loses
-        some of it, and the sample's low band is smoother than I^_n's below the split, so an output
-        closer to the reference came out a little less textured than its input (issue 22: 0.04 % /
-        0.8 % on the shared scene). 1 = off. The gain is recorded per view ("detail_gain").
-    warp_guard: keep_if_worse also for the warp-only fill (sample False). Off by default because
-        that fill's main use is an edited reference, whose warp adds an object with colours and
-        texture its surroundings lack (the colour check would reject exactly what was asked for);
-        SD2's reference_only mode turns it on: there the warp replaces an embedded fill with the
-        reference's content and must pass the same checks as a guided sample.
-    """
+    Defaults of detail / detail_split / strength ("reference", 0.5, 0.5) measured on the shared
+    scene's LaMa inpaints (benchmarks/clg.py, docs/RESULTS.md): the only variant whose images are
+    closer to the reference than the inputs (residual lifted with the views' depths) while as
+    textured; sampling from noise at 64 px and pasting (the paper's way at this size) lost to the
+    input in 29 of 33 views."""
 
+    # DDIM steps (>= 1). None (default): PAPER_STEPS (200) for Stable Diffusion 2, PRIOR_STEPS (25)
+    # for the scene prior (200 steps of the prior cost minutes per view here).
     steps: int | None = None
+    # The DDIM sampler's settings (`coin_cl.diffusion.SamplerConfig`, defaults `clg_sampler`):
+    # discretization 'quad' (paper) or 'uniform', eta, FreeDoM's guidance_scale c (0 = unguided)
+    # and its window guidance_start/end, time travel (travel_repeats 1 = off), cfg_scale
+    # (classifier-free guidance, SD2 with a prompt only). Its num_steps, when set to anything but
+    # SamplerConfig's default (50, which reads as unset), is the step count: then it is `steps`
+    # (given both, they must agree).
     sampler: SamplerConfig = field(default_factory=clg_sampler)
-    prompt: str = ""
+    # Text (SD2 only). None (default): the run's (`CoInConfig.prompt`); "" = no text.
+    prompt: str | None = None
+    # Position of the intermediate pose phi between k (0) and n (1), in [0, 1]. Default 0.5: the paper's.
     alpha: float = 0.5
+    # Crop side >= context x the mask's bounding-box side (>= 1). Default 1.5: as stage 1.
     context: float = 1.5
+    # Weight of L3D's cosine term (>= 0). Default 1: the paper's.
     w_hr: float = 1.0
+    # Weight of L3D's RGB term (>= 0). Default 1: the paper's.
     w_rgb: float = 1.0
+    # The warp op's depth tolerance, relative (> 0; `coin_cl.engine.warp_features`).
     depth_tol: float = 0.01
+    # The warp op's source-depth tolerance, relative (> 0; `coin_cl.engine.warp_features`).
     src_depth_tol: float = 0.01
+    # The warp op's footprint (`coin_cl.engine.warp_features`, which checks the name).
     footprint: str = "bilinear"
+    # P_k is thinned to at most this many points (evenly by index; >= 1) for speed: at the sampler's
+    # scale many points share a pixel anyway.
     max_points: int = 400_000
+    # Inward feather of the paste, px (>= 0; outside the mask is untouched either way).
     feather_px: int = 2
-    seed: int = 0
+    # View n samples with seed + n. None (default): the run's seed (`CoInConfig.seed`; 0 outside a
+    # run); the resolved value is in log.json's 3_clg settings.
+    seed: int | None = None
+    # tqdm bars over views and steps.
     progress: bool = True
+    # False = no diffusion sampler: every hole pixel takes the energy's own target, the reference's
+    # colour warped through P_k where supported (S) and R_n elsewhere, i.e. the minimiser of E(X) with
+    # the RGB term alone (`warp_fill`). The pipeline sets it for an edited reference
+    # (`coin_cl.pipeline.insert`), where no model can draw the inserted object and a sampler would
+    # paint the hole with the scene's own textures.
     sample: bool = True
+    # Where the output's band above the sampler's working resolution comes from, from DETAILS
+    # (`coin_cl.pipeline.clg_detail`): "reference" (default; class docstring) the reference's detail
+    # warped through P_k where the warp supports it and the initial inpaint's elsewhere, "input" the
+    # initial inpaint's everywhere, "none" the upsampled sample alone (blurry at 64 px).
     detail: str = "reference"
+    # Where the band split lies, as a share of the working size, in (0, 1] (0.5: the band above half
+    # the working resolution comes from `detail`'s source, below it from the guided sample).
     detail_split: float = 0.5
+    # Match the Lab mean and deviation of the sample's low band inside the hole to the energy's target
+    # (the reference warped through P_k where supported, I^_n elsewhere), the gain capped at 1
+    # (`clg_detail.match_colour`): the 64 px scene prior draws the reference's structure with
+    # drifting hues. Not applied with detail "none".
     colour_match: bool = True
+    # With colour_match, the low band's chroma (Lab a, b) inside the hole is the target's own low
+    # band's and only its lightness comes from the sample: the global match left 64 px hue blotches.
     chroma_from_target: bool = True
+    # The share of the trajectory sampled (SDEdit), in (0, 1]: 1 = from pure noise (paper); below 1
+    # the sampler starts from the initial inpaint's crop noised to that level, so what guidance does
+    # not constrain stays near I^_n instead of a fresh draw. Default 0.5 (class docstring).
     strength: float = 0.5
+    # A view's output must not be worse than its input I^_n on what can be measured without ground
+    # truth: a larger consistency residual to the reference, less texture inside the mask (below
+    # (1 - texture_tol) x the input's), or colours further from the mask's surroundings (more than
+    # (1 + colour_tol) x the input's distance); such a view keeps I^_n, logged with the reason
+    # (`coin_cl.pipeline.clg_guard.no_worse`).
     keep_if_worse: bool = True
+    # keep_if_worse also for the warp-only fill (sample False). Off by default because that fill's
+    # main use is an edited reference, whose warp adds an object with colours and texture its
+    # surroundings lack (the colour check would reject what was asked for); SD2's reference_only
+    # mode turns it on.
     warp_guard: bool = False
+    # keep_if_worse's texture tolerance, a share in [0, 1).
     texture_tol: float = 0.1
+    # The detail band's top-up (`clg_detail.texture_gain`), a gain >= 1 (1 = off): a candidate whose
+    # texture inside the mask falls below the input's gets its high band multiplied by the smallest
+    # gain up to this that brings it back (the warp resamples the reference's detail and loses some
+    # of it). Recorded per view ("detail_gain").
     detail_gain_max: float = 1.5
+    # keep_if_worse's colour tolerance, a share >= 0.
     colour_tol: float = 0.25
 
     def __post_init__(self) -> None:
@@ -123,11 +125,32 @@ class CLGConfig:
             )
         if not 0.0 < self.strength <= 1.0:
             raise ValueError(f"CLGConfig.strength must be in (0, 1], got {self.strength}")
-        if self.sampler.num_steps != SamplerConfig().num_steps:
-            raise ValueError(
-                f"CLGConfig.sampler.num_steps = {self.sampler.num_steps} is not read: set CLGConfig.steps "
-                "(None picks the model's default)"
-            )
+        n = self.sampler.num_steps
+        if n != SamplerConfig().num_steps:
+            if self.steps is None:
+                self.steps = n  # the sampler's count, set: it is the step count
+            elif self.steps != n:
+                raise ValueError(f"CLGConfig.steps is {self.steps} and CLGConfig.sampler.num_steps {n}: "
+                                 "give one of them (steps; None picks the model's default)")  # fmt: skip
+        if self.steps is not None and not (isinstance(self.steps, int) and self.steps >= 1):
+            raise ValueError(f"CLGConfig.steps is {self.steps!r}: give a step count >= 1, or None")
+        self.sampler.validate()
+        for name, ok, what in (
+            ("alpha", 0.0 <= self.alpha <= 1.0, "in [0, 1]"),
+            ("context", self.context >= 1.0, ">= 1"),
+            ("w_hr", self.w_hr >= 0, ">= 0"),
+            ("w_rgb", self.w_rgb >= 0, ">= 0"),
+            ("depth_tol", self.depth_tol > 0, "> 0"),
+            ("src_depth_tol", self.src_depth_tol > 0, "> 0"),
+            ("max_points", self.max_points >= 1, ">= 1"),
+            ("feather_px", self.feather_px >= 0, ">= 0"),
+            ("texture_tol", 0.0 <= self.texture_tol < 1.0, "in [0, 1)"),
+            ("colour_tol", self.colour_tol >= 0, ">= 0"),
+        ):
+            if not ok:
+                raise ValueError(f"CLGConfig.{name} is {getattr(self, name)!r}: give a value {what}")
+        if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
+            raise ValueError(f"CLGConfig.seed is {self.seed!r}: give an integer, or None for the run's seed")
 
     def num_steps(self, denoiser: Denoiser) -> int:
         if self.steps is not None:

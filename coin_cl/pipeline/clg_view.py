@@ -99,7 +99,7 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
     prob = setup_view(ref.cam, cam, ref.image, inp_n, ren_n, ref.depth, depth_n, mask, ref.points, features,
                       work, cfg, device)  # fmt: skip
     energy = make_energy(prob, features, cfg, device)
-    cond = denoiser.make_condition(prob.image, prob.hole, cfg.prompt)
+    cond = denoiser.make_condition(prob.image, prob.hole, cfg.prompt or "")  # None outside a run: no text
     uncond = None
     if cfg.sampler.cfg_scale != 1.0 and cfg.prompt and hasattr(denoiser, "encode_prompt"):
         uncond = type(cond)(cond.mask, cond.masked_latent, denoiser.encode_prompt("").expand_as(cond.text))
@@ -108,7 +108,7 @@ def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarra
         shape: tuple[int, ...] = (1, int(denoiser.latent_channels), work // f, work // f)
     else:
         shape = tuple(prob.image.shape)
-    g = torch.Generator().manual_seed(cfg.seed + n)
+    g = torch.Generator().manual_seed((0 if cfg.seed is None else cfg.seed) + n)
     sampler = DDIMSampler(denoiser, cfg.sampler_config(denoiser))
     # strength < 1 (SDEdit): start from I^_n's crop noised to that share of the trajectory
     start = min(n_steps - 1, round((1.0 - cfg.strength) * n_steps))

@@ -26,15 +26,12 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from coin_cl.gs.carve import CarveConfig
-from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.budget import (
     MAX_WORK_PIXELS,
     PRIOR_MIN_SECONDS,
@@ -42,13 +39,11 @@ from coin_cl.pipeline.budget import (
     ted_iters,
     working_resolution,
 )
-from coin_cl.pipeline.clg_config import CLGConfig
+from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
-from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
-from coin_cl.pipeline.insert import InsertConfig
 from coin_cl.pipeline.lock import folder_lock
-from coin_cl.pipeline.refine_masks import RefineConfig, vote_ring
+from coin_cl.pipeline.refine_masks import vote_ring
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
 from coin_cl.pipeline.stages import (
     carves,
@@ -60,8 +55,10 @@ from coin_cl.pipeline.stages import (
     stage_scene,
     stage_ted,
 )
-from coin_cl.pipeline.ted import TEDConfig
-from coin_cl.schema import MAX_STEPS
+
+if TYPE_CHECKING:
+    from coin_cl.gs.base import Model
+    from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -69,109 +66,8 @@ log = logging.getLogger(__name__)
 # measured 0.16 on the forward-facing SPIn-NeRF scene, 0.65 / 0.78 / 0.82 on the synthetic room's 90 /
 # 180 / 360-degree arcs (exact: 0.78 / 0.83 / 0.83; tests/test_carve.py).
 AUTO_REFINE_SHARE = 0.3
-STAGES = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
 
-
-@dataclass
-class CoInConfig:
-    """mask_kind: the shape of mask given for the object, "seg" | "bbox" | "scribble" (the latter two
-    derived from the scene's segmentation masks).
-    mask_dilate: iterations of a 5x5 dilation of the training masks (2 px each); None (default) = a
-    ring of `scene.masks.MASK_RING_SHARE` (1.4 %) of the longer side at the working size, as
-    SPIn-NeRF's masks (8 px at 504x284): the object's fringe and contact shadow left outside the
-    mask are trained as background (the box's edges stayed as thin lines without it); but none
-    for a scene whose scene_info.json declares its masks exact (the synthetic rooms: there the
-    ring cost the part of the masks other views saw 1 dB, docs/RESULTS.md "Where the rooms'
-    m-PSNR is decided"); 0 = as given. Below the ring, the refined split's removal vote still
-    takes the ring (`refine_masks.vote_ring`).
-    ref: reference view (index or name); None chooses by `coin_cl.pipeline.reference.choose_reference`.
-    prompt: text for insertion (needs SD2 weights). budget_minutes: total training time to aim at.
-    resolution: image scale (0.5 = half); None picks it from the image size
-    (`coin_cl.pipeline.budget.working_resolution`, logged). sd_path / dino_path: local weights (else
-    the embedded defaults, named in the log). skip: stage keys to leave out ("refgs", "clg", "ted").
-    iters_*, prior_seconds: explicit iteration counts and the scene prior's training seconds (each
-    replaces the budget plan's figure; see `coin_cl.pipeline.budget`; TE-D's counts may also be
-    given as `ted.iters_*`, and where both are set they must agree). seed, device: as everywhere.
-    edited_ref: path of the reference view edited by the user (insertion without weights,
-    `coin_cl.pipeline.insert`); `inpaint(edited_ref=...)` also takes an array. insert: its settings.
-    inpaint_region: "input" (inpaint the whole masks), "refined" (3D-first, supplement C.2: stage
-    0_refine narrows them to the pixels no other view sees, `coin_cl.pipeline.refine_masks`; for
-    removal on wide captures) or "auto" (removal: "refined" when the cheap estimate
-    `coin_cl.gs.carve.observed_share` finds at least AUTO_REFINE_SHARE of the masks seen by other
-    views, else "input"; logged with its figure). refine: its settings.
-    carve: removal carves the object's volume out of the GS for good (`coin_cl.gs.carve`: what the
-    masks cut out of space in front of the background surface gets no Gaussian, in Ref-GS, TE-D
-    and the exported model) and seeds anchors on the background behind it; not with insertion or
-    the naive / w/o Ref-GS rows. Off by default: measured at 400 Ref-GS steps it cost SPIn-NeRF
-    0.7 dB m-PSNR (13.16 against 13.87), texture (HF ratio 0.41 against 0.49) and GMSD, and on
-    the synthetic room it gained 1.1 dB m-PSNR but blurred (docs/RESULTS.md, issue 21).
-    carve_cfg: its settings.
-    observed: how the observed part of a refined mask (0_refine's split) reaches the model:
-    "captures" (default: left out of view n's photometric loss in Ref-GS and TE-D, so the other
-    views' captures teach it, as masked reconstruction does; R^rmv_n stays the 2D inpainter's and
-    CLG's context) or "target" (the object-free fit's render R^rmv_n is view n's target there).
-    Measured at 1501 GS steps with the rooms' exact masks, "captures" against "target" (one
-    machine): room m-PSNR 22.44 / 22.25, HF ratio 0.793 / 0.780, GMSD 0.140 / 0.139; room360
-    22.49 / 22.44, 0.906 / 0.862, 0.137 / 0.142 (docs/RESULTS.md, "The observed part from the
-    captures by default").
-    Only refined-mask runs read it.
-    rates_from: a run folder whose plan's measured rates (the GS, scene-prior and discriminator
-    probes) this run's plan takes instead of probing again (`budget.inherited_rates`): the
-    comparison rows (`demo.baseline_config`) plan with CoIn's figures and share its stages."""
-
-    mask_kind: str = "seg"
-    mask_dilate: int | None = None
-    ref: int | str | None = None
-    prompt: str = ""
-    budget_minutes: float = 30.0
-    resolution: float | None = None
-    sd_path: str | None = None
-    dino_path: str | None = None
-    skip: tuple[str, ...] = ()
-    seed: int = 0
-    device: str | None = None
-    iters_refgs: int | None = None
-    iters_ted_finetune: int | None = None
-    iters_ted_adversarial: int | None = None
-    prior_seconds: float | None = None
-    inpaint2d: Inpaint2DConfig = field(default_factory=Inpaint2DConfig)
-    ted: TEDConfig = field(default_factory=TEDConfig)
-    refgs: RefGSConfig | None = None  # None: RefGSConfig() with the run's reference
-    clg: CLGConfig | None = None  # None: CLGConfig()
-    edited_ref: str | None = None
-    insert: InsertConfig = field(default_factory=InsertConfig)
-    inpaint_region: str = "auto"
-    refine: RefineConfig = field(default_factory=RefineConfig)
-    carve: bool = False
-    carve_cfg: CarveConfig = field(default_factory=CarveConfig)
-    observed: str = "captures"
-    rates_from: str | None = None
-
-    def __post_init__(self) -> None:
-        if not (isinstance(self.budget_minutes, int | float) and math.isfinite(self.budget_minutes)
-                and self.budget_minutes > 0):  # fmt: skip
-            raise ValueError(
-                f"--budget / budget_minutes is {self.budget_minutes!r}: give a positive number "
-                "of minutes (the step counts of --iters do not need it, but it must be valid)"
-            )
-        if self.prior_seconds is not None and not (
-            math.isfinite(self.prior_seconds) and self.prior_seconds >= 0
-        ):
-            raise ValueError(f"--prior-seconds / prior_seconds is {self.prior_seconds!r}: give a number of "
-                             "seconds >= 0, or leave it out for the budget's share")  # fmt: skip
-        if self.resolution is not None and not (math.isfinite(self.resolution) and self.resolution > 0):
-            raise ValueError(f"--resolution / resolution is {self.resolution!r}: give a positive scale, "
-                             "e.g. 0.5 for half size")  # fmt: skip
-        for name in ("iters_refgs", "iters_ted_finetune", "iters_ted_adversarial"):
-            n, low = getattr(self, name), 1 if name == "iters_refgs" else 0
-            if n is not None and not (isinstance(n, int | np.integer) and low <= n <= MAX_STEPS):
-                raise ValueError(f"--iters / {name} is {n!r}: give a step count in {low}..{MAX_STEPS}")
-
-    def with_iters(self, n: int | None) -> CoInConfig:
-        """This config with every GS training stage set to `n` steps (None: unchanged)."""
-        if n is None:
-            return self
-        return replace(self, iters_refgs=n, iters_ted_finetune=n, iters_ted_adversarial=n)
+__all__ = ["STAGES", "CoInConfig", "CoInResult", "inpaint", "summary"]
 
 
 @dataclass
@@ -184,11 +80,11 @@ class CoInResult:
     ply: Path | None
     renders: Path | None
     metrics: dict | None
-    model: Any
+    model: Model
     stages: dict[str, dict]
 
 
-def scene_id(scene) -> dict[str, Any]:
+def scene_id(scene: Scene) -> dict[str, Any]:
     """What names a scene for the output folder check: its view count, names and a hash of its
     pixels as captured (before any resizing). Not its path: the same folder under another spelling
     (a symlink, `./`) is the same scene, and another resolution of it is the same scene too (its
@@ -203,7 +99,7 @@ def scene_id(scene) -> dict[str, Any]:
     }
 
 
-def mask_dilation(scene, cfg: CoInConfig) -> int:
+def mask_dilation(scene: Scene, cfg: CoInConfig) -> int:
     """The training masks' dilation (iterations of a 5x5 kernel): `cfg.mask_dilate`, or when None
     0 for a scene that declares its masks exact (`scene.meta["masks"]`, the synthetic rooms), else
     `scene.masks.auto_dilation` of the working size (logged)."""
@@ -224,7 +120,7 @@ def mask_dilation(scene, cfg: CoInConfig) -> int:
     return n
 
 
-def _train_masks(scene, cfg: CoInConfig) -> list[np.ndarray]:
+def _train_masks(scene: Scene, cfg: CoInConfig) -> list[np.ndarray]:
     from coin_cl.scene.masks import derive_mask
 
     dilate = mask_dilation(scene, cfg)
@@ -252,7 +148,7 @@ def _stage_names(force: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 
 def inpaint(
-    scene,
+    scene: Scene | str | Path,
     out: str | Path,
     *,
     mask_kind: str | None = None,
@@ -321,14 +217,8 @@ def inpaint(
 
         env = resolve_sd2_path(None)  # COIN_SD2_PATH
         cfg = replace(cfg, sd_path=None if env is None else str(env))
-    if cfg.observed not in ("target", "captures"):
-        raise ValueError(f"observed must be 'target' or 'captures', got {cfg.observed!r}")
-    if cfg.inpaint_region not in ("input", "refined", "auto"):
-        raise ValueError(f"inpaint_region must be 'auto', 'input' or 'refined', got {cfg.inpaint_region!r}")
     if cfg.inpaint_region == "auto" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
         cfg = replace(cfg, inpaint_region="input")  # insertion: nothing to recover from other views
-    if cfg.mask_kind not in ("seg", "bbox", "scribble"):
-        raise ValueError(f"mask_kind must be 'seg', 'bbox' or 'scribble', got {cfg.mask_kind!r}")
     if cfg.inpaint_region == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
         raise ValueError(
             "refined masks are for removal: they cannot be combined with a prompt or --edited-ref"
@@ -377,7 +267,7 @@ def inpaint(
         return _run(scene, out, cfg, force, edited)
 
 
-def check_points(scene) -> None:
+def check_points(scene: Scene) -> None:
     """Refuse a scene without enough finite sparse points to seed the Gaussians (before any stage):
     one line naming its points file and what to do."""
     from coin_cl.pipeline.refgs import MIN_POINTS
@@ -393,7 +283,7 @@ def check_points(scene) -> None:
         )
 
 
-def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
+def _choose_region(scene: Scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
     """'refined' when other views see at least AUTO_REFINE_SHARE of the masks (a cheap estimate from
     the cameras and the sparse points, seconds; `coin_cl.gs.carve.observed_share`), else 'input'."""
     from coin_cl.gs.carve import build_carve, observed_share
@@ -415,7 +305,7 @@ def _choose_region(scene, masks: list[np.ndarray], cfg: CoInConfig) -> str:
 
 
 def _run(
-    scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
+    scene: Scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
 ) -> CoInResult:
     from coin_cl.pipeline.reference import choose_reference
 
@@ -445,7 +335,7 @@ def _run(
     # Ref-GS trains around the pipeline's reference, the one CLG warps from: left to its own rule it
     # would choose again from the masks it is given (refined masks, insertion footprints), or ignore
     # --ref, and P_k would then come from another view than CLG's camera k.
-    refgs_cfg = replace(cfg.refgs or RefGSConfig(), ref=ref)
+    refgs_cfg = cfg.refgs_settings(ref)
     shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg,
               "edited": edited, "plan": plan}  # fmt: skip
     log.info(
@@ -458,7 +348,7 @@ def _run(
     edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
                                         "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
     refined = cfg.inpaint_region == "refined"
-    clg_cfg = cfg.clg or CLGConfig()  # the defaults in the key too: a changed default reruns CLG
+    clg_cfg = cfg.clg_settings()  # the defaults in the key too: a changed default reruns CLG
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     # only "captures" enters the keys: "target" runs made before the option keep their stages
     observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}

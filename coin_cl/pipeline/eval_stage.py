@@ -11,7 +11,7 @@ from coin_cl.pipeline.runner import StageContext, jsonable
 from coin_cl.pipeline.stages import load_model
 
 if TYPE_CHECKING:
-    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.config import CoInConfig
 
 
 def stage_eval(ctx: StageContext) -> dict:

@@ -39,39 +39,50 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Inpaint2DConfig:
-    """use_dataset: take the dataset's per-view inpaints when they exist (seg masks only).
-    inpainter: what fills views without SD2 or dataset inpaints: "auto", "embedded", "lama", "prior"
-    or "telea" (module docstring). lama_path: the TorchScript big-lama.pt (default $COIN_LAMA_PATH;
-    TorchScript runs as code, so it is trusted input, never a file from just anyone).
-    exemplar: the embedded inpainter's settings; exemplar_views: how many neighbouring views (by
-    index, nearest first) it copies patches from besides the view itself.
-    use_prior: with inpainter "prior", train and use the scene prior (False: OpenCV).
-    prior: the scene prior's settings (its time budget is scaled by the pipeline).
-    inpaint: crop/paste/sampler settings. seed: an offset to the run's seed for sampling (view n
-    uses run seed + seed + n).
-    sd2_mode: with SD2 weights, "all" (SD2 on every view, as the paper), "reference_only" (SD2 on the
-    reference; the other views take `inpainter` here and the reference warped through P_k in CLG:
-    the CPU-practical mode) or "auto" (default: "reference_only" on a CPU when the estimate for
-    "all" exceeds `coin_cl.pipeline.models.SD2_ALL_VIEWS_MAX_HOURS`, logged with the estimate)."""
+    """Stage 1's settings (module docstring); each field says what it means where it is declared."""
 
+    # Take the dataset's per-view inpaints when they exist (seg masks only). Default True: they are
+    # the paper's inputs (SPIn-NeRF's LaMa inpaints).
     use_dataset: bool = True
+    # What fills views without SD2 or dataset inpaints, from INPAINTERS (module docstring). Default
+    # "auto": LaMa when a file is named, else the embedded exemplar inpainter (measured better).
     inpainter: str = "auto"
+    # The TorchScript big-lama.pt. None (default): $COIN_LAMA_PATH. TorchScript runs as code, so it
+    # is trusted input, never a file from just anyone.
     lama_path: str | None = None
+    # The embedded exemplar inpainter's settings (`diffusion.exemplar`).
     exemplar: ExemplarConfig = field(default_factory=ExemplarConfig)
+    # Neighbouring views (by index, nearest first) the exemplar inpainter copies patches from besides
+    # the view itself (>= 0). Default 4.
     exemplar_views: int = 4
+    # With inpainter "prior": train and use the scene prior (False: OpenCV's Telea). Default True.
     use_prior: bool = True
+    # The scene prior's settings. A CoIn run sets its train_seconds (from `CoInConfig.prior_seconds`),
+    # train_steps (the plan's, unless given here), seed (the run's) and a patch that fits the
+    # images (`effective_config`); CoInConfig refuses a train_seconds or seed set here.
     prior: ScenePriorConfig = field(default_factory=ScenePriorConfig)
+    # Crop / paste / sampler settings (`diffusion.inpaint2d`).
     inpaint: InpaintConfig = field(default_factory=InpaintConfig)
+    # An offset to the run's seed for sampling (view n uses run seed + seed + n). Default 0.
     seed: int = 0
+    # With SD2 weights, from `models.SD2_MODES`: "all" (SD2 on every view, as the paper),
+    # "reference_only" (SD2 on the reference; the other views take `inpainter` and CLG warps the
+    # reference: the CPU-practical mode) or "auto" (default: "reference_only" on a CPU when the
+    # estimate for "all" exceeds `models.SD2_ALL_VIEWS_MAX_HOURS`, logged with the estimate).
     sd2_mode: str = "auto"
 
     def __post_init__(self) -> None:
         from coin_cl.pipeline.models import SD2_MODES
 
         if self.inpainter not in INPAINTERS:
-            raise ValueError(f"inpainter must be one of {', '.join(INPAINTERS)}, got {self.inpainter!r}")
+            raise ValueError(f"Inpaint2DConfig.inpainter must be one of {', '.join(INPAINTERS)}, "
+                             f"got {self.inpainter!r}")  # fmt: skip
         if self.sd2_mode not in SD2_MODES:
-            raise ValueError(f"sd2_mode must be one of {', '.join(SD2_MODES)}, got {self.sd2_mode!r}")
+            raise ValueError(f"Inpaint2DConfig.sd2_mode must be one of {', '.join(SD2_MODES)}, "
+                             f"got {self.sd2_mode!r}")  # fmt: skip
+        if not (isinstance(self.exemplar_views, int) and self.exemplar_views >= 0):
+            raise ValueError(f"Inpaint2DConfig.exemplar_views is {self.exemplar_views!r}: give an "
+                             "integer >= 0")  # fmt: skip
         if self.lama_path is not None and not Path(self.lama_path).expanduser().is_file():
             # Checked even where the scene's own inpaints make LaMa unneeded: a mistyped path is
             # said at once, not found out at the run that needs it.

@@ -35,12 +35,15 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import cv2
 import numpy as np
 
 from coin_cl.scene.io import read_image, to_uint8, write_npy, write_png, write_text
+
+if TYPE_CHECKING:
+    from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +66,21 @@ class InsertConfig:
     hull_samples: int = 128
     ref_match_tol: float = 0.08
     propagate: bool = True
+
+    def __post_init__(self) -> None:
+        for name, ok, what in (
+            ("edit_tol", 0.0 <= self.edit_tol < 1.0, "in [0, 1)"),
+            ("hull_fraction", 0.0 < self.hull_fraction <= 1.0, "in (0, 1]"),
+            ("min_views", isinstance(self.min_views, int) and self.min_views >= 1, "an integer >= 1"),
+            (
+                "hull_samples",
+                isinstance(self.hull_samples, int) and self.hull_samples >= 2,
+                "an integer >= 2",
+            ),
+            ("ref_match_tol", self.ref_match_tol > 0, "> 0"),
+        ):
+            if not ok:
+                raise ValueError(f"InsertConfig.{name} is {getattr(self, name)!r}: give {what}")
 
 
 class EditLift(NamedTuple):
@@ -127,7 +145,7 @@ def load_edited(src: Any, size: tuple[int, int], captured_size: tuple[int, int] 
     )
 
 
-def find_reference(edited: np.ndarray, scene: Any, masks: list[np.ndarray], train: list[int],
+def find_reference(edited: np.ndarray, scene: Scene, masks: list[np.ndarray], train: list[int],
                    ref: int | str | None, tol: float) -> int:  # fmt: skip
     """The view the edited image edits: `ref` when given (resolved by name or index), else the
     training view whose capture matches the edited image best outside its mask. Raises ValueError
@@ -228,7 +246,7 @@ def check_edit(
     return region
 
 
-def lift_edit(edited: np.ndarray, captured: np.ndarray, k: int, scene: Any, masks: list[np.ndarray],
+def lift_edit(edited: np.ndarray, captured: np.ndarray, k: int, scene: Scene, masks: list[np.ndarray],
               train: list[int], cfg: InsertConfig) -> EditLift:  # fmt: skip
     """Steps 1 and 2 of the module doc for reference view k. Raises ValueError when the edit is
     empty (identical to the capture inside the mask) or the hull holds none of its pixels."""
@@ -278,7 +296,7 @@ def propagate(edited: np.ndarray, lift: EditLift, cam_k: Any, cam_n: Any, captur
     return np.clip(out, 0, 1), foot
 
 
-def run_insert(scene: Any, masks: list[np.ndarray], train: list[int], k: int, edited: np.ndarray,
+def run_insert(scene: Scene, masks: list[np.ndarray], train: list[int], k: int, edited: np.ndarray,
                out_dir: Path, cfg: InsertConfig, device: Any = None) -> dict[str, Any]:  # fmt: skip
     """Stage 1 for insertion from an edited reference view k (module doc); writes the files the module
     doc lists into `out_dir`. Returns JSON-able figures: edited pixels, lifted points, per-view

@@ -171,7 +171,7 @@ def run_refgs(
         scene: a loaded `Scene` (cameras, images, masks [H, W] bool, points, train_idx, priors).
         targets: the initial inpaints I^_n [H, W, 3] float in [0, 1], one per scene view (as
             `coin_cl.scene.splits.inpainted_targets`) or one per training view.
-        cfg: Ref-GS switches; `seed` overrides `cfg.seed`.
+        cfg: Ref-GS switches; its `seed`, where not None, wins over `seed`.
         budget_minutes / iters: schedule length (module doc). max_seconds: with `iters`, a safety
             cap on training seconds (0: none; the pipeline's budget plan sets it, logged when hit).
         device: OpenCL device for the renders; backend: 'opencl' or 'torch'.
@@ -196,6 +196,7 @@ def run_refgs(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    seed = seed if cfg.seed is None else int(cfg.seed)
     cfg = replace(cfg, seed=seed)
     train_idx = list(scene.train_idx) or list(range(len(scene.cameras)))
     stage_json = out / STAGE_JSON

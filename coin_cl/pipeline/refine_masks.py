@@ -83,37 +83,59 @@ Renders = dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
 
 @dataclass
 class RefineConfig:
-    """iters: steps of the object-present fit (None: the pipeline's Ref-GS step count). model:
-    "3dgs" or "scaffold". min_fraction: removal vote (step 2; 1.0: inside the masks of every view
-    that sees it). splat_px: the fixed render scale in
-    pixels (step 3; about the spacing of a fitted GS's Gaussians on a surface). alpha_thresh:
-    coverage below which a mask pixel is unseen. grow_px: dilation of M^rmv_n inside the input
-    mask. see_through: a covered pixel whose rendered depth exceeds the surroundings' (inpainted
-    inward) by more than this fraction is unseen too (0: off). view_check (0: off, the default): a
-    covered mask pixel is observed only where its rendered surface point is seen by another
-    training view outside that view's mask, its camera z within this fraction of the depth that
-    view renders there, with `ray_samples` points of the ray in front of it known empty
-    (`seen_elsewhere`); the precise split of the module doc (0.05, with see_through 0 and grow_px 0),
-    not the default because end to end it scored lower (module doc). warp_tol (0: off, the
-    default): a mask pixel whose object-free surface point another training view captured (its
-    depth there within this fraction, outside its mask) is observed, whatever the rules above
-    say, and takes that view's captured colour instead of R^rmv_n (`observed_warp`; 0.03 measured,
-    module doc)."""
+    """Stage 0_refine's settings (module doc); each field says what it means where it is declared.
+    Values are checked here: a bad one is an error naming the field."""
 
+    # Steps of the object-present fit (>= 1). None (default): the run's Ref-GS step count.
     iters: int | None = None
+    # The fit's model: "3dgs" (default) or "scaffold".
     model: str = "3dgs"
+    # Removal vote (step 2), in (0, 1]: 1.0 (default) = inside the masks of every view that sees it.
     min_fraction: float = 1.0
+    # The fixed render scale in pixels (step 3, > 0; about the spacing of a fitted GS's Gaussians on
+    # a surface).
     splat_px: float = 1.5
+    # Coverage below which a mask pixel is unseen, in [0, 1].
     alpha_thresh: float = 0.5
+    # Dilation of M^rmv_n inside the input mask, px (>= 0).
     grow_px: int = 0
+    # A covered pixel whose rendered depth exceeds the surroundings' (inpainted inward) by more than
+    # this fraction is unseen too (>= 0; 0: off).
     see_through: float = 0.15
+    # (>= 0; 0: off, the default) a covered mask pixel is observed only where its rendered surface
+    # point is seen by another training view outside that view's mask, its camera z within this
+    # fraction of the depth that view renders there, with `ray_samples` points of the ray in front of
+    # it known empty (`seen_elsewhere`); the precise split of the module doc (0.05, with see_through 0
+    # and grow_px 0), not the default because end to end it scored lower (module doc).
     view_check: float = 0.0
+    # Points of the ray checked by view_check (>= 1).
     ray_samples: int = 24
+    # (>= 0; 0: off, the default) a mask pixel whose object-free surface point another training view
+    # captured (its depth there within this fraction, outside its mask) is observed, whatever the
+    # rules above say, and takes that view's captured colour instead of R^rmv_n (`observed_warp`;
+    # 0.03 measured, module doc).
     warp_tol: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.warp_tol) and self.warp_tol >= 0):
             raise ValueError(f"RefineConfig.warp_tol must be finite and >= 0 (0: off), got {self.warp_tol}")
+        for name, ok, what in (
+            (
+                "iters",
+                self.iters is None or (isinstance(self.iters, int) and self.iters >= 1),
+                ">= 1 or None",
+            ),
+            ("model", self.model in ("3dgs", "scaffold"), "'3dgs' or 'scaffold'"),
+            ("min_fraction", 0.0 < self.min_fraction <= 1.0, "in (0, 1]"),
+            ("splat_px", self.splat_px > 0, "> 0"),
+            ("alpha_thresh", 0.0 <= self.alpha_thresh <= 1.0, "in [0, 1]"),
+            ("grow_px", isinstance(self.grow_px, int) and self.grow_px >= 0, "an integer >= 0"),
+            ("see_through", self.see_through >= 0, ">= 0"),
+            ("view_check", self.view_check >= 0, ">= 0"),
+            ("ray_samples", isinstance(self.ray_samples, int) and self.ray_samples >= 1, "an integer >= 1"),
+        ):
+            if not ok:
+                raise ValueError(f"RefineConfig.{name} is {getattr(self, name)!r}: give {what}")
 
 
 def refine_masks(

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from coin_cl.pipeline.runner import StageContext, jsonable
 
 if TYPE_CHECKING:
     from coin_cl.pipeline.budget import Plan
-    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.config import CoInConfig
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +158,7 @@ def stage_refgs(ctx: StageContext) -> dict:
             prune_points=False,
             bg_depth=False,
             ref=ctx.shared["ref"],
+            seed=rcfg.seed,
         )
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
     scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
@@ -208,7 +209,7 @@ def _observed_excluded(ctx: StageContext, refined: list[np.ndarray]) -> list[np.
             for i in range(len(scene))]  # fmt: skip
 
 
-def carves(cfg: CoInConfig, edited: Any) -> bool:
+def carves(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
     """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
     return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
 

@@ -46,27 +46,56 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TEDConfig:
-    """iters_finetune / iters_adversarial: steps of the two phases (the paper: 10k + 10k); 0 skips a
-    phase. None (default): in a CoIn run (`coin_cl.inpaint`) the budget plan decides (recorded in
-    OUT/plan.json); `run_ted` on its own needs numbers. A number is used as given (in a CoIn run it
-    is an explicit count of the plan, like `CoInConfig.iters_ted_*`, which must then agree).
-    lambda_gen: weight of the generator loss (paper 0.01). patch: patch side (paper 64; smaller
-    images use their shorter side rounded down to a multiple of 8, at least 32). n_patches: patches
-    per step. margin / p_near: the sampler's band around the mask and the probability of drawing a
-    patch centre from it (1.0: every patch near the mask, so the term only touches pixels near
-    the inpainted region). lr_d, betas_d: the discriminator's Adam (pix2pix). seed: patch RNG
-    (None: in a CoIn run the run's seed, `CoInConfig.seed`; `run_ted` on its own: 0)."""
+    """TE-D's settings (paper 4.4); each field says what it means where it is declared. Fields left
+    None are the run's: the budget plan's step counts (OUT/plan.json) and the run's seed."""
 
+    # Steps of the fine-tuning phase (>= 0; 0 skips it; the paper: 10k). None (default): in a CoIn
+    # run the budget plan decides (plan.json); `run_ted` on its own needs a number. A number is an
+    # explicit count of the plan, like `CoInConfig.iters_ted_finetune`, which must then agree.
     iters_finetune: int | None = None
+    # Steps of the adversarial phase (>= 0; as `iters_finetune`; the paper: 10k).
     iters_adversarial: int | None = None
+    # Weight of the generator loss (>= 0). Default 0.01: the paper's.
     lambda_gen: float = 0.01
+    # Patch side, px (a multiple of 8, >= 32). Default 64: the paper's; smaller images use their
+    # shorter side rounded down to a multiple of 8 (`patch_size`).
     patch: int = 64
+    # Patches per step (>= 1). Default 4.
     n_patches: int = 4
+    # The patch sampler's band around the mask, px (>= 0). Default 32.
     margin: int = 32
+    # Probability of drawing a patch centre from that band ([0, 1]). Default 1.0: every patch near
+    # the mask, so the term only touches pixels near the inpainted region.
     p_near: float = 1.0
+    # The discriminator's Adam learning rate (> 0). Default 2e-4: pix2pix's.
     lr_d: float = 2e-4
+    # The discriminator's Adam betas (each in [0, 1)). Default (0.5, 0.999): pix2pix's.
     betas_d: tuple[float, float] = (0.5, 0.999)
+    # Patch RNG seed. None (default): in a CoIn run the run's seed (`CoInConfig.seed`); `run_ted` on
+    # its own: 0.
     seed: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("iters_finetune", "iters_adversarial"):
+            n = getattr(self, name)
+            if n is not None and not (isinstance(n, int) and n >= 0):
+                raise ValueError(f"TEDConfig.{name} is {n!r}: give a step count >= 0 (0 skips the phase), "
+                                 "or None for the run's plan")  # fmt: skip
+        for name, ok, what in (
+            ("lambda_gen", self.lambda_gen >= 0, ">= 0"),
+            ("patch", isinstance(self.patch, int) and self.patch >= 32 and self.patch % 8 == 0,
+             "a multiple of 8, >= 32"),
+            ("n_patches", isinstance(self.n_patches, int) and self.n_patches >= 1, ">= 1"),
+            ("margin", isinstance(self.margin, int) and self.margin >= 0, ">= 0"),
+            ("p_near", 0.0 <= self.p_near <= 1.0, "in [0, 1]"),
+            ("lr_d", self.lr_d > 0, "> 0"),
+            ("betas_d", len(self.betas_d) == 2 and all(0.0 <= b < 1.0 for b in self.betas_d),
+             "two numbers in [0, 1)"),
+        ):  # fmt: skip
+            if not ok:
+                raise ValueError(f"TEDConfig.{name} is {getattr(self, name)!r}: give {what}")
+        if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
+            raise ValueError(f"TEDConfig.seed is {self.seed!r}: give an integer, or None for the run's seed")
 
 
 def patch_size(cfg: TEDConfig, height: int, width: int) -> int:

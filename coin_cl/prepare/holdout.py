@@ -26,6 +26,9 @@ from ..scene.io import IMAGE_EXTS, write_png, write_text
 log = logging.getLogger(__name__)
 
 TEST_LIST = "test.txt"
+# Aspect ratios closer than this are the same camera (rounding of a resize); further apart is an error
+# (the photos of one capture in `sfm`, a held-out photo's mask here).
+ASPECT_TOL = 0.01
 # A held-out photo needs at least this many RANSAC inliers among its 2D-3D correspondences
 # (COLMAP's mapper registers an image from abs_pose_min_num_inliers = 30).
 MIN_INLIERS = 30
@@ -142,7 +145,6 @@ def write_holdout_masks(scene_dir: Path, names: list[str], masks_dir: Path, came
     from ..scene.colmap import Undistorter, pinhole_for
     from ..scene.masks import read_mask
     from ..scene.types import resize_mask
-    from .sfm import ASPECT_TOL
 
     masks_dir = Path(masks_dir)
     if not masks_dir.is_dir():

@@ -38,14 +38,12 @@ from tqdm import tqdm
 from ..atomic import copy_file
 from ..scene.folder import PREPARED_IMAGES
 from ..scene.io import IMAGE_EXTS, read_image, write_png, write_text
-from .holdout import localize, resolve_holdout, write_test_list
+from .holdout import ASPECT_TOL, localize, resolve_holdout, write_test_list
 from .sfm_report import SfmReport, why_dropped, write_report
 
 log = logging.getLogger(__name__)
 
 WORK = ".prepare"
-# Aspect ratios closer than this are the same camera (rounding of a resize); further apart is an error.
-ASPECT_TOL = 0.01
 
 
 @dataclass
