@@ -740,6 +740,10 @@ def _error_case(name: str, res: dict, culprit: str, **extra) -> dict:
             "vague": vague(res["last"]) if res["rc"] != 0 else False, **extra}  # fmt: skip
 
 
+# The groups of hostile cases (`--hostile` picks some), in the order they run.
+HOSTILE_GROUPS = ("ckpt", "prepare", "symlink", "scene_json", "json", "png", "second", "ctrl_c")
+
+
 def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
     """The hostile-input cases (module docstring, 5.), each a dict: name, ok, rc, message,
     traceback, vague, and where it applies exec_tried / exec_refused / data_loss."""
@@ -747,181 +751,196 @@ def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
 
     root.mkdir(parents=True, exist_ok=True)
     iters = args.corpus_iters
+    groups = set(args.hostile)
     base = root / "base"
-    res = _cli(_run_args(scene, base, iters))
-    print(f"  base run: rc {res['rc']} in {res['seconds']} s", flush=True)
-    if res["rc"] != 0:
-        return [{"name": "base_run", "ok": False, "rc": res["rc"], "message": res["last"],
-                 "traceback": res["traceback"], "vague": vague(res["last"])}]  # fmt: skip
+    if groups & {"ckpt", "symlink", "json"}:  # the cases that work on a finished run folder
+        res = _cli(_run_args(scene, base, iters))
+        print(f"  base run: rc {res['rc']} in {res['seconds']} s", flush=True)
+        if res["rc"] != 0:
+            return [{"name": "base_run", "ok": False, "rc": res["rc"], "message": res["last"],
+                     "traceback": res["traceback"], "vague": vague(res["last"])}]  # fmt: skip
     cases = []
 
     def copy(name: str) -> Path:
         return _copy(base, root / name)
 
-    # a checkpoint whose unpickling runs code, at each checkpoint site a resumed run loads
-    # (Ref-GS's trainer, TE-D's, the scene prior CLG loads: the three loaders of a run folder's .pt)
-    sites = [base / "2_refgs" / "gs" / "ckpt.pt", base / "4_ted" / "finetune" / "ckpt.pt"]
-    sites += sorted(base.glob("*/scene_prior_*.pt"))[:1]
-    sites = [p for p in sites if p.is_file()]
-    for site in sites:
-        rel = site.relative_to(base)
-        d = copy(f"ckpt_exec_{'_'.join(rel.parts[:2])}")
-        marker = root / f"EXECUTED_{'_'.join(rel.parts[:2])}"
-        marker.unlink(missing_ok=True)
-        _plant_exec(d / rel, marker)
-        armed = _exec_armed(d / rel, marker)
-        r = _cli(_run_args(scene, d, iters))
-        ran = marker.exists()
-        c = _error_case(f"ckpt_exec {rel}", r, rel.name, exec_tried=1, exec_refused=int(not ran))
-        # passes only when the plant would run code if unpickled (armed), the run did not run it,
-        # and the run stopped at that file with a one-line refusal naming it: a run that exits 0
-        # without reading the file has proven nothing
-        c["ok"] = c["ok"] and armed and not ran and "refused" in r["last"]
-        c["armed"] = armed
-        cases.append(c)
+    if "ckpt" in groups:
+        # a checkpoint whose unpickling runs code, at each checkpoint site a resumed run loads
+        # (Ref-GS's trainer, TE-D's, the scene prior CLG loads: the three loaders of a run folder's .pt)
+        sites = [base / "2_refgs" / "gs" / "ckpt.pt", base / "4_ted" / "finetune" / "ckpt.pt"]
+        sites += sorted(base.glob("*/scene_prior_*.pt"))[:1]
+        sites = [p for p in sites if p.is_file()]
+        for site in sites:
+            rel = site.relative_to(base)
+            d = copy(f"ckpt_exec_{'_'.join(rel.parts[:2])}")
+            marker = root / f"EXECUTED_{'_'.join(rel.parts[:2])}"
+            marker.unlink(missing_ok=True)
+            _plant_exec(d / rel, marker)
+            armed = _exec_armed(d / rel, marker)
+            r = _cli(_run_args(scene, d, iters))
+            ran = marker.exists()
+            c = _error_case(f"ckpt_exec {rel}", r, rel.name, exec_tried=1, exec_refused=int(not ran))
+            # passes only when the plant would run code if unpickled (armed), the run did not run it,
+            # and the run stopped at that file with a one-line refusal naming it: a run that exits 0
+            # without reading the file has proven nothing
+            c["ok"] = c["ok"] and armed and not ran and "refused" in r["last"]
+            c["armed"] = armed
+            cases.append(c)
 
-    # prepare with --out the photos' parent: a prepare that succeeds (SfM poses the synthetic room's
-    # views) must keep every photo byte for byte, whatever the photos' folder is called (images/ is
-    # the name prepare's own output would take) and with --replace on that folder again
-    from coin_cl.prepare.capture import synthetic_capture
+    if "prepare" in groups:
+        # prepare with --out the photos' parent: a prepare that succeeds (SfM poses the synthetic room's
+        # views) must keep every photo byte for byte, whatever the photos' folder is called (images/ is
+        # the name prepare's own output would take) and with --replace on that folder again
+        from coin_cl.prepare.capture import synthetic_capture
 
-    for name, extra in (("photos", []), ("images", []), ("images", ["--replace"])):
-        parent = root / f"prep_{name}"
-        if not extra:
-            shutil.rmtree(parent, ignore_errors=True)
-            synthetic_capture(parent / name, n_views=8, width=192, height=144)
-            (parent / name / "notes.txt").write_text("not a photo")
-        before = _hash_tree(parent / name)
-        r = _cli(["prepare", str(parent / name), "--out", str(parent), *extra], timeout=300)
-        after = _hash_tree(parent / name) if (parent / name).is_dir() else {}
-        lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
-        posed = r["rc"] == 0 and _posed_views(parent) == 8
-        case = f"prepare_out_is_photos_parent {name}/{' ' + extra[0] if extra else ''}"
-        cases.append({"name": case, "ok": posed and lost == 0 and not r["traceback"], "rc": r["rc"],
-                      "message": r["last"], "traceback": r["traceback"],
-                      "vague": vague(r["last"]) if r["rc"] != 0 else False, "data_loss": lost})  # fmt: skip
+        for name, extra in (("photos", []), ("images", []), ("images", ["--replace"])):
+            parent = root / f"prep_{name}"
+            if not extra:
+                shutil.rmtree(parent, ignore_errors=True)
+                synthetic_capture(parent / name, n_views=8, width=192, height=144)
+                (parent / name / "notes.txt").write_text("not a photo")
+            before = _hash_tree(parent / name)
+            r = _cli(["prepare", str(parent / name), "--out", str(parent), *extra], timeout=300)
+            after = _hash_tree(parent / name) if (parent / name).is_dir() else {}
+            lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
+            posed = r["rc"] == 0 and _posed_views(parent) == 8
+            case = f"prepare_out_is_photos_parent {name}/{' ' + extra[0] if extra else ''}"
+            ok = posed and lost == 0 and not r["traceback"]
+            cases.append({"name": case, "ok": ok, "rc": r["rc"], "message": r["last"],
+                          "traceback": r["traceback"], "vague": vague(r["last"]) if r["rc"] != 0 else False,
+                          "data_loss": lost})  # fmt: skip
 
-    # a symlink planted in a finished run folder, pointing outside, where the rerun writes: a file
-    # every rerun rewrites (log.json), a folder every rerun writes into (report/), a stage folder a
-    # forced stage clears (eval/ with --force eval); each must be refused in one line naming the
-    # link, the target keeping every byte
-    for rel, force in (("log.json", []), ("report", []), ("eval", ["--force", "eval"])):
-        d = copy(f"symlink_{rel}")
-        victim = root / f"victim_{rel}"
-        shutil.rmtree(victim, ignore_errors=True)
-        victim.unlink(missing_ok=True)
-        (d / rel).rename(victim)
-        (d / rel).symlink_to(victim, target_is_directory=victim.is_dir())
-        before = _hash_tree(victim)
-        r = _cli([*_run_args(scene, d, iters), *force])
-        after = _hash_tree(victim) if victim.exists() else {}
-        lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
-        name = f"symlink_out {rel}{' --force eval' if force else ''}"
-        c = _error_case(name, r, str(d / rel), data_loss=lost)
-        c["ok"] = c["ok"] and lost == 0 and "symbolic link" in r["last"]
-        cases.append(c)
+    if "symlink" in groups:
+        # a symlink planted in a finished run folder, pointing outside, where the rerun writes: a file
+        # every rerun rewrites (log.json), a folder every rerun writes into (report/), a stage folder a
+        # forced stage clears (eval/ with --force eval); each must be refused in one line naming the
+        # link, the target keeping every byte
+        for rel, force in (("log.json", []), ("report", []), ("eval", ["--force", "eval"])):
+            d = copy(f"symlink_{rel}")
+            victim = root / f"victim_{rel}"
+            shutil.rmtree(victim, ignore_errors=True)
+            victim.unlink(missing_ok=True)
+            (d / rel).rename(victim)
+            (d / rel).symlink_to(victim, target_is_directory=victim.is_dir())
+            before = _hash_tree(victim)
+            r = _cli([*_run_args(scene, d, iters), *force])
+            after = _hash_tree(victim) if victim.exists() else {}
+            lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
+            name = f"symlink_out {rel}{' --force eval' if force else ''}"
+            c = _error_case(name, r, str(d / rel), data_loss=lost)
+            c["ok"] = c["ok"] and lost == 0 and "symbolic link" in r["last"]
+            cases.append(c)
 
-    # a scene.json naming a file outside its folder
-    from coin_cl.scene import load_scene, save_scene
+    if "scene_json" in groups:
+        # a scene.json naming a file outside its folder
+        from coin_cl.scene import load_scene, save_scene
 
-    nat = save_scene(load_scene(scene), root / "native_scene")
-    secret = root / "secret.png"
-    shutil.copy2(next((nat / "images").glob("*.png")), secret)
-    doc = json.loads((nat / "scene.json").read_text())
-    doc["views"][1]["image"] = "../secret.png"
-    (nat / "scene.json").write_text(json.dumps(doc))
-    r = _cli(_run_args(nat, root / "out_native", iters))
-    cases.append(_error_case("scene_json_path_escapes", r, "scene.json"))
+        nat = save_scene(load_scene(scene), root / "native_scene")
+        secret = root / "secret.png"
+        shutil.copy2(next((nat / "images").glob("*.png")), secret)
+        doc = json.loads((nat / "scene.json").read_text())
+        doc["views"][1]["image"] = "../secret.png"
+        (nat / "scene.json").write_text(json.dumps(doc))
+        r = _cli(_run_args(nat, root / "out_native", iters))
+        cases.append(_error_case("scene_json_path_escapes", r, "scene.json"))
 
-    # malformed JSON of each run-folder file (and a plan asking for 10^9 steps)
-    for rel, content in (
-        ("plan.json", "{half"),
-        ("run.json", "[1, 2]"),
-        ("2_refgs/manifest.json", "{half"),
-        ("2_refgs/started.json", '{"key": 1, "unknown": 2}'),
-        ("plan.json", None),
-    ):
-        tag = "huge_steps" if content is None else "malformed"
-        d = copy(f"json_{tag}_{rel.replace('/', '_')}")
-        if content is None:
-            plan = json.loads((d / rel).read_text())
-            plan["steps"]["refgs"] = 10**9
-            content = json.dumps(plan)
-        if rel.endswith("started.json"):
-            (d / "2_refgs" / "manifest.json").unlink()  # as if killed: started.json decides
-        (d / rel).write_text(content)
-        r = _cli(_run_args(scene, d, iters))
-        cases.append(_error_case(f"{tag} {rel}", r, rel.split("/")[-1]))
+    if "json" in groups:
+        # malformed JSON of each run-folder file (and a plan asking for 10^9 steps)
+        for rel, content in (
+            ("plan.json", "{half"),
+            ("run.json", "[1, 2]"),
+            ("2_refgs/manifest.json", "{half"),
+            ("2_refgs/started.json", '{"key": 1, "unknown": 2}'),
+            ("plan.json", None),
+        ):
+            tag = "huge_steps" if content is None else "malformed"
+            d = copy(f"json_{tag}_{rel.replace('/', '_')}")
+            if content is None:
+                plan = json.loads((d / rel).read_text())
+                plan["steps"]["refgs"] = 10**9
+                content = json.dumps(plan)
+            if rel.endswith("started.json"):
+                (d / "2_refgs" / "manifest.json").unlink()  # as if killed: started.json decides
+            (d / rel).write_text(content)
+            r = _cli(_run_args(scene, d, iters))
+            cases.append(_error_case(f"{tag} {rel}", r, rel.split("/")[-1]))
 
-    # a header-only PNG declaring 12000x12000 (4 GB as float32 if decoded)
-    d = _copy(scene, root / "huge_png_scene")
-    name = _train_names(scene)[0]
-    _header_only_png(d / "images_4" / name, 12000, 12000)
-    r = _cli(_run_args(d, root / "out_huge", iters))
-    cases.append(_error_case("header_only_12000x12000_png", r, name))
+    if "png" in groups:
+        # a header-only PNG declaring 12000x12000 (4 GB as float32 if decoded)
+        d = _copy(scene, root / "huge_png_scene")
+        name = _train_names(scene)[0]
+        _header_only_png(d / "images_4" / name, 12000, 12000)
+        r = _cli(_run_args(d, root / "out_huge", iters))
+        cases.append(_error_case("header_only_12000x12000_png", r, name))
 
-    # two commands on one folder: `coin-cl prepare` into a folder a run holds
-    two = root / "two"
-    first = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, two, iters)],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                             env={**os.environ, **CHILD_ENV})  # fmt: skip
-    try:
+    if "second" in groups:
+        # two commands on one folder: `coin-cl prepare` into a folder a run holds
+        two = root / "two"
+        first = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, two, iters)],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                 env={**os.environ, **CHILD_ENV})  # fmt: skip
+        try:
+            t0 = time.time()
+            while (
+                first.poll() is None
+                and not (two / "0_scene" / "started.json").exists()
+                and time.time() - t0 < 120
+            ):
+                time.sleep(0.05)
+            if first.poll() is None:
+                # prepare into the folder a run holds (marked as the run's, locked): refused in one line
+                # naming the folder, nothing of prepare's written there
+                r = _cli(["prepare", str(scene / "images_4"), "--out", str(two)], timeout=300)
+                theirs = ("images", "images_prepared", "sparse", "masks", ".prepare", "prepare_report.txt")
+                wrote = [n for n in theirs if (two / n).exists()]
+                c = _error_case("second_command_on_a_run_folder prepare", r, str(two))
+                c["ok"] = c["ok"] and not wrote and first.poll() is None
+                c["wrote"] = wrote
+                cases.append(c)
+                # a second run with other settings on it: refused by the lock, naming the first
+                r = _cli(_run_args(scene, two, iters + 1), timeout=300)
+                c = _error_case("second_command_on_a_run_folder run", r, f"process {first.pid}")
+                c["ok"] = c["ok"] and "in use by another coin-cl run" in r["last"] and first.poll() is None
+                cases.append(c)
+        finally:
+            first.kill()
+            first.wait()
+
+    if "ctrl_c" in groups:
+        # Ctrl-C: SIGINT in the middle of a run: a prompt exit, no traceback, nothing half written
+        d = root / "ctrl_c"
+        proc = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, d, iters)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, **CHILD_ENV})  # fmt: skip
         t0 = time.time()
         while (
-            first.poll() is None
-            and not (two / "0_scene" / "started.json").exists()
-            and time.time() - t0 < 120
+            proc.poll() is None and not (d / "2_refgs" / "started.json").exists() and time.time() - t0 < 300
         ):
             time.sleep(0.05)
-        if first.poll() is None:
-            # prepare into the folder a run holds (marked as the run's, locked): refused in one line
-            # naming the folder, nothing of prepare's written there
-            r = _cli(["prepare", str(scene / "images_4"), "--out", str(two)], timeout=300)
-            theirs = ("images", "images_prepared", "sparse", "masks", ".prepare", "prepare_report.txt")
-            wrote = [n for n in theirs if (two / n).exists()]
-            c = _error_case("second_command_on_a_run_folder prepare", r, str(two))
-            c["ok"] = c["ok"] and not wrote and first.poll() is None
-            c["wrote"] = wrote
-            cases.append(c)
-            # a second run with other settings on it: refused by the lock, naming the first
-            r = _cli(_run_args(scene, two, iters + 1), timeout=300)
-            c = _error_case("second_command_on_a_run_folder run", r, f"process {first.pid}")
-            c["ok"] = c["ok"] and "in use by another coin-cl run" in r["last"] and first.poll() is None
-            cases.append(c)
-    finally:
-        first.kill()
-        first.wait()
+        time.sleep(0.3)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                _, err = proc.communicate(timeout=30)
+                rc = proc.returncode
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                _, err = proc.communicate()
+                rc = None
+            last = _last_line(err)
+            half = unreadable_files(d)
+            lock_left = (d / ".coin-cl.lock").exists()
+            # the one line says "run the same command again to resume": it must
+            again = _cli(_run_args(scene, d, iters)) if rc == 130 else {"rc": None, "traceback": False}
+            ok = rc == 130 and "interrupted" in last and "Traceback" not in err and not half
+            ok = ok and not lock_left and not vague(last) and again["rc"] == 0
+            cases.append({"name": "ctrl_c", "ok": ok,
+                          "rc": rc, "message": last, "traceback": "Traceback" in err or again["traceback"],
+                          "vague": vague(last), "half_written": half, "lock_left": lock_left,
+                          "resumed_rc": again["rc"]})  # fmt: skip
+        else:
+            proc.wait()
 
-    # Ctrl-C: SIGINT in the middle of a run: a prompt exit, no traceback, nothing half written
-    d = root / "ctrl_c"
-    proc = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, d, iters)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, **CHILD_ENV})  # fmt: skip
-    t0 = time.time()
-    while proc.poll() is None and not (d / "2_refgs" / "started.json").exists() and time.time() - t0 < 300:
-        time.sleep(0.05)
-    time.sleep(0.3)
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            _, err = proc.communicate(timeout=30)
-            rc = proc.returncode
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
-            rc = None
-        last = _last_line(err)
-        half = unreadable_files(d)
-        lock_left = (d / ".coin-cl.lock").exists()
-        # the one line says "run the same command again to resume": it must
-        again = _cli(_run_args(scene, d, iters)) if rc == 130 else {"rc": None, "traceback": False}
-        cases.append({"name": "ctrl_c", "ok": rc == 130 and "interrupted" in last and "Traceback" not in err
-                      and not half and not lock_left and not vague(last) and again["rc"] == 0,
-                      "rc": rc, "message": last, "traceback": "Traceback" in err or again["traceback"],
-                      "vague": vague(last), "half_written": half, "lock_left": lock_left,
-                      "resumed_rc": again["rc"]})  # fmt: skip
-    else:
-        proc.wait()
     return cases
 
 
@@ -988,6 +1007,13 @@ def main() -> int:
         "--skip-chain", action="store_true", help="leave out the reference run and the kill chain"
     )
     ap.add_argument("--skip-hostile", action="store_true", help="leave out the hostile-input cases")
+    ap.add_argument(
+        "--hostile",
+        nargs="+",
+        choices=HOSTILE_GROUPS,
+        default=list(HOSTILE_GROUPS),
+        help="which groups of hostile cases to run (default all)",
+    )
     ap.add_argument(
         "--cli-cases",
         choices=("all", "errors"),
