@@ -23,7 +23,8 @@ fixed so that runs are deterministic):
    in one line naming it and its marker file was not created: `exec_refused`); a successful
    prepare with --out the photos' parent (the photos' folder called photos/ or images/, and again
    with --replace), whose photos must stay byte-identical; a symlink to a file or folder outside
-   planted where a rerun writes (log.json, report/, eval/ with --force eval), to be refused in one
+   planted where a rerun writes (log.json, report/, eval/ with --force eval; a prepare folder's
+   sparse/ before a prepare with other settings), to be refused in one
    line naming it (the originals / the targets hashed before and after: `data_loss` counts what
    changed); a scene.json path leading out of its folder; malformed JSON of each run-folder file,
    a plan.json asking for 10^9 steps; a header-only PNG declaring 12000x12000; `coin-cl prepare`
@@ -809,6 +810,20 @@ def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
             cases.append({"name": case, "ok": ok, "rc": r["rc"], "message": r["last"],
                           "traceback": r["traceback"], "vague": vague(r["last"]) if r["rc"] != 0 else False,
                           "data_loss": lost})  # fmt: skip
+        # that prepare folder with its sparse/ a link to a folder outside, prepared again with other
+        # settings (which clears sparse/0 and writes a new model): refused, the target unchanged
+        parent, victim = root / "prep_photos", root / "victim_sparse"
+        shutil.rmtree(victim, ignore_errors=True)
+        if (parent / "sparse").is_dir():
+            (parent / "sparse").rename(victim)
+            (parent / "sparse").symlink_to(victim, target_is_directory=True)
+            before = _hash_tree(victim)
+            r = _cli(["prepare", str(parent / "photos"), "--out", str(parent), "--width", "160"], timeout=300)
+            after = _hash_tree(victim)
+            lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
+            c = _error_case("symlink_out prepare sparse/", r, str(parent / "sparse"), data_loss=lost)
+            c["ok"] = c["ok"] and lost == 0 and "symbolic link" in r["last"]
+            cases.append(c)
 
     if "symlink" in groups:
         # a symlink planted in a finished run folder, pointing outside, where the rerun writes: a file

@@ -43,7 +43,7 @@ def test_hostile_input_runs_no_code_and_changes_no_file_of_the_user(tmp_path):
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     table = proc.stdout[proc.stdout.find("| hostile case") :]
     # every case ran (one that could not start, e.g. a run that ended before its signal, is missing)
-    assert res["hostile_cases"] == 19, table
+    assert res["hostile_cases"] == 20, table
     assert res["hostile_failed"] == [], table
     assert res["exec_tried"] == 3 and res["exec_refused"] == 3  # no planted checkpoint ran its code
     assert res["data_loss"] == 0  # no photo, no link's target changed
