@@ -1,4 +1,4 @@
-"""Benchmark: nothing lost (issue 25). Kill a CoIn run at any moment, hand it bad input of every kind,
+"""Benchmark: nothing lost. Kill a CoIn run at any moment, hand it bad input of every kind,
 run two on one folder; count what survives.
 
 On a tiny synthetic scene (`coin_cl.scene.write_synthetic`, 6 views of 64x48 px, step counts
@@ -19,12 +19,17 @@ fixed so that runs are deterministic):
    the CI test's size, runs the handled ones through `coin_cl.inpaint` only);
 5. hostile input (`--skip-hostile` leaves it out), through `coin-cl` on copies of one finished
    tiny run folder (`hostile_cases`): a checkpoint whose unpickling would run code (planted at
-   each checkpoint site; passes when its marker file was not created: `exec_refused`), prepare
-   with --out the photos' parent and a symlink planted in a run folder pointing outside (the
-   originals / the target hashed before and after: `data_loss` counts what changed), a scene.json
-   path leading out of its folder, malformed JSON of each run-folder file, a plan.json asking
-   for 10^9 steps, a header-only PNG declaring 12000x12000, a second command on a folder in use,
-   and Ctrl-C (SIGINT) in a run.
+   each checkpoint site and shown to run code when loaded unsafely; passes when the run refuses it
+   in one line naming it and its marker file was not created: `exec_refused`); a successful
+   prepare with --out the photos' parent (the photos' folder called photos/ or images/, and again
+   with --replace), whose photos must stay byte-identical; a symlink to a file or folder outside
+   planted where a rerun writes (log.json, report/, eval/ with --force eval; a prepare folder's
+   sparse/ before a prepare with other settings), to be refused in one
+   line naming it (the originals / the targets hashed before and after: `data_loss` counts what
+   changed); a scene.json path leading out of its folder; malformed JSON of each run-folder file,
+   a plan.json asking for 10^9 steps; a header-only PNG declaring 12000x12000; `coin-cl prepare`
+   and a second `coin-cl run` on a folder a run holds; and Ctrl-C (SIGINT) in a run: exit 130,
+   one line, the lock released, and the same command then resumes to the end.
 
 Every error message (corpus and hostile, CLI's last stderr line) is judged by `vague`: clear when
 it is one line that names the file or value and says what to do (the rule is in its docstring);
@@ -703,11 +708,41 @@ def _plant_exec(path: Path, marker: Path) -> None:
     torch.save({"trainer": _Exec(marker), "model": _Exec(marker), "steps": 1}, path)
 
 
+def _exec_armed(path: Path, marker: Path) -> bool:
+    """Whether the planted checkpoint `path` does run code when unpickled the unsafe way
+    (`torch.load(weights_only=False)`, in a child process): its `marker` appears. The marker is
+    removed again, so that only the run under test can make it reappear."""
+    code = "import sys, torch; torch.load(sys.argv[1], weights_only=False)"
+    subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, timeout=120)
+    armed = marker.exists()
+    marker.unlink(missing_ok=True)
+    return armed
+
+
+def _posed_views(folder: Path) -> int:
+    """Views of the scene `coin-cl prepare` wrote in `folder` (0 when it holds none)."""
+    import logging
+
+    from coin_cl.scene import load_scene
+
+    logging.disable(logging.WARNING)  # "no mask file": prepare was given no annotation, as meant
+    try:
+        return len(load_scene(folder).images)
+    except (OSError, ValueError):
+        return 0
+    finally:
+        logging.disable(logging.NOTSET)
+
+
 def _error_case(name: str, res: dict, culprit: str, **extra) -> dict:
     """An error case: passes with exit code 2 and one line naming `culprit`."""
     ok = res["rc"] == 2 and not res["traceback"] and culprit in res["last"]
     return {"name": name, "ok": ok, "rc": res["rc"], "message": res["last"], "traceback": res["traceback"],
             "vague": vague(res["last"]) if res["rc"] != 0 else False, **extra}  # fmt: skip
+
+
+# The groups of hostile cases (`--hostile` picks some), in the order they run.
+HOSTILE_GROUPS = ("ckpt", "prepare", "symlink", "scene_json", "json", "png", "second", "ctrl_c")
 
 
 def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
@@ -717,154 +752,210 @@ def hostile_cases(args, scene: Path, root: Path) -> list[dict]:
 
     root.mkdir(parents=True, exist_ok=True)
     iters = args.corpus_iters
+    groups = set(args.hostile)
     base = root / "base"
-    res = _cli(_run_args(scene, base, iters))
-    print(f"  base run: rc {res['rc']} in {res['seconds']} s", flush=True)
-    if res["rc"] != 0:
-        return [{"name": "base_run", "ok": False, "rc": res["rc"], "message": res["last"],
-                 "traceback": res["traceback"], "vague": vague(res["last"])}]  # fmt: skip
+    if groups & {"ckpt", "symlink", "json"}:  # the cases that work on a finished run folder
+        res = _cli(_run_args(scene, base, iters))
+        print(f"  base run: rc {res['rc']} in {res['seconds']} s", flush=True)
+        if res["rc"] != 0:
+            return [{"name": "base_run", "ok": False, "rc": res["rc"], "message": res["last"],
+                     "traceback": res["traceback"], "vague": vague(res["last"])}]  # fmt: skip
     cases = []
 
     def copy(name: str) -> Path:
         return _copy(base, root / name)
 
-    # a checkpoint whose unpickling runs code, at each checkpoint site a resumed run loads
-    # (Ref-GS's trainer, TE-D's, the scene prior CLG loads: the three loaders of a run folder's .pt)
-    sites = [base / "2_refgs" / "gs" / "ckpt.pt", base / "4_ted" / "finetune" / "ckpt.pt"]
-    sites += sorted(base.glob("*/scene_prior_*.pt"))[:1]
-    sites = [p for p in sites if p.is_file()]
-    for site in sites:
-        rel = site.relative_to(base)
-        d = copy(f"ckpt_exec_{'_'.join(rel.parts[:2])}")
-        marker = root / f"EXECUTED_{'_'.join(rel.parts[:2])}"
-        marker.unlink(missing_ok=True)
-        _plant_exec(d / rel, marker)
-        r = _cli(_run_args(scene, d, iters))
-        ran = marker.exists()
-        c = _error_case(f"ckpt_exec {rel}", r, rel.name, exec_tried=1, exec_refused=int(not ran))
-        c["ok"] = not ran and r["rc"] in (0, 2) and not r["traceback"]
-        cases.append(c)
+    if "ckpt" in groups:
+        # a checkpoint whose unpickling runs code, at each checkpoint site a resumed run loads
+        # (Ref-GS's trainer, TE-D's, the scene prior CLG loads: the three loaders of a run folder's .pt)
+        sites = [base / "2_refgs" / "gs" / "ckpt.pt", base / "4_ted" / "finetune" / "ckpt.pt"]
+        sites += sorted(base.glob("*/scene_prior_*.pt"))[:1]
+        sites = [p for p in sites if p.is_file()]
+        for site in sites:
+            rel = site.relative_to(base)
+            d = copy(f"ckpt_exec_{'_'.join(rel.parts[:2])}")
+            marker = root / f"EXECUTED_{'_'.join(rel.parts[:2])}"
+            marker.unlink(missing_ok=True)
+            _plant_exec(d / rel, marker)
+            armed = _exec_armed(d / rel, marker)
+            r = _cli(_run_args(scene, d, iters))
+            ran = marker.exists()
+            c = _error_case(f"ckpt_exec {rel}", r, rel.name, exec_tried=1, exec_refused=int(not ran))
+            # passes only when the plant would run code if unpickled (armed), the run did not run it,
+            # and the run stopped at that file with a one-line refusal naming it: a run that exits 0
+            # without reading the file has proven nothing
+            c["ok"] = c["ok"] and armed and not ran and "refused" in r["last"]
+            c["armed"] = armed
+            cases.append(c)
 
-    # prepare with --out the photos' parent: the photos must survive byte for byte
-    photos_parent = root / "prep"
-    shutil.rmtree(photos_parent, ignore_errors=True)
-    (photos_parent / "photos").mkdir(parents=True)
-    for p in sorted((scene / "images_4").glob("*.png")):
-        shutil.copy2(p, photos_parent / "photos" / p.name)
-    before = _hash_tree(photos_parent / "photos")
-    r = _cli(["prepare", str(photos_parent / "photos"), "--out", str(photos_parent)], timeout=300)
-    after = _hash_tree(photos_parent / "photos") if (photos_parent / "photos").is_dir() else {}
-    lost = sum(1 for k, h in before.items() if after.get(k) != h)
-    c = _error_case("prepare_out_is_photos_parent", r, "--out", data_loss=lost)
-    c["ok"] = lost == 0 and not r["traceback"] and (r["rc"] == 2 and not c["vague"] or r["rc"] == 0)
-    cases.append(c)
+    if "prepare" in groups:
+        # prepare with --out the photos' parent: a prepare that succeeds (SfM poses the synthetic room's
+        # views) must keep every photo byte for byte, whatever the photos' folder is called (images/ is
+        # the name prepare's own output would take) and with --replace on that folder again
+        from coin_cl.prepare.capture import synthetic_capture
 
-    # a symlink planted in a run folder pointing outside: a directory of another's files
-    d = copy("symlink_out")
-    victim = root / "victim"
-    shutil.rmtree(victim, ignore_errors=True)
-    stage_dirs = [p for p in sorted(d.glob("3_clg/*")) if p.is_dir()] or [
-        p for p in sorted(d.glob("*/images"))
-    ]
-    if stage_dirs:
-        target = stage_dirs[0]
-        shutil.copytree(target, victim)
-        shutil.rmtree(target)
-        target.symlink_to(victim, target_is_directory=True)
-        before = _hash_tree(victim)
-        r = _cli(_run_args(scene, d, iters))
-        after = _hash_tree(victim) if victim.is_dir() else {}
-        lost = sum(1 for k, h in before.items() if after.get(k) != h)
-        c = _error_case(f"symlink_out {target.relative_to(d)}", r, str(target.relative_to(d)), data_loss=lost)
-        c["ok"] = lost == 0 and not r["traceback"] and (r["rc"] == 2 and not c["vague"] or r["rc"] == 0)
-        cases.append(c)
+        for name, extra in (("photos", []), ("images", []), ("images", ["--replace"])):
+            parent = root / f"prep_{name}"
+            if not extra:
+                shutil.rmtree(parent, ignore_errors=True)
+                synthetic_capture(parent / name, n_views=8, width=192, height=144)
+                (parent / name / "notes.txt").write_text("not a photo")
+            before = _hash_tree(parent / name)
+            r = _cli(["prepare", str(parent / name), "--out", str(parent), *extra], timeout=300)
+            after = _hash_tree(parent / name) if (parent / name).is_dir() else {}
+            lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
+            posed = r["rc"] == 0 and _posed_views(parent) == 8
+            case = f"prepare_out_is_photos_parent {name}/{' ' + extra[0] if extra else ''}"
+            ok = posed and lost == 0 and not r["traceback"]
+            cases.append({"name": case, "ok": ok, "rc": r["rc"], "message": r["last"],
+                          "traceback": r["traceback"], "vague": vague(r["last"]) if r["rc"] != 0 else False,
+                          "data_loss": lost})  # fmt: skip
+        # that prepare folder with its sparse/ a link to a folder outside, prepared again with other
+        # settings (which clears sparse/0 and writes a new model): refused, the target unchanged
+        parent, victim = root / "prep_photos", root / "victim_sparse"
+        shutil.rmtree(victim, ignore_errors=True)
+        if (parent / "sparse").is_dir():
+            (parent / "sparse").rename(victim)
+            (parent / "sparse").symlink_to(victim, target_is_directory=True)
+            before = _hash_tree(victim)
+            r = _cli(["prepare", str(parent / "photos"), "--out", str(parent), "--width", "160"], timeout=300)
+            after = _hash_tree(victim)
+            lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
+            c = _error_case("symlink_out prepare sparse/", r, str(parent / "sparse"), data_loss=lost)
+            c["ok"] = c["ok"] and lost == 0 and "symbolic link" in r["last"]
+            cases.append(c)
 
-    # a scene.json naming a file outside its folder
-    from coin_cl.scene import load_scene, save_scene
+    if "symlink" in groups:
+        # a symlink planted in a finished run folder, pointing outside, where the rerun writes: a file
+        # every rerun rewrites (log.json), a folder every rerun writes into (report/), a stage folder a
+        # forced stage clears (eval/ with --force eval); each must be refused in one line naming the
+        # link, the target keeping every byte
+        for rel, force in (("log.json", []), ("report", []), ("eval", ["--force", "eval"])):
+            d = copy(f"symlink_{rel}")
+            victim = root / f"victim_{rel}"
+            shutil.rmtree(victim, ignore_errors=True)
+            victim.unlink(missing_ok=True)
+            (d / rel).rename(victim)
+            (d / rel).symlink_to(victim, target_is_directory=victim.is_dir())
+            before = _hash_tree(victim)
+            r = _cli([*_run_args(scene, d, iters), *force])
+            after = _hash_tree(victim) if victim.exists() else {}
+            lost = sum(1 for k, h in before.items() if after.get(k) != h) + len(after.keys() - before.keys())
+            name = f"symlink_out {rel}{' --force eval' if force else ''}"
+            c = _error_case(name, r, str(d / rel), data_loss=lost)
+            c["ok"] = c["ok"] and lost == 0 and "symbolic link" in r["last"]
+            cases.append(c)
 
-    nat = save_scene(load_scene(scene), root / "native_scene")
-    secret = root / "secret.png"
-    shutil.copy2(next((nat / "images").glob("*.png")), secret)
-    doc = json.loads((nat / "scene.json").read_text())
-    doc["views"][1]["image"] = "../secret.png"
-    (nat / "scene.json").write_text(json.dumps(doc))
-    r = _cli(_run_args(nat, root / "out_native", iters))
-    cases.append(_error_case("scene_json_path_escapes", r, "scene.json"))
+    if "scene_json" in groups:
+        # a scene.json naming a file outside its folder
+        from coin_cl.scene import load_scene, save_scene
 
-    # malformed JSON of each run-folder file (and a plan asking for 10^9 steps)
-    for rel, content in (
-        ("plan.json", "{half"),
-        ("run.json", "[1, 2]"),
-        ("2_refgs/manifest.json", "{half"),
-        ("2_refgs/started.json", '{"key": 1, "unknown": 2}'),
-        ("plan.json", None),
-    ):
-        tag = "huge_steps" if content is None else "malformed"
-        d = copy(f"json_{tag}_{rel.replace('/', '_')}")
-        if content is None:
-            plan = json.loads((d / rel).read_text())
-            plan["steps"]["refgs"] = 10**9
-            content = json.dumps(plan)
-        if rel.endswith("started.json"):
-            (d / "2_refgs" / "manifest.json").unlink()  # as if killed: started.json decides
-        (d / rel).write_text(content)
-        r = _cli(_run_args(scene, d, iters))
-        cases.append(_error_case(f"{tag} {rel}", r, rel.split("/")[-1]))
+        nat = save_scene(load_scene(scene), root / "native_scene")
+        secret = root / "secret.png"
+        shutil.copy2(next((nat / "images").glob("*.png")), secret)
+        doc = json.loads((nat / "scene.json").read_text())
+        doc["views"][1]["image"] = "../secret.png"
+        (nat / "scene.json").write_text(json.dumps(doc))
+        r = _cli(_run_args(nat, root / "out_native", iters))
+        cases.append(_error_case("scene_json_path_escapes", r, "scene.json"))
 
-    # a header-only PNG declaring 12000x12000 (4 GB as float32 if decoded)
-    d = _copy(scene, root / "huge_png_scene")
-    name = _train_names(scene)[0]
-    _header_only_png(d / "images_4" / name, 12000, 12000)
-    r = _cli(_run_args(d, root / "out_huge", iters))
-    cases.append(_error_case("header_only_12000x12000_png", r, name))
+    if "json" in groups:
+        # malformed JSON of each run-folder file (and a plan asking for 10^9 steps)
+        for rel, content in (
+            ("plan.json", "{half"),
+            ("run.json", "[1, 2]"),
+            ("2_refgs/manifest.json", "{half"),
+            ("2_refgs/started.json", '{"key": 1, "unknown": 2}'),
+            ("plan.json", None),
+        ):
+            tag = "huge_steps" if content is None else "malformed"
+            d = copy(f"json_{tag}_{rel.replace('/', '_')}")
+            if content is None:
+                plan = json.loads((d / rel).read_text())
+                plan["steps"]["refgs"] = 10**9
+                content = json.dumps(plan)
+            if rel.endswith("started.json"):
+                (d / "2_refgs" / "manifest.json").unlink()  # as if killed: started.json decides
+            (d / rel).write_text(content)
+            r = _cli(_run_args(scene, d, iters))
+            cases.append(_error_case(f"{tag} {rel}", r, rel.split("/")[-1]))
 
-    # two commands on one folder: `coin-cl prepare` into a folder a run holds
-    two = root / "two"
-    first = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, two, iters)],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                             env={**os.environ, **CHILD_ENV})  # fmt: skip
-    try:
+    if "png" in groups:
+        # a header-only PNG declaring 12000x12000 (4 GB as float32 if decoded)
+        d = _copy(scene, root / "huge_png_scene")
+        name = _train_names(scene)[0]
+        _header_only_png(d / "images_4" / name, 12000, 12000)
+        r = _cli(_run_args(d, root / "out_huge", iters))
+        cases.append(_error_case("header_only_12000x12000_png", r, name))
+
+    if "second" in groups:
+        # two commands on one folder: `coin-cl prepare` into a folder a run holds
+        two = root / "two"
+        first = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, two, iters)],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                 env={**os.environ, **CHILD_ENV})  # fmt: skip
+        try:
+            t0 = time.time()
+            while (
+                first.poll() is None
+                and not (two / "0_scene" / "started.json").exists()
+                and time.time() - t0 < 120
+            ):
+                time.sleep(0.05)
+            if first.poll() is None:
+                # prepare into the folder a run holds (marked as the run's, locked): refused in one line
+                # naming the folder, nothing of prepare's written there
+                r = _cli(["prepare", str(scene / "images_4"), "--out", str(two)], timeout=300)
+                theirs = ("images", "images_prepared", "sparse", "masks", ".prepare", "prepare_report.txt")
+                wrote = [n for n in theirs if (two / n).exists()]
+                c = _error_case("second_command_on_a_run_folder prepare", r, str(two))
+                c["ok"] = c["ok"] and not wrote and first.poll() is None
+                c["wrote"] = wrote
+                cases.append(c)
+                # a second run with other settings on it: refused by the lock, naming the first
+                r = _cli(_run_args(scene, two, iters + 1), timeout=300)
+                c = _error_case("second_command_on_a_run_folder run", r, f"process {first.pid}")
+                c["ok"] = c["ok"] and "in use by another coin-cl run" in r["last"] and first.poll() is None
+                cases.append(c)
+        finally:
+            first.kill()
+            first.wait()
+
+    if "ctrl_c" in groups:
+        # Ctrl-C: SIGINT in the middle of a run: a prompt exit, no traceback, nothing half written
+        d = root / "ctrl_c"
+        proc = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, d, iters)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, **CHILD_ENV})  # fmt: skip
         t0 = time.time()
         while (
-            first.poll() is None
-            and not (two / "0_scene" / "started.json").exists()
-            and time.time() - t0 < 120
+            proc.poll() is None and not (d / "2_refgs" / "started.json").exists() and time.time() - t0 < 300
         ):
             time.sleep(0.05)
-        if first.poll() is None:
-            r = _cli(["prepare", str(scene / "images_4"), "--out", str(two)], timeout=300)
-            c = _error_case("second_command_on_a_run_folder", r, "in use")
-            c["ok"] = c["ok"] and first.poll() is None
-            cases.append(c)
-    finally:
-        first.kill()
-        first.wait()
+        time.sleep(0.3)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                _, err = proc.communicate(timeout=30)
+                rc = proc.returncode
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                _, err = proc.communicate()
+                rc = None
+            last = _last_line(err)
+            half = unreadable_files(d)
+            lock_left = (d / ".coin-cl.lock").exists()
+            # the one line says "run the same command again to resume": it must
+            again = _cli(_run_args(scene, d, iters)) if rc == 130 else {"rc": None, "traceback": False}
+            ok = rc == 130 and "interrupted" in last and "Traceback" not in err and not half
+            ok = ok and not lock_left and not vague(last) and again["rc"] == 0
+            cases.append({"name": "ctrl_c", "ok": ok,
+                          "rc": rc, "message": last, "traceback": "Traceback" in err or again["traceback"],
+                          "vague": vague(last), "half_written": half, "lock_left": lock_left,
+                          "resumed_rc": again["rc"]})  # fmt: skip
+        else:
+            proc.wait()
 
-    # Ctrl-C: SIGINT in the middle of a run: a prompt exit, no traceback, nothing half written
-    d = root / "ctrl_c"
-    proc = subprocess.Popen([sys.executable, "-m", "coin_cl.cli", *_run_args(scene, d, iters)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, **CHILD_ENV})  # fmt: skip
-    t0 = time.time()
-    while proc.poll() is None and not (d / "2_refgs" / "started.json").exists() and time.time() - t0 < 300:
-        time.sleep(0.05)
-    time.sleep(0.3)
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            _, err = proc.communicate(timeout=30)
-            rc = proc.returncode
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
-            rc = None
-        last = _last_line(err)
-        half = unreadable_files(d)
-        cases.append({"name": "ctrl_c", "ok": rc not in (None, 0) and "Traceback" not in err and not half
-                      and not vague(last), "rc": rc, "message": last, "traceback": "Traceback" in err,
-                      "vague": vague(last), "half_written": half})  # fmt: skip
-    else:
-        proc.wait()
     return cases
 
 
@@ -931,6 +1022,13 @@ def main() -> int:
         "--skip-chain", action="store_true", help="leave out the reference run and the kill chain"
     )
     ap.add_argument("--skip-hostile", action="store_true", help="leave out the hostile-input cases")
+    ap.add_argument(
+        "--hostile",
+        nargs="+",
+        choices=HOSTILE_GROUPS,
+        default=list(HOSTILE_GROUPS),
+        help="which groups of hostile cases to run (default all)",
+    )
     ap.add_argument(
         "--cli-cases",
         choices=("all", "errors"),

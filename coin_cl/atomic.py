@@ -98,6 +98,25 @@ def check_path(path: str | Path) -> Path:
     return p
 
 
+def refuse_links(folder: str | Path, skip: tuple[str, ...] = ()) -> None:
+    """Raise `UnsafePathError` naming the first symbolic link found under `folder` (links are not
+    followed; `skip`: names directly in `folder` not looked into, e.g. the photos a command only
+    reads). coin-cl makes no links, so one in its output folder was planted: a command refuses the
+    folder before it clears, moves or writes anything there (a library's `rmtree` or `move` of a
+    linked folder would act on the link's target)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    for here, dirs, files in os.walk(folder):
+        if Path(here) == folder:
+            dirs[:] = [d for d in dirs if d not in skip]
+            files = [f for f in files if f not in skip]
+        for name in sorted(dirs + files):
+            p = Path(here) / name
+            if p.is_symlink():
+                raise _refuse(p, f"it is a symbolic link (to {os.readlink(p)})")
+
+
 def disk_error(exc: OSError, folder: Path) -> OutputWriteError | None:
     """The one-line `OutputWriteError` for a full / read-only / forbidden `folder`, or None when
     `exc` is another kind of failure."""

@@ -138,3 +138,20 @@ def test_outputs_get_the_users_file_mode_not_mkstemps_0600(tmp_path):
     mode = stat.S_IMODE((tmp_path / "page.html").stat().st_mode)
     assert mode == 0o666 & ~mask
     assert mask & 0o044 or mode & 0o044  # readable by others unless the umask forbids it
+
+
+def test_refuse_links_names_the_first_link_and_skips_what_it_is_told(tmp_path):
+    out = tmp_path / "out"
+    (out / "a" / "b").mkdir(parents=True)
+    (out / "a" / "b" / "f.txt").write_text("x")
+    atomic.refuse_links(out)  # no link: nothing to say
+    atomic.refuse_links(tmp_path / "absent")
+    (out / "photos").symlink_to(tmp_path, target_is_directory=True)
+    atomic.refuse_links(out, skip=("photos",))  # the photos a command only reads
+    with pytest.raises(atomic.UnsafePathError, match="symbolic link") as e:
+        atomic.refuse_links(out)
+    assert str(e.value).startswith(f"refusing to write {out / 'photos'}: it is a symbolic link")
+    (out / "photos").unlink()
+    (out / "a" / "b" / "g.txt").symlink_to(tmp_path / "nowhere")  # a dangling file link too
+    with pytest.raises(atomic.UnsafePathError, match=str(out / "a" / "b" / "g.txt")):
+        atomic.refuse_links(out)

@@ -1,8 +1,10 @@
-"""The fault harness (benchmarks/faults.py, issue 25) at its smallest, in CI: one seeded SIGKILL in
+"""The fault harness (benchmarks/faults.py) at its smallest, in CI: one seeded SIGKILL in
 every stage, each resumed to outputs identical to an uninterrupted run; the bad-input corpus through
 `coin_cl.inpaint`, each a clear one-line error or its documented handling, and every error case also
 through `coin-cl run` (the handled cases run to the end once: 2 of its 5 minutes saved on 2 Zen 3
-cores); a second run on a held folder refused."""
+cores); a second run on a held folder refused; and the hostile cases that need a whole command
+(checkpoints that would run code, links where a rerun writes, prepare --out the photos' parent, a
+second command on a held folder): refused in one line, nothing run, no file outside --out changed."""
 
 import json
 import os
@@ -28,6 +30,28 @@ def test_kills_resume_identically_and_bad_input_is_clear(tmp_path):
     assert res["tracebacks"] == 0 and res["half_written_files"] == 0
     assert res["lock_conflicts_caught"] == 1
     assert res["vague_messages"] == 0  # every corpus error names its file or value and what to do
+
+
+def test_hostile_input_runs_no_code_and_changes_no_file_of_the_user(tmp_path):
+    """Section 5 of the harness on its own (the kill chain and the corpus are above), the groups
+    whose floors only an end-to-end command shows: checkpoints that would run code at every site a
+    rerun loads, links planted where a rerun writes, prepare --out the photos' parent, a second
+    command on a folder a run holds (about 80 s of the whole section's 130 s on 2 cores; malformed
+    JSON, the 12000x12000 header, scene.json paths and Ctrl-C have their own unit tests)."""
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "faults.py"), "--out", str(tmp_path / "faults"),
+           "--skip-chain", "--skip-corpus", "--corpus-iters", "4",
+           "--hostile", "ckpt", "prepare", "symlink", "second"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    table = proc.stdout[proc.stdout.find("| hostile case") :]
+    # every case ran (a second command whose first run ended before it could be tried is missing)
+    assert res["hostile_cases"] == 3 + 4 + 3 + 2, table
+    assert res["hostile_failed"] == [], table
+    assert res["exec_tried"] == 3 and res["exec_refused"] == 3  # no planted checkpoint ran its code
+    assert res["data_loss"] == 0  # no photo, no link's target changed
+    assert res["tracebacks"] == 0 and res["vague_messages"] == 0 and res["half_written_files"] == 0
 
 
 def _harness():

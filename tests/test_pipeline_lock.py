@@ -100,3 +100,28 @@ def test_nested_folder_locks_share_the_commands_lock(tmp_path):
             with command_lock(tmp_path):  # a second command in this process is refused
                 pass
     assert not (tmp_path / LOCK_NAME).exists()
+
+
+@pytest.mark.parametrize("where", ["mkdir", "open"])
+def test_a_read_only_output_folder_is_one_line_naming_it(tmp_path, monkeypatch, where):
+    """The lock is a command's first write in its folder: a read-only disk there is the one-line
+    OutputWriteError naming the folder, not Python's "[Errno 30] Read-only file system"."""
+    import errno
+    from pathlib import Path
+
+    from coin_cl.atomic import OutputWriteError
+
+    def refuse(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system", str(a[0]))
+
+    if where == "mkdir":
+        monkeypatch.setattr(Path, "mkdir", refuse)
+    else:
+        (tmp_path / "out").mkdir()
+        monkeypatch.setattr(os, "open", refuse)
+    with pytest.raises(OutputWriteError) as exc:
+        acquire(tmp_path / "out")
+    assert str(exc.value) == (
+        f"cannot write in {tmp_path / 'out'}: the file system is read-only; make it writable or "
+        "choose another output folder"
+    )

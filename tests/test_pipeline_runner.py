@@ -182,3 +182,23 @@ def test_a_malformed_run_folder_file_is_one_line_naming_it(tmp_path, name, conte
             run_stages(tmp_path, chain(calls))
     msg = str(e.value)
     assert "\n" not in msg and msg.startswith(f"{path}: ") and ("delete" in msg or "pick another" in msg)
+
+
+@pytest.mark.parametrize("force", [[], ["2_b"]])
+def test_a_stage_folder_that_is_a_link_is_refused_and_its_target_untouched(tmp_path, force):
+    """A finished run folder whose 2_b is replaced by a link to a folder outside: skipping it (its
+    files read through the link), clearing it (--force) or writing into it would each follow the
+    link; the run is refused in one line naming the link, and the target keeps every byte."""
+    from coin_cl.atomic import UnsafePathError
+
+    out, outside = tmp_path / "out", tmp_path / "outside"
+    calls = Calls()
+    run_stages(out, chain(calls))
+    (out / "2_b").rename(outside)
+    (out / "2_b").symlink_to(outside, target_is_directory=True)
+    before = {p.name: p.read_bytes() for p in outside.iterdir()}
+    with pytest.raises(UnsafePathError) as exc:
+        run_stages(out, chain(calls), force=force)
+    assert str(exc.value).startswith(f"refusing to write {out / '2_b'}: it is a symbolic link (to {outside})")
+    assert {p.name: p.read_bytes() for p in outside.iterdir()} == before
+    assert calls.n["b"] == 1 and calls.n["c"] == 1  # nothing after the link ran

@@ -120,3 +120,31 @@ def test_a_second_prepare_on_a_folder_being_prepared_is_refused_and_the_first_co
     assert rc == [0]
     assert load_scene(out).images[0].shape == (144, 192, 3)
     assert not (out / ".coin-cl.lock").exists()
+
+
+def test_a_prepare_folder_with_a_planted_link_is_refused_and_the_target_untouched(tmp_path, capsys):
+    """A prepare folder whose sparse/ is a link to a folder outside: a rerun with other settings
+    would clear sparse/0 and write the new model through the link (pycolmap and shutil follow it);
+    refused in one line naming the link, no byte of the target changed."""
+    import hashlib
+
+    from coin_cl.prepare.capture import synthetic_capture
+
+    photos, out, outside = tmp_path / "photos", tmp_path / "scene", tmp_path / "theirs"
+    synthetic_capture(photos, n_views=8, width=192, height=144)
+    code, err = run([photos, "--out", out], capsys)
+    assert code == 0, err
+    (out / "sparse").rename(outside)
+    (out / "sparse").symlink_to(outside, target_is_directory=True)
+
+    def hashes():
+        return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(outside.rglob("*"))
+                if p.is_file()}  # fmt: skip
+
+    before = hashes()
+    code, err = run([photos, "--out", out, "--width", "160"], capsys)
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith(
+        f"coin-cl prepare: error: refusing to write {out / 'sparse'}: it is a symbolic link"
+    )
+    assert hashes() == before

@@ -24,8 +24,8 @@ def output_folder(
     """`with output_folder(OUT, "run"):` the block runs holding OUT's lock, with OUT marked as
     `command`'s and every atomic write under it refusing links. Refused (one line, nothing written)
     when OUT is neither new, empty nor `command`'s (`adopt`: a non-empty unmarked folder is taken),
-    or when another command holds it."""
-    from coin_cl.atomic import confined_to
+    when another command holds it, or when a symbolic link lies anywhere in it (outside `ignore`)."""
+    from coin_cl.atomic import confined_to, refuse_links
     from coin_cl.outdir import MARKER, check_output, mark_output
     from coin_cl.pipeline.lock import LOCK_NAME, command_lock
 
@@ -37,6 +37,7 @@ def output_folder(
         with command_lock(out):
             locked = True
             check_output(out, command, ignore, adopt)  # again, now that no other command can write it
+            refuse_links(out, ignore)  # a planted link: what the command clears or writes must be its own
             mark_output(out, command)
             with confined_to(out):
                 yield out

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from coin_cl.atomic import disk_error
+
 log = logging.getLogger(__name__)
 
 LOCK_NAME = ".coin-cl.lock"
@@ -123,11 +125,23 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _raise_disk_error(exc: OSError, folder: Path) -> None:
+    """Re-raise `exc`, as the one-line `OutputWriteError` naming `folder` when it is a read-only or
+    full disk or a missing permission (the lock is a command's first write in its folder)."""
+    err = disk_error(exc, folder)
+    if err is None:
+        raise exc
+    raise err from exc
+
+
 def acquire(folder: str | Path) -> FolderLock:
     """Take `folder`'s lock (creating the folder); raises `FolderLockedError` naming the holder
     when a live run has it, takes over (with a log line) a lock whose holder is gone."""
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _raise_disk_error(exc, folder)
     path = folder / LOCK_NAME
     me = _holder_info()
     for _ in range(20):  # retries only when a holder releases between our steps
@@ -135,6 +149,8 @@ def acquire(folder: str | Path) -> FolderLock:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
             pass
+        except OSError as exc:
+            _raise_disk_error(exc, folder)
         else:
             if _try_flock(fd) is False:  # another run took our brand-new file over in between
                 os.close(fd)

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from coin_cl import schema
+from coin_cl.atomic import check_path
 from coin_cl.schema import parse_optional, run_folder_fix
 
 log = logging.getLogger(__name__)
@@ -187,7 +188,10 @@ def _run_stages(
     manifests: dict[str, dict] = {}
     log_path = out / "log.json"
     for st in stages:
+        # a stage folder that is a link (planted in a folder from anyone) is neither read as up to
+        # date, cleared, moved nor written through: one line naming it (UnsafePathError)
         folder = out / st.name
+        check_path(folder)
         if st.skip:
             log.info("[%s] skipped: %s", st.name, st.skip)
             records[st.name] = {"status": f"skipped: {st.skip}"}
