@@ -321,18 +321,18 @@ def test_tight_masks_vote_on_the_default_ring(refined90, tmp_path):
     assert p_r > p_t + RING_PRECISION_GAIN, (p_r, p_t)
 
 
-def test_closing_returns_small_observed_islands_to_the_unseen_core():
-    from coin_cl.pipeline.refine_masks import close_unseen
+def test_small_observed_islands_go_back_to_the_unseen_core():
+    from coin_cl.pipeline.refine_masks import fill_islands
 
     mask = np.zeros((40, 60), bool)
     mask[5:35, 5:55] = True
     unseen = mask.copy()
     unseen[5:35, 30:55] = False  # the right half is observed: a large part, it stays observed
     unseen[15:17, 12:14] = False  # a 2x2 observed island inside the unseen half: it goes back
-    closed = close_unseen(unseen, mask, 5)
-    assert closed[15:17, 12:14].all()
-    assert not closed[5:35, 33:55].any()  # the large observed part keeps all but the seam
-    assert not (closed & ~mask).any() and (closed >= unseen).all()
-    np.testing.assert_array_equal(close_unseen(unseen, mask, 1), unseen)  # 1: off
-    with pytest.raises(ValueError, match="RefineConfig.close_px"):
-        RefineConfig(close_px=4)
+    filled = fill_islands(unseen, mask, 20)
+    assert filled[15:17, 12:14].all()
+    np.testing.assert_array_equal(filled[:, 30:], unseen[:, 30:])
+    assert not (filled & ~mask).any() and (filled >= unseen).all()
+    np.testing.assert_array_equal(fill_islands(unseen, mask, 0), unseen)  # 0: off
+    with pytest.raises(ValueError, match="RefineConfig.island_px"):
+        RefineConfig(island_px=-1)
