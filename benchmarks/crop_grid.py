@@ -42,7 +42,7 @@ def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
             continue
         crop = metrics.bbox_crop(mask, pad=8)
         stem = view_stem(scene.cameras[i].name, i)
-        tiles = [read_image(render_dir(r) / f"{stem}.png")[crop] for r in runs]
+        tiles = [read_image(render_of(r, stem))[crop] for r in runs]
         tiles.append(np.asarray(scene.images[i], np.float32)[crop])
         rows.append(tile_row(tiles, cell))
     if not rows:
@@ -54,6 +54,16 @@ def render_dir(run: Path) -> Path:
     """A run's test-view renders: a CoIn run's `eval/renders`, or `pred/` of the demo's
     masked-reconstruction row (`coin_cl.demo.room_baseline`)."""
     return run / "eval" / "renders" if (run / "eval" / "renders").is_dir() else run / "pred"
+
+
+def render_of(run: Path, stem: str) -> Path:
+    """The render of test view `stem` in `run` (`render_dir`), whatever its extension (masked
+    reconstruction names its renders after the camera, e.g. a capture's .jpg)."""
+    d = render_dir(run)
+    found = [d / f"{stem}.png"] if (d / f"{stem}.png").is_file() else sorted(d.glob(f"{stem}.*"))
+    if not found:
+        raise FileNotFoundError(f"{d} has no render of test view {stem}")
+    return found[0]
 
 
 def main() -> int:

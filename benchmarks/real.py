@@ -36,7 +36,7 @@ OUT/<scene>/crops.png, columns = the rows in table order, then the truth.
 Resumable: a rerun scores the finished rows without training (the stage runner finds their stages
 up to date; masked_recon keeps its `row.json`). Writes OUT/real.md; the last line is JSON.
 
-    python benchmarks/real.py --out /work/real_out --scenes cup_plain cup_edge spinnerf --budget 10
+    python benchmarks/real.py --out OUT --scenes cup_plain cup_edge spinnerf --budget 10
 """
 
 import os
@@ -223,38 +223,6 @@ def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: in
     return res
 
 
-def crop_grid(runs: list[Path], cell: int = 160) -> np.ndarray:
-    """`crop_grid.grid`'s picture, finding a render by stem whatever its extension (masked
-    reconstruction names its renders after the camera, e.g. a capture's .jpg): [rows * (cell + 4),
-    (len(runs) + 1) * (cell + 4), 3] uint8."""
-    from crop_grid import render_dir, tile_row
-
-    from coin_cl import metrics
-    from coin_cl.scene import load_scene
-    from coin_cl.scene.io import read_image, to_uint8, view_stem
-
-    scene = load_scene(runs[0] / "0_scene" / "scene")
-    rows = []
-    for i in scene.test_idx:
-        mask = np.asarray(scene.masks[i], bool)
-        if not mask.any():
-            continue
-        crop = metrics.bbox_crop(mask, pad=8)
-        stem = view_stem(scene.cameras[i].name, i)
-        tiles = []
-        for r in runs:
-            d = render_dir(r)
-            found = [d / f"{stem}.png"] if (d / f"{stem}.png").is_file() else sorted(d.glob(f"{stem}.*"))
-            if not found:
-                raise FileNotFoundError(f"{d} has no render of test view {stem}")
-            tiles.append(read_image(found[0])[crop])
-        tiles.append(np.asarray(scene.images[i], np.float32)[crop])
-        rows.append(tile_row(tiles, cell))
-    if not rows:
-        raise ValueError(f"{runs[0]} has no ground-truth test view with a mask")
-    return to_uint8(np.concatenate(rows, axis=0))
-
-
 def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
     default_run = out / "default"
     table: dict[str, dict] = {}
@@ -300,9 +268,11 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
         ghosts = ghost_figures(runs, default_run, out, args.ghost_iters)
     for r, g in ghosts.items():
         table[r]["ghost"] = g
+    from crop_grid import grid
+
     from coin_cl.scene.io import write_png
 
-    write_png(out / "crops.png", crop_grid(list(runs.values())) / 255.0)
+    write_png(out / "crops.png", grid(list(runs.values())) / 255.0)
     print(f"[{name}] crop grid {out / 'crops.png'}: columns {' | '.join(runs)} | truth", flush=True)
     return table
 
