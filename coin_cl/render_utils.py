@@ -204,6 +204,15 @@ def render_checkpoint(
         )
     else:
         cams = json.loads((out_dir / CAMERAS_NAME).read_text())
+        run = next((p for p in out_dir.parents[:2] if (p / "run.json").is_file()), None)
+        if views == "test" and not cams.get("test") and run is not None:
+            # a run's stages train on the training views only: its scene holds the test cameras
+            cams = {**cams, "test": _run_folder(run)[1]["test"]}
+    if views != "orbit" and not cams.get(views):
+        raise ValueError(
+            f"{out_dir / CAMERAS_NAME} has no {views} cameras: nothing to render; "
+            f"choose --views {'train' if views == 'test' else 'test'} or orbit"
+        )
     if ckpt.parent == out_dir:
         remedy = f"delete it and train into {out_dir} again"
     else:  # a run folder's stage (4_ted/<phase>/ckpt.pt, 2_refgs/gs/ckpt.pt)
@@ -222,6 +231,9 @@ def render_checkpoint(
         train = cameras_from_json(cams["train"])
         orbit = orbit_gif(model, train, gif, frames, step, backend, dest, depth=True)
         return len(orbit), gif
+    cameras = cameras_from_json(cams[views])
+    # named as the views (`<stem>.png`), so that `coin-cl eval DEST --scene SCENE` reads them
+    names = [Path(c.name).stem if c.name else f"{i:03d}" for i, c in enumerate(cameras)]
     render_views(lambda c: model.render(c, step, backend=backend, return_depth=True),
-                 cameras_from_json(cams[views]), dest, depth=True, desc=f"{views} views")  # fmt: skip
+                 cameras, dest, depth=True, desc=f"{views} views", names=names)  # fmt: skip
     return len(cams[views]), dest

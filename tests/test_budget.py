@@ -247,6 +247,35 @@ class _Cam:
 
 class _Scene:
     cameras = [_Cam()] * 4
+    priors = {"rgb": {0: "the dataset's inpaint of view 0"}}  # stage 1 takes a learned inpainter's fills
+
+
+class _OwnCapture(_Scene):
+    priors = {}  # no dataset inpaints: stage 1 is the embedded exemplar inpainter
+
+
+def test_the_adversarial_phase_runs_only_on_a_learned_inpainters_fills(tmp_path, monkeypatch):
+    """TE-D's discriminator takes stage 1's fills as the real texture: with the embedded inpainters
+    (exemplar, Telea, scene prior) the plan leaves the phase out, says why in its key, and gives the
+    fine-tune phase Ref-GS's spare time alone; an explicit count runs it; dataset / LaMa fills keep it."""
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+
+    monkeypatch.setattr(B, "probe_seconds_per_step", lambda *a, **k: 0.5)
+    monkeypatch.setattr(B, "disc_probe", lambda *a: lambda: 0.1)
+    auto, _ = B.steps_from_rate(4.0, 0.5)
+    own = B.plan_for(_OwnCapture(), tmp_path / "own", CoInConfig(budget_minutes=4.0), [0, 1])
+    assert own.steps == {**auto, "ted_adversarial": 0} and own.minutes["ted_adversarial"] is None
+    assert "embedded" in own.key["ted_adversarial"] and own.disc_seconds_per_step is None
+    assert B.replan_ted(own, auto["refgs"], 1.0, 4.0)["ted_adversarial"] == 0
+    telea = CoInConfig(budget_minutes=4.0, inpaint2d=Inpaint2DConfig(inpainter="telea"))
+    assert "telea" in B.plan_for(_OwnCapture(), tmp_path / "telea", telea, [0, 1]).key["ted_adversarial"]
+    asked = CoInConfig(budget_minutes=4.0, iters_ted_adversarial=9)
+    assert B.plan_for(_OwnCapture(), tmp_path / "asked", asked, [0, 1]).steps["ted_adversarial"] == 9
+    lama = B.plan_for(_Scene(), tmp_path / "lama", CoInConfig(budget_minutes=4.0), [0, 1])
+    assert lama.steps == auto and "ted_adversarial" not in lama.key
+    no_dataset = CoInConfig(budget_minutes=4.0, inpaint2d=Inpaint2DConfig(use_dataset=False))
+    assert B.plan_for(_Scene(), tmp_path / "nd", no_dataset, [0, 1]).steps["ted_adversarial"] == 0
 
 
 def test_ted_counts_none_follow_the_plan_and_numbers_are_honoured(tmp_path, monkeypatch):

@@ -371,15 +371,38 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfigLike, train: list[int]) -> 
     the settings the step counts depend on, probing `scene` at its working size."""
     cam = scene.cameras[train[0]]
     explicit = explicit_steps(cfg)
+    skip_adv = adversarial_skip(scene, cfg) if explicit["ted_adversarial"] is None else None
+    if skip_adv:
+        explicit["ted_adversarial"] = 0
+        log.info("TE-D's adversarial phase skipped: %s (an explicit count runs it: --iters, "
+                 "CoInConfig.iters_ted_adversarial)", skip_adv)  # fmt: skip
     key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
            "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
     probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
               prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
+    if skip_adv:
+        key["ted_adversarial"] = f"skipped: {skip_adv}"
     if cfg.rates_from is not None:
         key["rates_from"] = str(cfg.rates_from)  # only when set: plans made before keep their key
         probes = inherited_rates(Path(cfg.rates_from), *probes)
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes)
+
+
+def adversarial_skip(scene: Scene, cfg: CoInConfigLike) -> str | None:
+    """Why a run leaves TE-D's adversarial phase out (None: it runs). Its discriminator takes the
+    stage-1 fills as the "real" texture (paper 4.4); that transfers a learned inpainter's texture
+    (SD2, LaMa), but the embedded fills' texture is a collage of the scene's other patches (exemplar),
+    a blur (Telea) or noise (scene prior), and the phase makes exactly that crisp: measured on two
+    virtual-object scenes of a real capture, it left the masked VGG distance 24% and 90% worse than
+    the fine-tune phase before it (docs/RESULTS.md)."""
+    from coin_cl.pipeline.inpaint2d import GENERATIVE_SOURCES, fill_source
+
+    source = fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path)
+    if source in GENERATIVE_SOURCES:
+        return None
+    return (f"stage 1's fills come from the {source} inpainter, whose texture the discriminator would "
+            "make crisp rather than true")  # fmt: skip
 
 
 def inherited_rates(run: Path, probe: Any, prior: Any, disc: Any) -> tuple[Any, Any, Any]:

@@ -100,6 +100,22 @@ def resolve_inpainter(cfg: Inpaint2DConfig) -> str:
     return "lama" if (cfg.lama_path or os.environ.get(LAMA_ENV)) else "embedded"
 
 
+# Stage-1 sources that draw texture the way a photograph has it (a learned inpainter's), as opposed
+# to the embedded ones: the exemplar inpainter's collage of the scene's patches, Telea's smooth fill,
+# the scene prior's noise.
+GENERATIVE_SOURCES = ("sd2", "dataset", "lama")
+
+
+def fill_source(scene, cfg: Inpaint2DConfig, mask_kind: str, sd_path: str | None) -> str:
+    """What stage 1 will fill most views with, known before it runs: "sd2" (weights named),
+    "dataset" (the scene's own per-view inpaints, seg masks), else `resolve_inpainter`'s choice."""
+    if sd_path:
+        return "sd2"
+    if cfg.use_dataset and mask_kind == "seg" and scene.priors.get("rgb"):
+        return "dataset"
+    return resolve_inpainter(cfg)
+
+
 def rerun_key(cfg: Inpaint2DConfig) -> dict:
     """Stage 1's settings as its rerun key: the config, plus the LaMa file the run really reads when
     the inpainter resolves to LaMa (`lama_path`, else $COIN_LAMA_PATH: pointing the variable at
