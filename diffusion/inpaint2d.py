@@ -104,10 +104,27 @@ def feather_weights(mask: np.ndarray, feather_px: int) -> np.ndarray:
     return np.where(mask, np.clip(0.5 + 0.5 * (d - 1) / feather_px, 0.5, 1.0), 0.0).astype(np.float32)
 
 
-def paste(image: np.ndarray, fill: np.ndarray, mask: np.ndarray, feather_px: int) -> np.ndarray:
-    """image outside the mask (bit-identical), feathered blend of fill and image inside it."""
+# What a paste's feather blends the fill with on the mask's outer rings (`paste`).
+PASTE_EDGES = ("image", "surroundings")
+
+
+def paste(
+    image: np.ndarray, fill: np.ndarray, mask: np.ndarray, feather_px: int, edge: str = "image"
+) -> np.ndarray:
+    """image outside the mask (bit-identical), feathered blend of fill and `edge` inside it.
+
+    edge: "image" blends with the image's own pixels under the mask's outer rings, for masks dilated
+    beyond the object (those pixels are background) or an image whose masked pixels are already a
+    fill; "surroundings" blends with the pixels outside the mask continued inward (OpenCV's Telea),
+    for exact masks, whose outer ring is the object itself: blended with it, the object's colours
+    would stay as an outline."""
+    if edge not in PASTE_EDGES:
+        raise ValueError(f"paste edge must be one of {', '.join(PASTE_EDGES)}, got {edge!r}")
     w = feather_weights(mask, feather_px)[..., None]
-    blend = (w * fill + (1 - w) * image).astype(np.float32)
+    under = image
+    if edge == "surroundings" and feather_px > 0 and mask.any() and not mask.all():
+        under = opencv_inpaint(image, mask, "telea", radius=feather_px + 1)
+    blend = (w * fill + (1 - w) * under).astype(np.float32)
     return np.where(mask[..., None], blend, image)
 
 
@@ -178,8 +195,10 @@ def inpaint_image(
     prompt: str = "",
     seed: int = 0,
     energy: EnergyFn | None = None,
+    edge: str = "image",
 ) -> tuple[np.ndarray, str]:
-    """Inpaint one view with the first available source (see module docstring).
+    """Inpaint one view with the first available source (see module docstring); the fill is pasted
+    with `paste`'s `edge` ("surroundings" for exact masks).
 
     image: (H, W, 3) float in [0, 1]; mask: (H, W) bool (True = fill); dataset_inpaint: (H, W, 3)
     float [0, 1] per-view inpaint shipped with the dataset. Returns (image (H, W, 3) float32, source
@@ -215,4 +234,4 @@ def inpaint_image(
         source = f"OpenCV classical inpainting ({cfg.opencv_method})"
         log.warning("inpaint: no learned source available, falling back to %s", source)
         fill = opencv_inpaint(image, mask, cfg.opencv_method, cfg.opencv_radius)
-    return paste(image, fill, mask, cfg.feather_px), source
+    return paste(image, fill, mask, cfg.feather_px, edge), source

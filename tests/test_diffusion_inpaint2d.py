@@ -11,6 +11,7 @@ from coin_cl.diffusion.inpaint2d import (
     feather_weights,
     inpaint_image,
     opencv_inpaint,
+    paste,
 )
 
 from coin_cl.crop import crop_image
@@ -139,3 +140,23 @@ def test_fsr_fills_holes_at_the_bottom_and_right_border(shape):
         m[box] = True
         fill = opencv_inpaint(img, m, "fsr_fast")[m]
         assert not ((fill[:, 0] < 0.1) & (fill[:, 2] < 0.1)).any(), box
+
+
+def test_paste_on_an_exact_mask_blends_toward_the_surroundings_not_the_object():
+    """A mask ending at the object's edge: feathered toward the image, the ring keeps half the object's
+    colour (an outline); toward the surroundings continued inward, none of it. Outside the mask both
+    are the image, bit for bit; a hard paste (feather 0) is the same either way."""
+    img = np.full((40, 50, 3), 0.6, np.float32)
+    img[10:30, 15:35] = (0.0, 0.0, 1.0)  # the object: pure blue on grey
+    m = np.zeros((40, 50), bool)
+    m[10:30, 15:35] = True  # exact: every masked pixel is the object
+    fill = np.full_like(img, 0.5)
+    ring = feather_weights(m, 2) == 0.5
+    outline = paste(img, fill, m, 2)
+    assert np.allclose(outline[ring][:, 2], 0.5 * 0.5 + 0.5 * 1.0)  # half of the object's blue
+    clean = paste(img, fill, m, 2, edge="surroundings")
+    assert np.array_equal(clean[~m], img[~m])
+    assert np.abs(clean[m] - 0.55).max() < 0.06  # between the fill (0.5) and the grey around (0.6)
+    assert np.array_equal(paste(img, fill, m, 0, edge="surroundings"), paste(img, fill, m, 0))
+    with pytest.raises(ValueError, match="edge must be one of"):
+        paste(img, fill, m, 2, edge="object")

@@ -107,3 +107,33 @@ def test_render_checkpoint_without_a_model_is_a_clear_error(tmp_path):
     (tmp_path / "run.json").write_text("{}")  # a coin-cl run folder with no trained stage yet
     with pytest.raises(FileNotFoundError, match="without a trained stage"):
         render_checkpoint(tmp_path)
+
+
+def test_render_checkpoint_names_views_as_eval_reads_them_and_finds_a_stages_test_cameras(
+    tmp_path, monkeypatch
+):
+    """A run stage's model (4_ted/finetune) trained on training views only: its test views are the
+    run's scene's; the files are `<view stem>.png`, the names `coin-cl eval` looks for. A model with
+    no cameras of the kind asked for is an error, not an empty folder."""
+    import json
+
+    import coin_cl.checkpoint
+    import coin_cl.gs.model_kinds
+    import coin_cl.render_utils as R
+
+    cams = _captured(3)
+    stage = tmp_path / "run" / "4_ted" / "finetune"
+    stage.mkdir(parents=True)
+    (stage / "ckpt.pt").write_bytes(b"")
+    (stage / "cameras.json").write_text(json.dumps({"train": [c.to_json() for c in cams], "test": []}))
+    state = {"model": {}, "trainer": {"step": 3}}
+    monkeypatch.setattr(coin_cl.checkpoint, "load_checkpoint", lambda *a: state)
+    monkeypatch.setattr(coin_cl.gs.model_kinds, "model_from_state", lambda s: _FlatModel())
+    with pytest.raises(ValueError, match="no test cameras"):
+        render_checkpoint(stage, views="test", backend="torch")
+    (tmp_path / "run" / "run.json").write_text("{}")
+    monkeypatch.setattr(R, "_run_folder", lambda run: (run / "x", {"train": [], "test": [cams[1].to_json()]}))
+    n, dest = render_checkpoint(stage, views="test", backend="torch", dest=tmp_path / "out")
+    assert n == 1 and sorted(p.name for p in dest.iterdir()) == ["cap_1.png", "cap_1_depth.png"]
+    n, dest = render_checkpoint(stage, views="train", backend="torch", dest=tmp_path / "out")
+    assert n == 3 and {p.name for p in dest.iterdir()} >= {"cap_0.png", "cap_2.png"}

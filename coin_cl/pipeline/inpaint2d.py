@@ -193,8 +193,13 @@ def run_inpaint2d(
     prompt: str = "",
     sd2_views: list[int] | None = None,
     sd2_why: str = "",
+    exact_masks: bool = False,
 ) -> dict:
     """Inpaint `views` of `scene` in `masks`; writes `images/<name>.png` and `sources.json`.
+
+    exact_masks: the masks end at the object's edge (not dilated beyond it, or refined cores whose
+    captured pixels are the object): a pasted fill is feathered toward the surroundings continued
+    inward, not toward the masked pixels (`diffusion.inpaint2d.paste`'s edge).
 
     sd2_views: with `sd2`, the views SD2 inpaints (None: all; SD2's CPU-practical mode passes the
     reference only, the rest take `cfg.inpainter`); the choice and `sd2_why` go to `sd2.json`,
@@ -212,6 +217,7 @@ def run_inpaint2d(
     by_sd2 = set() if sd2 is None else set(views if sd2_views is None else sd2_views)
     todo = [i for i in views if masks[i].any() and i not in dataset and i not in by_sd2]
     kind = resolve_inpainter(cfg)
+    edge = "surroundings" if exact_masks else "image"
     prior, prior_info, lama = None, None, None
     if sd2 is not None:
         from coin_cl.diffusion.sd2 import log_sd2_estimate
@@ -257,12 +263,12 @@ def run_inpaint2d(
             src = EXEMPLAR_NAME
         elif i in todo and kind == "lama":
             fill = lama_inpaint(lama, scene.images[i], masks[i])
-            img, src = paste(scene.images[i], fill, masks[i], cfg.inpaint.feather_px), LAMA_NAME
+            img, src = paste(scene.images[i], fill, masks[i], cfg.inpaint.feather_px, edge), LAMA_NAME
         else:
             img, src = inpaint_image(
                 scene.images[i], masks[i], sd2=sd2 if i in by_sd2 else None, dataset_inpaint=dataset.get(i),
                 scene_prior=prior,
-                cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i,
+                cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i, edge=edge,
             )  # fmt: skip
         note(name, src)
         write_png(path, to_uint8(img))

@@ -125,8 +125,10 @@ def stage_inpaint(ctx: StageContext) -> dict:
         mode, why = sd2_mode_for(cfg, sd2, sum(bool(masks[i].any()) for i in train))
         ctx.note(why)
         only = [ctx.shared["ref"]] if mode == "reference_only" else None
+    # Undilated or refined masks end where the object does: a paste must not blend its outline back.
+    exact = cfg.mask_dilate == 0 or "0_refine" in ctx.inputs
     res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt,
-                        sd2_views=only, sd2_why=why)  # fmt: skip
+                        sd2_views=only, sd2_why=why, exact_masks=exact)  # fmt: skip
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
     return res
