@@ -23,10 +23,11 @@ import numpy as np
 
 from coin_cl.pipeline.budget import CAP_FACTOR, ted_schedule
 from coin_cl.pipeline.inpaint2d import planned_config, read_inpaints, run_inpaint2d
-from coin_cl.pipeline.models import sd2_denoiser, sd2_mode_for
+from coin_cl.pipeline.models import resolve_sd2_mode, sd2_denoiser, sd2_on_cpu
 from coin_cl.pipeline.runner import StageContext, jsonable
 
 if TYPE_CHECKING:
+    from coin_cl.diffusion.sampling import Denoiser
     from coin_cl.gs.terms import LossTerm
     from coin_cl.pipeline.config import CoInConfig
     from coin_cl.pipeline.run_inputs import RunInputs
@@ -109,6 +110,16 @@ def stage_refine(ctx: StageContext[RunInputs]) -> dict:
     ctx.note(f"refined masks: {res['refined_px']} of {res['input_px']} mask px left to inpaint "
              f"({res['refined_ratio']:.0%}); per view in 0_refine/areas.json")  # fmt: skip
     return res
+
+
+def sd2_mode_for(cfg: CoInConfig, sd2: Denoiser, n_views: int) -> tuple[str, str]:
+    """`resolve_sd2_mode` for a pipeline run: `CoInConfig` cfg (its inpaint2d.sd2_mode, stage 1's
+    and CLG's step counts), the loaded SD2 denoiser, n_views masked training views."""
+    from coin_cl.pipeline.clg_config import CLGConfig
+
+    clg_steps = (cfg.clg or CLGConfig()).num_steps(sd2)
+    steps = cfg.inpaint2d.inpaint.sampler_sd.num_steps
+    return resolve_sd2_mode(cfg.inpaint2d.sd2_mode, n_views, steps, sd2_on_cpu(sd2), clg_steps)
 
 
 def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
