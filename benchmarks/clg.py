@@ -52,11 +52,13 @@ from common import cpu_model, git_commit  # noqa: E402
 from crop_grid import tile_row  # noqa: E402
 
 from coin_cl import metrics  # noqa: E402
+from coin_cl.pipeline.budget import read_plan  # noqa: E402
 from coin_cl.pipeline.clg import stage_clg  # noqa: E402
 from coin_cl.pipeline.clg_config import CLGConfig  # noqa: E402
 from coin_cl.pipeline.clg_guard import colour_distance  # noqa: E402
 from coin_cl.pipeline.coin import CoInConfig  # noqa: E402
 from coin_cl.pipeline.reprojection import residual_to_reference  # noqa: E402
+from coin_cl.pipeline.run_inputs import RunInputs  # noqa: E402
 from coin_cl.pipeline.runner import StageContext  # noqa: E402
 from coin_cl.scene import load_scene  # noqa: E402
 from coin_cl.scene.io import read_image, to_uint8, view_stem, write_png  # noqa: E402
@@ -91,11 +93,11 @@ def run_row(run: Path, out: Path, cfg: CLGConfig, scene, masks, ref: int, plan: 
         for p in folder.glob("scene_prior_*.pt"):
             shutil.copy(p, dst / p.name)
     ccfg = CoInConfig(clg=replace(cfg, progress=True), seed=int(plan["key"]["seed"]))
-    ctx = StageContext(
-        "3_clg", dst, {"1_inpaint": run / "1_inpaint", "2_refgs": run / "2_refgs"}, {},
-        {"scene": scene, "masks": masks, "ref": ref, "cfg": ccfg,
-         "iters": {"prior_seconds": float(plan["prior_seconds"])}},
-    )  # fmt: skip
+    # The run's scene prior seconds alone (no measured prior_steps): the prior's fixed-rate steps.
+    given = replace(read_plan(run / "plan.json"), prior_steps=None)
+    inputs = RunInputs(out=run, scene=scene, masks=masks, ref=ref, cfg=ccfg, plan=given,
+                       refgs_cfg=ccfg.refgs_settings(ref))  # fmt: skip
+    ctx = StageContext("3_clg", dst, {"1_inpaint": run / "1_inpaint", "2_refgs": run / "2_refgs"}, {}, inputs)
     t0 = time.perf_counter()
     res = stage_clg(ctx)
     secs = time.perf_counter() - t0

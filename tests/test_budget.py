@@ -178,7 +178,7 @@ def test_ted_is_planned_again_from_refgs_measured_rate():
 
 def test_run_steps_reads_back_what_a_run_trains(tmp_path):
     """A run folder's counts: plan.json's before Ref-GS ran, TE-D re-planned from 2_refgs's
-    recorded rate after (the same numbers `ted_iters` gives the run)."""
+    recorded rate after (the same numbers `ted_schedule` gives the run)."""
     key = {"budget_minutes": 30, "size": [64, 48]}
     none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
     plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
@@ -198,6 +198,38 @@ def test_run_steps_reads_back_what_a_run_trains(tmp_path):
 def _manifest(result: dict) -> dict:
     """A stage manifest as the runner writes it (`coin_cl.schema.MANIFEST`), holding `result`."""
     return {"key": "k", "settings": {}, "outputs": {}, "result": result, "seconds": 1.0}
+
+
+def test_ted_schedule_is_a_pure_function_of_the_plan_and_refgs_manifest(tmp_path):
+    """TE-D's schedule (its stage key and the stage itself both compute it): the re-planned counts of
+    `replan_ted` with each budget-planned phase's cap, the same numbers on every call, and nothing
+    written or changed (the plan, its file, the manifest). Before Ref-GS ran: the plan's counts, no caps."""
+    import copy
+
+    key = {"budget_minutes": 30, "size": [64, 48]}
+    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+    plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
+    before = B.ted_schedule(tmp_path, plan, 30)
+    assert before == B.TedSchedule({k: plan.steps[k] for k in ("ted_finetune", "ted_adversarial")}, {}, None)
+    (tmp_path / "2_refgs").mkdir()
+    slow = 1.5 * 60 * plan.minutes["refgs"]
+    (tmp_path / "2_refgs" / "manifest.json").write_text(
+        json.dumps(_manifest({"steps": plan.steps["refgs"], "train_minutes": slow / 60}))
+    )
+    files = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    kept = copy.deepcopy(plan)
+    first, second = B.ted_schedule(tmp_path, plan, 30), B.ted_schedule(tmp_path, plan, 30)
+    assert first == second and first.steps == B.replan_ted(plan, plan.steps["refgs"], slow, 30)
+    spp = slow / plan.steps["refgs"]
+    assert first.refgs_seconds_per_step == pytest.approx(spp)
+    for k, n in first.steps.items():
+        assert n > 0 and first.caps[k] == pytest.approx(B.CAP_FACTOR * n * B.ted_step_seconds(plan, k, spp))
+    assert plan == kept and {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == files
+    # an explicit phase keeps its count and gets no cap
+    fixed = B.Plan({**plan.steps, "ted_finetune": 5}, {**plan.minutes, "ted_finetune": None}, 270.0, 0.25,
+                   "probe", {})  # fmt: skip
+    sched = B.ted_schedule(tmp_path, fixed, 30)
+    assert sched.steps["ted_finetune"] == 5 and set(sched.caps) == {"ted_adversarial"}
 
 
 def test_trained_steps_count_what_stopped_at_a_cap(tmp_path):
@@ -239,103 +271,6 @@ def test_standalone_steps_use_the_pipelines_rule():
         B.standalone_steps("refgs", None, 0, probe)
     with pytest.raises(ValueError, match="probe"):
         B.standalone_steps("refgs", 1.0, None, lambda: float("nan"))
-
-
-class _Cam:
-    width, height = 64, 48
-
-
-class _Scene:
-    cameras = [_Cam()] * 4
-    priors = {"rgb": {0: "the dataset's inpaint of view 0"}}  # stage 1 takes a learned inpainter's fills
-
-
-class _OwnCapture(_Scene):
-    priors = {}  # no dataset inpaints: stage 1 is the embedded exemplar inpainter
-
-
-def test_the_adversarial_phase_runs_only_on_a_learned_inpainters_fills(tmp_path, monkeypatch):
-    """TE-D's discriminator takes stage 1's fills as the real texture: with the embedded inpainters
-    (exemplar, Telea, scene prior) the plan leaves the phase out, says why in its key, and gives the
-    fine-tune phase Ref-GS's spare time alone; an explicit count runs it; dataset / LaMa fills keep it."""
-    from coin_cl.pipeline.coin import CoInConfig
-    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
-
-    monkeypatch.setattr(B, "probe_seconds_per_step", lambda *a, **k: 0.5)
-    monkeypatch.setattr(B, "disc_probe", lambda *a: lambda: 0.1)
-    auto, _ = B.steps_from_rate(4.0, 0.5)
-    own = B.plan_for(_OwnCapture(), tmp_path / "own", CoInConfig(budget_minutes=4.0), [0, 1])
-    assert own.steps == {**auto, "ted_adversarial": 0} and own.minutes["ted_adversarial"] is None
-    assert "embedded" in own.key["ted_adversarial"] and own.disc_seconds_per_step is None
-    assert B.replan_ted(own, auto["refgs"], 1.0, 4.0)["ted_adversarial"] == 0
-    telea = CoInConfig(budget_minutes=4.0, inpaint2d=Inpaint2DConfig(inpainter="telea"))
-    assert "telea" in B.plan_for(_OwnCapture(), tmp_path / "telea", telea, [0, 1]).key["ted_adversarial"]
-    asked = CoInConfig(budget_minutes=4.0, iters_ted_adversarial=9)
-    assert B.plan_for(_OwnCapture(), tmp_path / "asked", asked, [0, 1]).steps["ted_adversarial"] == 9
-    lama = B.plan_for(_Scene(), tmp_path / "lama", CoInConfig(budget_minutes=4.0), [0, 1])
-    assert lama.steps == auto and "ted_adversarial" not in lama.key
-    no_dataset = CoInConfig(budget_minutes=4.0, inpaint2d=Inpaint2DConfig(use_dataset=False))
-    assert B.plan_for(_Scene(), tmp_path / "nd", no_dataset, [0, 1]).steps["ted_adversarial"] == 0
-
-
-def test_ted_counts_none_follow_the_plan_and_numbers_are_honoured(tmp_path, monkeypatch):
-    """TEDConfig.iters_* None: the budget plan's counts; a number is kept by the plan, by the re-plan
-    from Ref-GS's measured rate, and reaches TE-D; the user's config is not changed."""
-    from coin_cl.pipeline.coin import CoInConfig
-    from coin_cl.pipeline.ted import TEDConfig
-
-    monkeypatch.setattr(B, "probe_seconds_per_step", lambda *a, **k: 0.5)
-    auto, _ = B.steps_from_rate(4.0, 0.5)
-    plan = B.plan_for(_Scene(), tmp_path / "none", CoInConfig(budget_minutes=4.0), [0, 1])
-    assert plan.steps == auto and plan.source == "probe"
-
-    cfg = CoInConfig(budget_minutes=4.0, ted=TEDConfig(iters_finetune=7))
-    plan = B.plan_for(_Scene(), tmp_path / "seven", cfg, [0, 1])
-    assert plan.steps == {**auto, "ted_finetune": 7} and plan.minutes["ted_finetune"] is None
-    assert cfg.ted.iters_finetune == 7 and cfg.ted.iters_adversarial is None  # not overwritten
-    # Ref-GS ran twice as slow as planned: TE-D's free phase is planned again, the explicit one is kept.
-    again = B.replan_ted(plan, auto["refgs"], 2.0 * 0.5 * B.STEP_COST["refgs"] * auto["refgs"], 4.0)
-    assert again["ted_finetune"] == 7 and again["ted_adversarial"] != auto["ted_adversarial"]
-    # Both spellings may be used when they agree; disagreeing ones are an error, not a silent choice.
-    both = CoInConfig(iters_ted_finetune=7, ted=TEDConfig(iters_finetune=7))
-    assert B.explicit_steps(both)["ted_finetune"] == 7
-    with pytest.raises(ValueError, match="iters_ted_finetune=5 and CoInConfig.ted.iters_finetune=7"):
-        B.explicit_steps(CoInConfig(iters_ted_finetune=5, ted=TEDConfig(iters_finetune=7)))
-
-
-def test_a_comparison_row_plans_with_the_rates_of_the_run_it_is_compared_to(tmp_path, monkeypatch):
-    """`CoInConfig.rates_from`: the row's plan takes the GS, scene-prior and discriminator rates of
-    the other run's plan instead of probing (a second probe could give the prior one step more and
-    redo the stages the rows share); a rate that plan lacks is measured; a missing plan is an error
-    naming it."""
-    from coin_cl.pipeline.coin import CoInConfig
-
-    monkeypatch.setattr(B, "probe_seconds_per_step", lambda *a, **k: 0.5)
-    monkeypatch.setattr(B, "prior_probe", lambda *a: lambda: 1.31)
-    monkeypatch.setattr(B, "disc_probe", lambda *a: lambda: 0.27)
-    first = B.plan_for(_Scene(), tmp_path / "coin", CoInConfig(budget_minutes=40.0), [0, 1])
-    assert first.prior_steps == round(first.prior_seconds / 1.31) > 133  # above the floor: rate-bound
-
-    def never(*a, **k):
-        raise AssertionError("probed although the rates were given")
-
-    monkeypatch.setattr(B, "probe_seconds_per_step", never)
-    monkeypatch.setattr(B, "prior_probe", lambda *a: never)
-    monkeypatch.setattr(B, "disc_probe", lambda *a: never)
-    cfg = CoInConfig(budget_minutes=40.0, rates_from=str(tmp_path / "coin"))
-    row = B.plan_for(_Scene(), tmp_path / "row", cfg, [0, 1])
-    assert (row.steps, row.prior_steps) == (first.steps, first.prior_steps)
-    rates = (row.probe_seconds_per_step, row.prior_seconds_per_step, row.disc_seconds_per_step)
-    assert rates == (0.5, 1.31, 0.27)
-    assert row.key["rates_from"] == str(tmp_path / "coin") and "rates_from" not in first.key
-    # a rate the other plan lacks is measured here
-    plan = json.loads((tmp_path / "coin" / B.PLAN_FILE).read_text())
-    plan["disc_seconds_per_step"] = None
-    (tmp_path / "coin" / B.PLAN_FILE).write_text(json.dumps(plan))
-    monkeypatch.setattr(B, "disc_probe", lambda *a: lambda: 0.5)
-    assert B.plan_for(_Scene(), tmp_path / "row2", cfg, [0, 1]).disc_seconds_per_step == 0.5
-    with pytest.raises(FileNotFoundError, match="nowhere.*plan.json"):
-        B.plan_for(_Scene(), tmp_path / "row3", CoInConfig(rates_from=str(tmp_path / "nowhere")), [0, 1])
 
 
 def test_run_ted_refuses_counts_left_to_a_plan(tmp_path):

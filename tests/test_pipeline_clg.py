@@ -159,8 +159,10 @@ def test_guidance_lowers_energy_and_residual(room, tmp_path):
 def test_stage_clg_reads_the_stage_folders(tmp_path):
     """`stage_clg` on the runner's layout: 1_inpaint/images, 2_refgs/renders + depths (no
     reference_points.ply: P_k comes from the reference depth), writes 3_clg/images."""
+    from coin_cl.pipeline.budget import Plan
     from coin_cl.pipeline.coin import CoInConfig
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+    from coin_cl.pipeline.run_inputs import RunInputs
     from coin_cl.pipeline.runner import StageContext
     from coin_cl.scene import load_scene
     from coin_cl.scene.io import write_png
@@ -181,11 +183,11 @@ def test_stage_clg_reads_the_stage_folders(tmp_path):
     cfg = CoInConfig(clg=CLGConfig(steps=2, progress=False), inpaint2d=Inpaint2DConfig(prior=prior))
     masks = [np.asarray(m, bool) for m in scene.masks]
     masks[train[1]] = np.zeros_like(masks[train[1]])
-    ctx = StageContext(
-        "3_clg", tmp_path / "3_clg", {"1_inpaint": inp_dir, "2_refgs": gs_dir}, {},
-        {"scene": replace(scene, masks=masks), "masks": masks, "ref": k, "cfg": cfg,
-         "iters": {"prior_seconds": 600.0}},
-    )  # fmt: skip
+    counts = {"refgs": 1, "ted_finetune": 0, "ted_adversarial": 0}
+    plan = Plan(counts, dict.fromkeys(counts), 600.0, None, "explicit", {})
+    run = RunInputs(out=tmp_path, scene=replace(scene, masks=masks), masks=masks, ref=k, cfg=cfg, plan=plan,
+                    refgs_cfg=cfg.refgs_settings(k))  # fmt: skip
+    ctx = StageContext("3_clg", tmp_path / "3_clg", {"1_inpaint": inp_dir, "2_refgs": gs_dir}, {}, run)
     res = stage_clg(ctx)
     written = sorted(p.stem for p in (ctx.out / "images").iterdir())
     expect = sorted(scene.cameras[i].name.rsplit(".", 1)[0] for i in train[2:])

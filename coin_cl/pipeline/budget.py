@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -39,9 +40,6 @@ from typing import TYPE_CHECKING, Any
 from coin_cl.atomic import write_text
 from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
-
-# A `CoInConfig` (not imported even for type checking: config -> refine_masks -> budget).
-CoInConfigLike = Any
 
 if TYPE_CHECKING:
     from coin_cl.scene import Scene
@@ -192,7 +190,7 @@ def stage_steps(stage: str, minutes: float, seconds_per_step: float) -> int:
     return int(minutes * 60.0 / (seconds_per_step * STEP_COST[stage]))
 
 
-def standalone_steps(stage: str, minutes: float | None, iters: int | None, probe: Any) -> int:
+def standalone_steps(stage: str, minutes: float | None, iters: int | None, probe: Callable[[], float]) -> int:
     """The schedule of one GS stage run on its own (e.g. `pipeline.refgs.run_refgs`): `iters` when
     given; else `minutes` of that stage at the rate `probe()` measures (seconds per probe step, see
     `probe_seconds_per_step`), by `stage_steps`, the pipeline's rule (at least 1); else the
@@ -254,9 +252,9 @@ def plan_run(
     budget_minutes: float,
     explicit: dict[str, int | None],
     explicit_prior_seconds: float | None,
-    probe: Any,
-    prior_probe: Any = None,
-    disc_probe: Any = None,
+    probe: Callable[[], float],
+    prior_probe: Callable[[], float] | None = None,
+    disc_probe: Callable[[], float] | None = None,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
@@ -362,111 +360,6 @@ def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> f
     return refgs_seconds_per_step * TED_PER_REFGS_STEP[phase]
 
 
-# ----------------------------------------------------------------------------------------------------
-# the plan of a CoIn run (`coin_cl.pipeline.coin`)
-
-
-def plan_for(scene: Scene, out: Path, cfg: CoInConfigLike, train: list[int]) -> Plan:
-    """The plan of a CoIn run (`cfg` a `CoInConfig`, `train` its training views): `plan_run` keyed by
-    the settings the step counts depend on, probing `scene` at its working size."""
-    cam = scene.cameras[train[0]]
-    explicit = explicit_steps(cfg)
-    skip_adv = adversarial_skip(scene, cfg) if explicit["ted_adversarial"] is None else None
-    if skip_adv:
-        explicit["ted_adversarial"] = 0
-        log.info("TE-D's adversarial phase skipped: %s (an explicit count runs it: --iters, "
-                 "CoInConfig.iters_ted_adversarial)", skip_adv)  # fmt: skip
-    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
-           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
-           "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
-    probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
-              prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
-    if skip_adv:
-        key["ted_adversarial"] = f"skipped: {skip_adv}"
-    if cfg.rates_from is not None:
-        key["rates_from"] = str(cfg.rates_from)  # only when set: plans made before keep their key
-        probes = inherited_rates(Path(cfg.rates_from), *probes)
-    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes)
-
-
-def adversarial_skip(scene: Scene, cfg: CoInConfigLike) -> str | None:
-    """Why a run leaves TE-D's adversarial phase out (None: it runs). Its discriminator takes the
-    stage-1 fills as the "real" texture (paper 4.4); that transfers a learned inpainter's texture
-    (SD2, LaMa), but the embedded fills' texture is a collage of the scene's other patches (exemplar),
-    a blur (Telea) or noise (scene prior), and the phase makes exactly that crisp: measured on two
-    virtual-object scenes of a real capture, it left the masked VGG distance 24% and 90% worse than
-    the fine-tune phase before it (docs/RESULTS.md)."""
-    from coin_cl.pipeline.inpaint2d import GENERATIVE_SOURCES, fill_source
-
-    source = fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path)
-    if source in GENERATIVE_SOURCES:
-        return None
-    return (f"stage 1's fills come from the {source} inpainter, whose texture the discriminator would "
-            "make crisp rather than true")  # fmt: skip
-
-
-def inherited_rates(run: Path, probe: Any, prior: Any, disc: Any) -> tuple[Any, Any, Any]:
-    """The three probes of a run that takes its measured rates from the plan of run folder `run`
-    (`CoInConfig.rates_from`): each returns that plan's figure instead of measuring again, so a
-    comparison row at the same budget gets the same counts (the scene prior's steps, which stage 1's
-    key holds, included: probed anew they could differ by a step and redo the shared stages). A
-    rate the plan lacks (not probed there) is measured here; a probe this run does not need
-    (None) stays None."""
-    path = Path(run) / PLAN_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: cannot take the rates from it; run that folder "
-                                "first or leave rates_from unset")  # fmt: skip
-    have = read_plan(path)
-
-    def take(name: str, own: Any) -> Any:
-        value = getattr(have, name)
-        if own is None or value is None:
-            return own
-        return lambda: float(value)
-
-    log.info("plan: the measured rates come from %s", path)
-    return (take("probe_seconds_per_step", probe), take("prior_seconds_per_step", prior),
-            take("disc_seconds_per_step", disc))  # fmt: skip
-
-
-def disc_probe(cfg: CoInConfigLike, width: int, height: int) -> Any:
-    """TE-D's discriminator probe for a CoIn run: a callable -> seconds it
-    adds to an adversarial step at this image size; None where TE-D is skipped."""
-    if "ted" in cfg.skip:
-        return None
-    from coin_cl.pipeline.ted import TEDConfig, probe_discriminator_seconds
-
-    ted = cfg.ted or TEDConfig()
-    return lambda: probe_discriminator_seconds(ted, height, width)
-
-
-def prior_probe(cfg: CoInConfigLike, width: int, height: int) -> Any:
-    """The scene prior's timing probe for a CoIn run (views `width` x `height`):
-    a callable -> seconds per step of the prior stage 1 and CLG will train; None where no prior is
-    trained (SD2 given) or its step count is fixed (`ScenePriorConfig.train_steps`)."""
-    if cfg.sd_path or cfg.inpaint2d.prior.train_steps is not None:
-        return None
-    from coin_cl.diffusion.scene_prior import probe_seconds_per_step as prior_rate
-    from coin_cl.pipeline.inpaint2d import effective_config
-
-    prior_cfg = effective_config(cfg.inpaint2d, PRIOR_MIN_SECONDS, cfg.seed, width, height).prior
-    return lambda: prior_rate(prior_cfg)
-
-
-def explicit_steps(cfg: CoInConfigLike) -> dict[str, int | None]:
-    """{"refgs", "ted_finetune", "ted_adversarial": the step count `cfg` gives, or
-    None for the plan's}. TE-D's may come from `CoInConfig.iters_ted_*` or `cfg.ted.iters_*`; set in
-    both, they must agree (ValueError naming both)."""
-    out = {"refgs": cfg.iters_refgs}
-    for phase in ("finetune", "adversarial"):
-        top, nested = getattr(cfg, f"iters_ted_{phase}"), getattr(cfg.ted, f"iters_{phase}")
-        if top is not None and nested is not None and top != nested:
-            raise ValueError(f"CoInConfig.iters_ted_{phase}={top} and CoInConfig.ted.iters_{phase}={nested} "
-                             "disagree: set one of them")  # fmt: skip
-        out[f"ted_{phase}"] = top if top is not None else nested
-    return out
-
-
 def refgs_rate(out: Path) -> tuple[int, float]:
     """(steps, training seconds) that Ref-GS recorded in OUT/2_refgs/manifest.json; (0, 0.0) when it
     has not run."""
@@ -487,13 +380,12 @@ def refgs_rate(out: Path) -> tuple[int, float]:
 
 def run_steps(out: Path) -> dict[str, int]:
     """The step counts a run folder trains: its plan.json's, TE-D's as re-planned from Ref-GS's
-    measured rate (`replan_ted`, as `ted_iters` does during the run)."""
+    measured rate (`ted_schedule`, as during the run)."""
     path = Path(out) / PLAN_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: not a CoIn run folder (coin-cl run writes it)")
     plan = read_plan(path)
-    n, seconds = refgs_rate(out)
-    return {**plan.steps, **replan_ted(plan, n, seconds, plan.key["budget_minutes"])}
+    return {**plan.steps, **ted_schedule(out, plan, plan.key["budget_minutes"]).steps}
 
 
 def trained_steps(out: Path) -> dict[str, int]:
@@ -518,22 +410,28 @@ def trained_steps(out: Path) -> dict[str, int]:
     return got
 
 
-def ted_iters(out: Path, shared: dict) -> list[int]:
-    """TE-D's [fine-tune, adversarial] steps, planned again from Ref-GS's measured rate
-    (`budget.replan_ted`; the measurement is in 2_refgs's manifest, so a rerun gets the same counts);
-    also sets the phases' time caps. Explicit counts are kept."""
-    plan: Plan = shared["plan"]
-    cfg = shared["cfg"]
+@dataclass(frozen=True)
+class TedSchedule:
+    """TE-D's schedule once Ref-GS has run. steps: {"ted_finetune", "ted_adversarial"} -> steps;
+    caps: the same keys -> seconds a phase may take (`CAP_FACTOR` x its planned time; only the
+    phases planned from the budget, and only once Ref-GS recorded a rate); refgs_seconds_per_step:
+    Ref-GS's measured rate the counts were planned from (None: not run, the plan's counts stand)."""
+
+    steps: dict[str, int]
+    caps: dict[str, float]
+    refgs_seconds_per_step: float | None
+
+
+def ted_schedule(out: Path, plan: Plan, budget_minutes: float) -> TedSchedule:
+    """TE-D's schedule in run folder `out`: its counts planned again from the Ref-GS rate that
+    OUT/2_refgs/manifest.json records (`replan_ted`) and the phases' time caps; explicit counts
+    are kept. A pure function of the plan and that manifest (it writes and logs nothing), so TE-D's
+    stage key and the stage itself get the same numbers, and a rerun too."""
     n, seconds = refgs_rate(out)
-    steps = replan_ted(plan, n, seconds, cfg.budget_minutes)
-    caps = {}
-    if n:
-        spp = seconds / n
-        for k in steps:
-            if plan.minutes.get(k) is not None:
-                caps[k] = CAP_FACTOR * steps[k] * ted_step_seconds(plan, k, spp)
-                log.info("TE-D %s: %d steps (planned from Ref-GS's %.3f s/step; was %d from the probe)",
-                         k, steps[k], spp, plan.steps[k])  # fmt: skip
-    shared["iters"].update(steps)
-    shared["ted_caps"] = caps
-    return [steps["ted_finetune"], steps["ted_adversarial"]]
+    steps = replan_ted(plan, n, seconds, budget_minutes)
+    if not n:
+        return TedSchedule(steps, {}, None)
+    spp = seconds / n
+    caps = {k: CAP_FACTOR * steps[k] * ted_step_seconds(plan, k, spp)
+            for k in steps if plan.minutes.get(k) is not None}  # fmt: skip
+    return TedSchedule(steps, caps, spp)

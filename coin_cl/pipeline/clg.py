@@ -44,6 +44,7 @@ from coin_cl.scene.io import atomic_write, view_stem, write_png
 from coin_cl.schema import CLG_VIEW, SD2_PLAN, parse_optional, run_folder_fix
 
 if TYPE_CHECKING:
+    from coin_cl.pipeline.run_inputs import RunInputs
     from coin_cl.pipeline.runner import StageContext
     from coin_cl.scene import Scene
 
@@ -242,7 +243,7 @@ def run_clg(
 
 
 def _stage_inputs(
-    ctx: StageContext, scene: Scene, masks: list[np.ndarray], train: list[int]
+    ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int]
 ) -> tuple[list, list, list]:
     """(inpaints I^_n composited, renders R_n, depths masked to alpha > 0.5) per scene view, None
     outside the training views, from the stage folders 1_inpaint and 2_refgs."""
@@ -268,19 +269,21 @@ def _stage_inputs(
     return inpaints, renders, depths
 
 
-def _stage_denoiser(ctx: StageContext, scene: Scene, masks: list[np.ndarray], train: list[int]) -> Denoiser:
+def _stage_denoiser(
+    ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int]
+) -> Denoiser:
     """Stable Diffusion 2 when configured, else the scene prior of stage 1 (trained here when its
     cache is not in 1_inpaint: never written into an earlier stage's folder)."""
     from coin_cl.diffusion.scene_prior import cache_key
     from coin_cl.pipeline.inpaint2d import planned_config, stage_prior
     from coin_cl.pipeline.models import sd2_denoiser
 
-    ccfg = ctx.shared["cfg"]
+    ccfg = ctx.run.cfg
     sd2 = sd2_denoiser(ccfg.sd_path)
     if sd2 is not None:
         return sd2
     cam = scene.cameras[train[0]]
-    icfg = planned_config(ccfg.inpaint2d, ctx.shared["iters"], ccfg.seed, cam.width, cam.height)
+    icfg = planned_config(ccfg.inpaint2d, ctx.run.plan, ccfg.seed, cam.width, cam.height)
     folder = ctx.inputs["1_inpaint"]
     key = cache_key([scene.images[i] for i in train], [masks[i] for i in train], icfg.prior)
     if not (folder / f"scene_prior_{key}.pt").is_file():
@@ -289,20 +292,20 @@ def _stage_denoiser(ctx: StageContext, scene: Scene, masks: list[np.ndarray], tr
 
 
 def stage_clg(
-    ctx: StageContext, scene: Scene | None = None, masks: list[np.ndarray] | None = None
+    ctx: StageContext[RunInputs], scene: Scene | None = None, masks: list[np.ndarray] | None = None
 ) -> dict[str, Any]:
     """Stage 3_clg of `coin_cl.pipeline.coin`: reads 1_inpaint (I^_n, the scene prior's cache) and
     2_refgs (renders/, depths/, alphas/, reference_points.ply); writes images/<stem>.png per guided view.
-    scene, masks: the views as the pipeline's stages see them (default `ctx.shared`'s)."""
+    scene, masks: the views as the pipeline's stages see them (default: the run's, `ctx.run`)."""
     from dataclasses import replace
 
     from coin_cl.pipeline.reference import reference_points
 
-    scene = ctx.shared["scene"] if scene is None else scene
-    masks = ctx.shared["masks"] if masks is None else masks
+    scene = ctx.run.scene if scene is None else scene
+    masks = ctx.run.masks if masks is None else masks
     train = list(scene.train_idx)
-    k = int(ctx.shared["ref"])
-    ccfg = ctx.shared["cfg"]
+    k = int(ctx.run.ref)
+    ccfg = ctx.run.cfg
     cfg: CLGConfig = ccfg.clg_settings()  # the run's seed and prompt where CLGConfig leaves them None
     inpaints, renders, depths = _stage_inputs(ctx, scene, masks, train)
     ply = ctx.inputs["2_refgs"] / "reference_points.ply"

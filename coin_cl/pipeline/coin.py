@@ -32,18 +32,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from coin_cl.pipeline.budget import (
-    MAX_WORK_PIXELS,
-    PRIOR_MIN_SECONDS,
-    plan_for,
-    ted_iters,
-    working_resolution,
-)
+from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, ted_schedule, working_resolution
+from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
+from coin_cl.pipeline.run_inputs import RunInputs
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
 from coin_cl.pipeline.stages import (
     carves,
@@ -325,66 +321,24 @@ def _run(
         ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
     plan = plan_for(scene, out, cfg, train)
-    iters = {"prior_seconds": plan.prior_seconds, "prior_steps": plan.prior_steps, **plan.steps}
-    if iters["prior_seconds"] < PRIOR_MIN_SECONDS and not cfg.sd_path:
+    if plan.prior_seconds < PRIOR_MIN_SECONDS and not cfg.sd_path:
         log.warning(
             "the scene prior gets %.0f s of training (prior_seconds); below %.0f s it is measured to be "
             "untrained on 2 cores and its fills are noise: use this for smoke tests only",
-            iters["prior_seconds"], PRIOR_MIN_SECONDS,
+            plan.prior_seconds, PRIOR_MIN_SECONDS,
         )  # fmt: skip
     # Ref-GS trains around the pipeline's reference, the one CLG warps from: left to its own rule it
     # would choose again from the masks it is given (refined masks, insertion footprints), or ignore
     # --ref, and P_k would then come from another view than CLG's camera k.
-    refgs_cfg = cfg.refgs_settings(ref)
-    shared = {"scene": scene, "masks": masks, "ref": ref, "cfg": cfg, "iters": iters, "refgs_cfg": refgs_cfg,
-              "edited": edited, "plan": plan}  # fmt: skip
+    run = RunInputs(out=out, scene=scene, masks=masks, ref=ref, cfg=cfg, plan=plan,
+                    refgs_cfg=cfg.refgs_settings(ref), edited=edited)  # fmt: skip
     log.info(
         "CoIn: %d training views at %dx%d (%d with a mask), reference view %d (%s), %s masks; %s",
         len(train), cam.width, cam.height, sum(masks[i].any() for i in train), ref, scene.cameras[ref].name,
         cfg.mask_kind, plan.describe(),
     )  # fmt: skip
-    base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask_kind, "dilate": cfg.mask_dilate}
-    # The edited image's content (not its path) decides whether stage 1 and what follows rerun.
-    edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
-                                        "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
-    refined = cfg.inpaint_region == "refined"
-    clg_cfg = cfg.clg_settings()  # the defaults in the key too: a changed default reruns CLG
-    r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
-    # only "captures" enters the keys: "target" runs made before the option keep their stages
-    observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}
-    ring = vote_ring(cam.width, cam.height, cfg.mask_dilate)  # 0 with the default dilation
-    stages = [
-        Stage("0_scene", stage_scene, settings=base),
-        # keyed by the fit's effective steps: a baseline that trains longer (the naive row at CoIn's
-        # budget) but fixes the fit at CoIn's Ref-GS count reuses CoIn's split
-        *([Stage("0_refine", stage_refine, ["0_scene"],
-                 {"cfg": jsonable(replace(cfg.refine, iters=None)),
-                  "iters": iters["refgs"] if cfg.refine.iters is None else cfg.refine.iters,
-                  **({"vote_ring": ring} if ring else {})})]
-          if refined else []),
-        Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
-              {**inpaint_key(cfg.inpaint2d), "prior_seconds": iters["prior_seconds"], "seed": cfg.seed,
-               # the measured step count (plans made before it have none: their key is unchanged)
-               **({"prior_steps": iters["prior_steps"]} if iters["prior_steps"] is not None else {}),
-               "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
-        Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
-              {"cfg": jsonable(refgs_cfg), "ref": ref, "iters": iters["refgs"], "seed": cfg.seed,
-               "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
-               "plain": "refgs" in cfg.skip, **observed_key}),
-        Stage("3_clg", stage_clg_adapter, ["0_scene", *r, "1_inpaint", "2_refgs"],
-              {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
-               "sd": cfg.sd_path, "prompt": cfg.prompt,
-               **({"sd2_mode": cfg.inpaint2d.sd2_mode} if cfg.sd_path else {})},
-              skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
-        Stage("4_ted", stage_ted,
-              ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
-              lambda: {"cfg": jsonable(cfg.ted), "iters": ted_iters(out, shared), "seed": cfg.seed,
-                       **observed_key},
-              skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
-    ]  # fmt: skip
-    final = "2_refgs" if "ted" in cfg.skip else "4_ted"
-    stages.append(Stage("eval", stage_eval, ["0_scene", *r, final], {"final": final}))  # 0_refine: the split
-    records = run_stages(out, stages, shared, force)
+    records = run_stages(out, coin_stages(run), run, force)
+    final = final_stage(cfg)
     ev = records["eval"].get("result", {})
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CKPT_NAME
@@ -398,6 +352,66 @@ def _run(
         model=model,
         stages=records,
     )
+
+
+def final_stage(cfg: CoInConfig) -> str:
+    """The stage whose model is the result: TE-D's, or Ref-GS's when TE-D is skipped."""
+    return "2_refgs" if "ted" in cfg.skip else "4_ted"
+
+
+def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
+    """The stage graph of a CoIn run: each stage's function, the stages it reads and its key's
+    settings (everything its output depends on besides what it reads). Building it computes
+    nothing and writes nothing; TE-D's settings are a function the runner calls once Ref-GS has
+    run (its counts are planned from Ref-GS's measured rate: `budget.ted_schedule`)."""
+    cfg, plan, ref, edited = run.cfg, run.plan, run.ref, run.edited
+    cam = run.scene.cameras[run.scene.train_idx[0]]
+    base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask_kind, "dilate": cfg.mask_dilate}
+    # The edited image's content (not its path) decides whether stage 1 and what follows rerun.
+    edit = None if edited is None else {"sha256": hashlib.sha256(edited.tobytes()).hexdigest(),
+                                        "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
+    refined = cfg.inpaint_region == "refined"
+    clg_cfg = cfg.clg_settings()  # the defaults in the key too: a changed default reruns CLG
+    r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
+    # only "captures" enters the keys: "target" runs made before the option keep their stages
+    observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}
+    ring = vote_ring(cam.width, cam.height, cfg.mask_dilate)  # 0 with the default dilation
+
+    def ted_key() -> dict[str, Any]:
+        steps = ted_schedule(run.out, plan, cfg.budget_minutes).steps
+        return {"cfg": jsonable(cfg.ted), "iters": [steps["ted_finetune"], steps["ted_adversarial"]],
+                "seed": cfg.seed, **observed_key}  # fmt: skip
+
+    stages: list[Stage[RunInputs]] = [
+        Stage("0_scene", stage_scene, settings=base),
+        # keyed by the fit's effective steps: a baseline that trains longer (the naive row at CoIn's
+        # budget) but fixes the fit at CoIn's Ref-GS count reuses CoIn's split
+        *([Stage("0_refine", stage_refine, ["0_scene"],
+                 {"cfg": jsonable(replace(cfg.refine, iters=None)),
+                  "iters": plan.steps["refgs"] if cfg.refine.iters is None else cfg.refine.iters,
+                  **({"vote_ring": ring} if ring else {})})]
+          if refined else []),
+        Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
+              {**inpaint_key(cfg.inpaint2d), "prior_seconds": plan.prior_seconds, "seed": cfg.seed,
+               # the measured step count (plans made before it have none: their key is unchanged)
+               **({"prior_steps": plan.prior_steps} if plan.prior_steps is not None else {}),
+               "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
+        Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
+              {"cfg": jsonable(run.refgs_cfg), "ref": ref, "iters": plan.steps["refgs"], "seed": cfg.seed,
+               "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
+               "plain": "refgs" in cfg.skip, **observed_key}),
+        Stage("3_clg", stage_clg_adapter, ["0_scene", *r, "1_inpaint", "2_refgs"],
+              {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
+               "sd": cfg.sd_path, "prompt": cfg.prompt,
+               **({"sd2_mode": cfg.inpaint2d.sd2_mode} if cfg.sd_path else {})},
+              skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
+        Stage("4_ted", stage_ted,
+              ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
+              ted_key, skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
+    ]  # fmt: skip
+    final = final_stage(cfg)
+    stages.append(Stage("eval", stage_eval, ["0_scene", *r, final], {"final": final}))  # 0_refine: the split
+    return stages
 
 
 def summary(out: Path) -> dict:

@@ -124,7 +124,7 @@ class CoInConfig:
     # Only refined-mask runs read it.
     observed: str = "captures"
     # A run folder whose plan's measured rates this run's plan takes instead of probing again
-    # (`budget.inherited_rates`; the comparison rows of `demo.baseline_config`). None (default): probe.
+    # (`coin_plan.inherited_rates`; the comparison rows of `demo.baseline_config`). None (default): probe.
     rates_from: str | None = None
 
     def __post_init__(self) -> None:

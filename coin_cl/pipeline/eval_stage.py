@@ -11,18 +11,18 @@ from coin_cl.pipeline.runner import StageContext, jsonable
 from coin_cl.pipeline.stages import load_model
 
 if TYPE_CHECKING:
-    from coin_cl.pipeline.config import CoInConfig
+    from coin_cl.pipeline.run_inputs import RunInputs
 
 
-def stage_eval(ctx: StageContext) -> dict:
+def stage_eval(ctx: StageContext[RunInputs]) -> dict:
     import torch
 
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CKPT_NAME
     from coin_cl.scene.io import to_uint8, write_npy, write_png
 
-    scene = ctx.shared["scene"]
-    cfg: CoInConfig = ctx.shared["cfg"]
+    scene = ctx.run.scene
+    cfg = ctx.run.cfg
     final = ctx.settings["final"]
     folder = [p for n, p in ctx.inputs.items() if n == final][0]
     model = load_model(folder, CKPT_NAME, model_from_state)

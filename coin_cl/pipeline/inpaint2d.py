@@ -24,6 +24,7 @@ import logging
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from coin_cl.diffusion.lama import LAMA_ENV, LAMA_NAME, lama_inpaint, load_lama
 from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds, train_scene_prior
 from coin_cl.scene.io import read_image, to_uint8, write_png, write_text
 from coin_cl.schema import INPAINT_SOURCES, parse_optional, run_folder_fix
+
+if TYPE_CHECKING:
+    from coin_cl.pipeline.budget import Plan
 
 log = logging.getLogger(__name__)
 
@@ -168,10 +172,10 @@ def effective_config(
     return replace(cfg, prior=prior, seed=seed + cfg.seed)
 
 
-def planned_config(cfg: Inpaint2DConfig, iters: dict, seed: int, width: int, height: int) -> Inpaint2DConfig:
-    """`effective_config` with the run's plan (`iters`: prior_seconds and, where measured,
-    prior_steps), the one stage 1 and CLG both build (CLG must find the prior stage 1 trained)."""
-    return effective_config(cfg, iters["prior_seconds"], seed, width, height, iters.get("prior_steps"))
+def planned_config(cfg: Inpaint2DConfig, plan: Plan, seed: int, width: int, height: int) -> Inpaint2DConfig:
+    """`effective_config` with the run's plan (its prior_seconds and, where measured, prior_steps),
+    the one stage 1 and CLG both build (CLG must find the prior stage 1 trained)."""
+    return effective_config(cfg, plan.prior_seconds, seed, width, height, plan.prior_steps)
 
 
 def stage_prior(scene, masks: list[np.ndarray], views: list[int], cfg: Inpaint2DConfig, folder: Path):

@@ -77,13 +77,3 @@ def _estimate(n_views: int, steps: int, clg_steps: int) -> dict:
     return {**s1, "clg_s": clg["clg_s"], "total_s": total,
             "message": f"{s1['message'].split('; total')[0]} (stage 1), CLG {clg_steps} steps ~ "
                        f"{clg['clg_s'] / 3600:.1f} h; total ~ {total / 3600:.1f} h"}  # fmt: skip
-
-
-def sd2_mode_for(cfg: Any, sd2: Any, n_views: int) -> tuple[str, str]:
-    """`resolve_sd2_mode` for a pipeline run: `CoInConfig` cfg (its inpaint2d.sd2_mode, stage 1's
-    and CLG's step counts), the loaded SD2 denoiser, n_views masked training views."""
-    from coin_cl.pipeline.clg_config import CLGConfig
-
-    clg_steps = (cfg.clg or CLGConfig()).num_steps(sd2)
-    steps = cfg.inpaint2d.inpaint.sampler_sd.num_steps
-    return resolve_sd2_mode(cfg.inpaint2d.sd2_mode, n_views, steps, sd2_on_cpu(sd2), clg_steps)

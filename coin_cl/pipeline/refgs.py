@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -54,6 +54,9 @@ from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference
 from coin_cl.scene.io import view_stem, write_npy, write_png, write_text
 from coin_cl.schema import DEPTH_PRIOR, REFGS_STAGE, parse, parse_optional, run_folder_fix
 
+if TYPE_CHECKING:
+    from coin_cl.scene import Scene
+
 log = logging.getLogger(__name__)
 
 MIN_POINTS = 4  # sparse points the Gaussians need to start from
@@ -62,7 +65,7 @@ MONOCULAR_PRIOR = "monocular (Depth Anything V2 small, COIN_DEPTH_WEIGHTS)"
 STAGE_JSON = "stage.json"
 
 
-def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
+def fit_captured(scene: Scene, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
                  device: Any, out: Path) -> Trainer:  # fmt: skip
     """A short GS (`kind` 'scaffold' or '3dgs', `iters` steps, default schedules compressed to
     them) fitted to the captured (unmasked) training images, resumable in `out`; the trained
@@ -83,7 +86,7 @@ def fit_captured(scene: Any, train_idx: Sequence[int], kind: str, iters: int, se
     return tr
 
 
-def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+def _aux_gs_depth(scene: Scene, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
                   device: Any, out: Path) -> np.ndarray:  # fmt: skip
     """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
     (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
@@ -96,7 +99,7 @@ def _aux_gs_depth(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed
     return d
 
 
-def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
+def _depth_prior(scene: Scene, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
                  device: Any, gs_depth: np.ndarray | None, out: Path,
                  aux_iters: int | None = None,
                  known_depth: np.ndarray | None = None) -> DepthPrior:  # fmt: skip
@@ -133,7 +136,7 @@ def _depth_prior(scene: Any, train_idx: Sequence[int], k: int, iters: int, seed:
     return prior
 
 
-def _scene_targets(scene: Any, targets: Sequence[np.ndarray], train_idx: Sequence[int]) -> list[np.ndarray]:
+def _scene_targets(scene: Scene, targets: Sequence[np.ndarray], train_idx: Sequence[int]) -> list[np.ndarray]:
     """Targets per training view: `targets` aligned with the scene's views or with `train_idx`."""
     if len(targets) == len(scene.cameras):
         return [np.asarray(targets[i], np.float32) for i in train_idx]
@@ -146,7 +149,7 @@ def _scene_targets(scene: Any, targets: Sequence[np.ndarray], train_idx: Sequenc
 
 
 def run_refgs(
-    scene: Any,
+    scene: Scene,
     targets: list[np.ndarray],
     out_dir: Path,
     cfg: RefGSConfig,
@@ -347,7 +350,7 @@ def run_refgs(
 
 
 def _save_bg_depths(
-    folder: Path, scene: Any, train_idx: Sequence[int], bg: Sequence[np.ndarray | None]
+    folder: Path, scene: Scene, train_idx: Sequence[int], bg: Sequence[np.ndarray | None]
 ) -> None:
     folder.mkdir(exist_ok=True)
     for i, d in zip(train_idx, bg, strict=True):
@@ -355,7 +358,7 @@ def _save_bg_depths(
             write_npy(folder / f"{view_stem(scene.cameras[i].name, i)}.npy", d)
 
 
-def read_bg_depths(folder: Path, scene: Any, train_idx: Sequence[int]) -> list[np.ndarray | None]:
+def read_bg_depths(folder: Path, scene: Scene, train_idx: Sequence[int]) -> list[np.ndarray | None]:
     """The D_bg a Ref-GS run saved (`bg_depths/`), per training view (None where it saved none)."""
     out = []
     for i in train_idx:
@@ -364,7 +367,7 @@ def read_bg_depths(folder: Path, scene: Any, train_idx: Sequence[int]) -> list[n
     return out
 
 
-def _write_outputs(tr: Trainer, scene: Any, train_idx: Sequence[int], k: int, kt: int,
+def _write_outputs(tr: Trainer, scene: Scene, train_idx: Sequence[int], k: int, kt: int,
                    masks: Sequence[np.ndarray], out: Path, backend: str) -> dict[str, Any]:  # fmt: skip
     """Renders, depths and alphas of every training view, and P_k."""
     from coin_cl.scene.ply import write_points_ply

@@ -65,7 +65,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -73,6 +73,9 @@ import torch
 
 from coin_cl.pipeline.observed_warp import warp_observed
 from coin_cl.scene.io import to_uint8, write_png, write_text
+
+if TYPE_CHECKING:
+    from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +153,7 @@ class RefineConfig:
 
 
 def refine_masks(
-    scene: Any,
+    scene: Scene,
     masks: list[np.ndarray],
     train: list[int],
     out_dir: Path,
@@ -226,7 +229,7 @@ def fill_islands(unseen: np.ndarray, mask: np.ndarray, max_px: int) -> np.ndarra
 
 
 def split_view(
-    scene: Any,
+    scene: Scene,
     masks: list[np.ndarray],
     renders: Renders,
     i: int,
@@ -275,7 +278,7 @@ def split_view(
 
 
 def fit_renders(
-    scene: Any,
+    scene: Scene,
     masks: list[np.ndarray],
     train: list[int],
     gs_dir: Path,
@@ -414,7 +417,7 @@ def vote_ring(width: int, height: int, dilate: int) -> int:
     return max(0, auto_dilation(width, height) - int(dilate))
 
 
-def read_refined(scene: Any, folder: Path, train: list[int], masks: list[np.ndarray]):
+def read_refined(scene: Scene, folder: Path, train: list[int], masks: list[np.ndarray]):
     """(images, masks) per scene view after `refine_masks`: the stage's base images and refined
     masks for `train`, the scene's and `masks` elsewhere."""
     from coin_cl.scene.io import read_image

@@ -5,7 +5,10 @@ person opens next."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from coin_cl.pipeline.coin import CoInResult
 
 METRIC_COLUMNS = (("psnr", "PSNR"), ("ssim", "SSIM"), ("m_psnr", "m-PSNR"), ("m_ssim", "m-SSIM"),
                   ("hf_ratio", "HF ratio"), ("bbox_gmsd", "bbox GMSD"))  # fmt: skip
@@ -39,7 +42,7 @@ def metric_table(metrics: dict[str, Any]) -> list[str]:
     return [f"  | {head} |", "  |" + "|".join("---" for _ in cols) + "|", f"  | {vals} |"]
 
 
-def run_report(res: Any) -> str:
+def run_report(res: CoInResult) -> str:
     """The text `coin-cl run` prints at the end, from a `CoInResult`."""
     out = Path(res.out)
     lines = [f"CoIn run in {out}/", ""]

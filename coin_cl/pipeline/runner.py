@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 from coin_cl import schema
 from coin_cl.atomic import check_path
@@ -43,20 +43,26 @@ MANIFEST = "manifest.json"
 STARTED = "started.json"
 
 
+# What the caller gives every stage (the CoIn pipeline: `pipeline.run_inputs.RunInputs`). The runner
+# only passes it on, so it stays generic: it decides what runs from files and settings, never from
+# what the stages are given.
+T = TypeVar("T")
+
+
 class OutputFolderError(ValueError):
     """The output folder belongs to another scene (or is not a pipeline folder)."""
 
 
 @dataclass
-class StageContext:
-    """What a stage function sees: its own folder, the folders of the stages it reads, the shared
-    objects the runner was given (`shared`, e.g. the loaded scene) and a log of notes."""
+class StageContext(Generic[T]):
+    """What a stage function sees: its own folder, the folders of the stages it reads, the inputs
+    the runner was given for every stage (`run`, e.g. the loaded scene) and a log of notes."""
 
     name: str
     out: Path
     inputs: dict[str, Path]
     settings: dict[str, Any]
-    shared: dict[str, Any]
+    run: T
     notes: list[str] = field(default_factory=list)
 
     def note(self, msg: str) -> None:
@@ -66,7 +72,7 @@ class StageContext:
 
 
 @dataclass
-class Stage:
+class Stage(Generic[T]):
     """name: folder name (e.g. "2_refgs"); fn(ctx) -> dict does the work; reads: names of the
     stages whose folders it reads; settings: JSON-able values its output depends on, or a function
     returning them, called when the stage is reached (for values that depend on what the stages
@@ -74,7 +80,7 @@ class Stage:
     it out (logged), or None."""
 
     name: str
-    fn: Callable[[StageContext], dict]
+    fn: Callable[[StageContext[T]], dict]
     reads: Sequence[str] = ()
     settings: dict[str, Any] | Callable[[], dict[str, Any]] = field(default_factory=dict)
     skip: str | None = None
@@ -149,23 +155,35 @@ def check_output_folder(out: Path, scene_id: dict[str, Any]) -> None:
         )
 
 
+@overload
+def run_stages(
+    out: Path, stages: Sequence[Stage[None]], run: None = None, force: Sequence[str] = ()
+) -> dict[str, dict]: ...
+
+
+@overload
+def run_stages(
+    out: Path, stages: Sequence[Stage[T]], run: T, force: Sequence[str] = ()
+) -> dict[str, dict]: ...
+
+
 def run_stages(
     out: Path,
-    stages: Sequence[Stage],
-    shared: dict[str, Any] | None = None,
+    stages: Sequence[Stage[T]],
+    run: T | None = None,
     force: Sequence[str] = (),
 ) -> dict[str, dict]:
     """Run `stages` in order under `out`; returns {stage name: record} (also in OUT/log.json).
 
     A record holds status ("ran", "skipped: up to date", "skipped: <reason>"), seconds (of this
     run; an up-to-date stage has `seconds_when_run` instead, from its manifest), the stage's result
-    and notes. `force` names stages to rerun regardless of their manifest. The run holds `out`'s
-    lock throughout (`coin_cl.pipeline.lock`: a second run on the folder is refused, naming this one).
-    """
+    and notes. `run` reaches every stage function as `ctx.run`, unchanged. `force` names stages to
+    rerun regardless of their manifest. The run holds `out`'s lock throughout
+    (`coin_cl.pipeline.lock`: a second run on the folder is refused, naming this one)."""
     from coin_cl.pipeline.lock import folder_lock
 
     with folder_lock(out):
-        return _run_stages(Path(out), stages, shared, force)
+        return _run_stages(Path(out), stages, run, force)
 
 
 def move_aside(folder: Path) -> Path:
@@ -180,10 +198,7 @@ def move_aside(folder: Path) -> Path:
     return dest
 
 
-def _run_stages(
-    out: Path, stages: Sequence[Stage], shared: dict[str, Any] | None, force: Sequence[str]
-) -> dict[str, dict]:
-    shared = shared or {}
+def _run_stages(out: Path, stages: Sequence[Stage[T]], run: T, force: Sequence[str]) -> dict[str, dict]:
     records: dict[str, dict] = {}
     manifests: dict[str, dict] = {}
     log_path = out / "log.json"
@@ -241,7 +256,7 @@ def _run_stages(
         folder.mkdir(parents=True, exist_ok=True)
         (folder / MANIFEST).unlink(missing_ok=True)
         _write_json(folder / STARTED, {"key": key, "settings": st.settings})
-        ctx = StageContext(st.name, folder, {r: out / r for r in st.reads}, dict(st.settings), shared)
+        ctx = StageContext(st.name, folder, {r: out / r for r in st.reads}, dict(st.settings), run)
         t0 = time.perf_counter()
         result = st.fn(ctx) or {}
         seconds = time.perf_counter() - t0

@@ -1,7 +1,8 @@
 """The CoIn stage functions (paper 4.1-4.4 and supplement C.2): each reads the folders of the stages
 before it and writes its own; `coin_cl.pipeline.coin` builds the stage graph and the runner
-(`coin_cl.pipeline.runner`) decides what runs. What every stage sees is in `ctx.shared`: the scene,
-the input masks, the reference, the run's `CoInConfig`, its step counts and its `budget.Plan`.
+(`coin_cl.pipeline.runner`) decides what runs. What every stage is given is `ctx.run`, the run's
+`RunInputs` (`coin_cl.pipeline.run_inputs`): the scene, the input masks, the reference, the run's
+`CoInConfig` and its `budget.Plan`.
 
     stage_scene    0_scene    the scene with the chosen masks, in coin-cl's own layout
     stage_refine   0_refine   refined masks (`refine_masks`), when the run takes them
@@ -20,14 +21,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from coin_cl.pipeline.budget import CAP_FACTOR
+from coin_cl.pipeline.budget import CAP_FACTOR, ted_schedule
 from coin_cl.pipeline.inpaint2d import planned_config, read_inpaints, run_inpaint2d
-from coin_cl.pipeline.models import sd2_denoiser, sd2_mode_for
+from coin_cl.pipeline.models import resolve_sd2_mode, sd2_denoiser, sd2_on_cpu
 from coin_cl.pipeline.runner import StageContext, jsonable
 
 if TYPE_CHECKING:
-    from coin_cl.pipeline.budget import Plan
+    from coin_cl.diffusion.sampling import Denoiser
+    from coin_cl.gs.terms import LossTerm
     from coin_cl.pipeline.config import CoInConfig
+    from coin_cl.pipeline.run_inputs import RunInputs
+    from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -53,25 +57,25 @@ def load_model(folder: Path, ckpt_name: str, model_from_state):
         raise malformed(path, exc, remedy) from None
 
 
-def stage_scene(ctx: StageContext) -> dict:
+def stage_scene(ctx: StageContext[RunInputs]) -> dict:
     from coin_cl.scene import save_scene
 
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    scene, masks = ctx.run.scene, ctx.run.masks
     save_scene(replace(scene, masks=masks), ctx.out / "scene")
     empty = [scene.cameras[i].name for i in scene.train_idx if not masks[i].any()]
     if empty:
         ctx.note(f"{len(empty)} training views have no mask and are kept as captured: {empty[:5]}...")
     area = [float(masks[i].mean()) for i in scene.train_idx]
     return {"views": len(scene), "train": len(scene.train_idx), "test": len(scene.test_idx),
-            "mask": ctx.shared["cfg"].mask_kind, "mean_mask_area": float(np.mean(area))}  # fmt: skip
+            "mask": ctx.run.cfg.mask_kind, "mean_mask_area": float(np.mean(area))}  # fmt: skip
 
 
-def _scene_views(ctx: StageContext):
+def _scene_views(ctx: StageContext[RunInputs]) -> tuple[Scene, list[np.ndarray], list[int]]:
     """(scene, masks, training views) as the stage sees them: the input masks; with refined masks
     (stage 0_refine) M^rmv_n and the captures with R^rmv_n in the rest of the input mask; after an
     insertion's stage 1 the object's footprints F_n (`coin_cl.pipeline.insert`), which are the only
     pixels that change (the rest of the input mask is captured background)."""
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
+    scene, masks = ctx.run.scene, ctx.run.masks
     if "0_refine" in ctx.inputs:
         from coin_cl.pipeline.refine_masks import read_refined
 
@@ -88,12 +92,12 @@ def _scene_views(ctx: StageContext):
     return scene, masks, list(scene.train_idx)
 
 
-def stage_refine(ctx: StageContext) -> dict:
+def stage_refine(ctx: StageContext[RunInputs]) -> dict:
     from coin_cl.pipeline.refine_masks import refine_masks
     from coin_cl.scene.masks import dilate_mask
 
-    scene, masks = ctx.shared["scene"], ctx.shared["masks"]
-    cfg: CoInConfig = ctx.shared["cfg"]
+    scene, masks = ctx.run.scene, ctx.run.masks
+    cfg = ctx.run.cfg
     tests = [i for i in scene.test_idx if np.asarray(masks[i]).any()]  # their split: for the eval
     ring = ctx.settings.get("vote_ring", 0)
     vote = None
@@ -108,23 +112,33 @@ def stage_refine(ctx: StageContext) -> dict:
     return res
 
 
-def stage_inpaint(ctx: StageContext) -> dict:
+def sd2_mode_for(cfg: CoInConfig, sd2: Denoiser, n_views: int) -> tuple[str, str]:
+    """`resolve_sd2_mode` for a pipeline run: `CoInConfig` cfg (its inpaint2d.sd2_mode, stage 1's
+    and CLG's step counts), the loaded SD2 denoiser, n_views masked training views."""
+    from coin_cl.pipeline.clg_config import CLGConfig
+
+    clg_steps = (cfg.clg or CLGConfig()).num_steps(sd2)
+    steps = cfg.inpaint2d.inpaint.sampler_sd.num_steps
+    return resolve_sd2_mode(cfg.inpaint2d.sd2_mode, n_views, steps, sd2_on_cpu(sd2), clg_steps)
+
+
+def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
     scene, masks, train = _scene_views(ctx)
-    cfg: CoInConfig = ctx.shared["cfg"]
-    if ctx.shared.get("edited") is not None:
+    cfg = ctx.run.cfg
+    if ctx.run.edited is not None:
         from coin_cl.pipeline.insert import run_insert
 
-        res = run_insert(scene, masks, train, ctx.shared["ref"], ctx.shared["edited"], ctx.out, cfg.insert,
+        res = run_insert(scene, masks, train, ctx.run.ref, ctx.run.edited, ctx.out, cfg.insert,
                          cfg.device)  # fmt: skip
         ctx.note(f"initial images: {res['source']}; {res['views_without_object']} views without the object")
         return res
     cam = scene.cameras[train[0]]
-    icfg = planned_config(cfg.inpaint2d, ctx.shared["iters"], cfg.seed, cam.width, cam.height)
+    icfg = planned_config(cfg.inpaint2d, ctx.run.plan, cfg.seed, cam.width, cam.height)
     sd2, only, why = sd2_denoiser(cfg.sd_path), None, ""
     if sd2 is not None:  # SD2 on every view, or on the reference only (CPU-practical mode, issue 22)
         mode, why = sd2_mode_for(cfg, sd2, sum(bool(masks[i].any()) for i in train))
         ctx.note(why)
-        only = [ctx.shared["ref"]] if mode == "reference_only" else None
+        only = [ctx.run.ref] if mode == "reference_only" else None
     # Undilated or refined masks end where the object does: a paste must not blend its outline back.
     exact = cfg.mask_dilate == 0 or "0_refine" in ctx.inputs
     res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt,
@@ -134,7 +148,7 @@ def stage_inpaint(ctx: StageContext) -> dict:
     return res
 
 
-def _targets(ctx: StageContext, folder: Path) -> dict[int, np.ndarray]:
+def _targets(ctx: StageContext[RunInputs], folder: Path) -> dict[int, np.ndarray]:
     scene, masks, train = _scene_views(ctx)
     from coin_cl.gs.targets import composite_targets
 
@@ -143,13 +157,13 @@ def _targets(ctx: StageContext, folder: Path) -> dict[int, np.ndarray]:
     return {i: composite_targets(inp[i], scene.images[i], masks[i]) for i in train}
 
 
-def stage_refgs(ctx: StageContext) -> dict:
+def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
     from coin_cl.pipeline.refgs import run_refgs
 
     scene, masks, train = _scene_views(ctx)
-    cfg: CoInConfig = ctx.shared["cfg"]
+    cfg = ctx.run.cfg
     targets = _targets(ctx, ctx.inputs["1_inpaint"])
-    rcfg = ctx.shared["refgs_cfg"]
+    rcfg = ctx.run.refgs_cfg
     if "refgs" in cfg.skip:
         from coin_cl.gs.refgs import RefGSConfig
 
@@ -159,25 +173,25 @@ def stage_refgs(ctx: StageContext) -> dict:
             depth_loss=False,
             prune_points=False,
             bg_depth=False,
-            ref=ctx.shared["ref"],
+            ref=ctx.run.ref,
             seed=rcfg.seed,
         )
         ctx.note("w/o Ref-GS: plain Scaffold-GS on the initial inpaints (ablation)")
-    scene_m = replace(scene, masks=masks, ref_view=ctx.shared["ref"])
+    scene_m = replace(scene, masks=masks, ref_view=ctx.run.ref)
     full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
     from coin_cl.pipeline.insert import read_lift
 
-    plan: Plan = ctx.shared["plan"]
+    plan = ctx.run.plan
     m = plan.minutes.get("refgs")
-    ctx.note(f"Ref-GS: {ctx.shared['iters']['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
+    ctx.note(f"Ref-GS: {plan.steps['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
              f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
     # The object's volume is the input masks', also when refined masks narrow what is inpainted (the
     # carve here, the pruning vote and the background depth in run_refgs's object_masks).
-    attach, bg = _carve_hook(ctx, ctx.shared["scene"], ctx.shared["masks"], train)
+    attach, bg = _carve_hook(ctx, ctx.run.scene, ctx.run.masks, train)
     seed_points = None if lift is None else (lift.points, lift.colors)
     if bg is not None and len(bg):
-        k = ctx.shared["ref"]
+        k = ctx.run.ref
         uv, _ = scene.cameras[k].project(bg)
         iu = np.clip(uv[:, 0].astype(int), 0, scene.cameras[k].width - 1)
         iv = np.clip(uv[:, 1].astype(int), 0, scene.cameras[k].height - 1)
@@ -186,26 +200,28 @@ def stage_refgs(ctx: StageContext) -> dict:
         ctx.note(
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
-    if lift is not None or cfg.prompt or ctx.shared.get("edited") is not None:
+    if lift is not None or cfg.prompt or ctx.run.edited is not None:
         rcfg = replace(rcfg, bg_depth=False)  # insertion: the masks hold the new object, not the background
     elif rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
-    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.shared["iters"]["refgs"],
-                     max_seconds=ctx.shared["plan"].cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
+    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.run.plan.steps["refgs"],
+                     max_seconds=plan.cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
-                     object_masks=ctx.shared["masks"] if "0_refine" in ctx.inputs else None,
+                     object_masks=ctx.run.masks if "0_refine" in ctx.inputs else None,
                      exclude=_observed_excluded(ctx, masks))  # fmt: skip
 
 
-def _observed_excluded(ctx: StageContext, refined: list[np.ndarray]) -> list[np.ndarray | None] | None:
+def _observed_excluded(
+    ctx: StageContext[RunInputs], refined: list[np.ndarray]
+) -> list[np.ndarray | None] | None:
     """Per scene view, the observed part of the refined split (the input mask less M^rmv_n, as
     0_refine/observed holds it) when the run leaves it out of the photometric loss
     (`CoInConfig.observed` "captures"), else None. `refined`: the stage's masks (`_scene_views`)."""
-    cfg: CoInConfig = ctx.shared["cfg"]
+    cfg = ctx.run.cfg
     if cfg.observed != "captures" or "0_refine" not in ctx.inputs:
         return None
-    scene, given = ctx.shared["scene"], ctx.shared["masks"]
+    scene, given = ctx.run.scene, ctx.run.masks
     train = set(scene.train_idx)
     return [np.asarray(given[i], bool) & ~np.asarray(refined[i], bool) if i in train else None
             for i in range(len(scene))]  # fmt: skip
@@ -216,11 +232,11 @@ def carves(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
     return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
 
 
-def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
+def _carve_hook(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int]):
     """(trainer callback that gives the model the carve volume, seed points on the background
     behind the object in the reference view), or (None, None) when this run does not carve."""
-    cfg: CoInConfig = ctx.shared["cfg"]
-    if not carves(cfg, ctx.shared.get("edited")):
+    cfg = ctx.run.cfg
+    if not carves(cfg, ctx.run.edited):
         return None, None
     from coin_cl.gs.carve import background_points, build_carve
 
@@ -228,7 +244,7 @@ def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
     vol = build_carve(cams, [masks[i] for i in train], np.asarray(scene.points), cfg.carve_cfg)
     if vol is None:
         return None, None
-    ref = ctx.shared["ref"]
+    ref = ctx.run.ref
     with_mask = [i for i in train if np.asarray(masks[i]).any()]
     pts = background_points(vol, with_mask.index(ref)) if ref in with_mask else np.zeros((0, 3), np.float32)
     import torch
@@ -245,14 +261,14 @@ def _carve_hook(ctx: StageContext, scene, masks, train: list[int]):
     return attach, pts
 
 
-def stage_clg_adapter(ctx: StageContext) -> dict:
+def stage_clg_adapter(ctx: StageContext[RunInputs]) -> dict:
     from coin_cl.pipeline.clg import stage_clg
 
     scene, masks, _ = _scene_views(ctx)
     return stage_clg(ctx, scene, masks)
 
 
-def stage_ted(ctx: StageContext) -> dict:
+def stage_ted(ctx: StageContext[RunInputs]) -> dict:
     import torch
 
     from coin_cl.gs.data import views_from_scene
@@ -262,7 +278,7 @@ def stage_ted(ctx: StageContext) -> dict:
     from coin_cl.scene.io import read_image
 
     scene, masks, train = _scene_views(ctx)
-    cfg: CoInConfig = ctx.shared["cfg"]
+    cfg = ctx.run.cfg
     inp = _targets(ctx, ctx.inputs["1_inpaint"])
     guided = dict(inp)
     if "3_clg" in ctx.inputs:
@@ -280,20 +296,24 @@ def stage_ted(ctx: StageContext) -> dict:
             v.exclude = torch.as_tensor(excluded[i])
     model = load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
     model.device = cfg.device
-    it = ctx.shared["iters"]
+    # The schedule the stage's key holds: the same pure function of the plan and 2_refgs's manifest.
+    sched = ted_schedule(ctx.run.out, ctx.run.plan, cfg.budget_minutes)
+    it = sched.steps
     ctx.note("TE-D: " + ", ".join(
-        f"{k} {it[k]} steps" + ("" if k not in ctx.shared.get("ted_caps", {})
-                                else f" (~{ctx.shared['ted_caps'][k] / 60 / CAP_FACTOR:.1f} min)")
+        f"{k} {it[k]} steps" + ("" if k not in sched.caps
+                                else f" (~{sched.caps[k] / 60 / CAP_FACTOR:.1f} min)")
         for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
-    # The plan's counts (explicit ones included, `budget.explicit_steps`) and the run's seed where
+    for k in sched.caps:
+        ctx.note(f"TE-D {k}: {it[k]} steps planned from Ref-GS's {sched.refgs_seconds_per_step:.3f} s/step "
+                 f"(the probe's plan: {ctx.run.plan.steps[k]})")  # fmt: skip
+    # The plan's counts (explicit ones included, `coin_plan.explicit_steps`) and the run's seed where
     # TEDConfig leaves them to the run (None); the user's config is not changed.
     seed = cfg.seed if cfg.ted.seed is None else cfg.ted.seed
     tcfg = replace(
         cfg.ted, iters_finetune=it["ted_finetune"], iters_adversarial=it["ted_adversarial"], seed=seed
     )
     extra = _ted_bg_depth(ctx, scene, train)
-    tc = ctx.shared.get("ted_caps", {})
-    caps = {"finetune": tc.get("ted_finetune", 0.0), "adversarial": tc.get("ted_adversarial", 0.0)}
+    caps = {phase: sched.caps.get(f"ted_{phase}", 0.0) for phase in ("finetune", "adversarial")}
     res, _ = run_ted(
         model,
         views,
@@ -315,18 +335,18 @@ def stage_ted(ctx: StageContext) -> dict:
     return jsonable(res)
 
 
-def _ted_bg_depth(ctx: StageContext, scene, train: list[int]) -> list:
+def _ted_bg_depth(ctx: StageContext[RunInputs], scene: Scene, train: list[int]) -> list[LossTerm]:
     """TE-D keeps Ref-GS's background depth term (the same D_bg, saved by Ref-GS), so fine-tuning
     on the guided images does not grow the ghost back; none when Ref-GS ran without it."""
     from coin_cl.gs.refgs import background_depth_term
     from coin_cl.pipeline.refgs import read_bg_depths
 
     folder = ctx.inputs["2_refgs"] / "bg_depths"
-    rcfg = ctx.shared["refgs_cfg"]
+    rcfg = ctx.run.refgs_cfg
     if not (rcfg.bg_depth and folder.is_dir()):
         return []
     bg = read_bg_depths(folder, scene, train)
     if all(d is None for d in bg):
         return []
     ctx.note(f"TE-D keeps the background depth term on {sum(d is not None for d in bg)} views")
-    return [background_depth_term(rcfg, bg, [np.asarray(ctx.shared["masks"][i], bool) for i in train])]
+    return [background_depth_term(rcfg, bg, [np.asarray(ctx.run.masks[i], bool) for i in train])]

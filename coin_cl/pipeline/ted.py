@@ -15,7 +15,7 @@ folder:
 The primitives are fixed in this stage (no densification): it refines the appearance of the coarse
 structure Ref-GS built. The paper runs 10k + 10k iterations; a CoIn run takes its counts from the
 budget plan (`pipeline.budget`) unless `TEDConfig.iters_*` give them; the plan gives the adversarial
-phase 0 steps where stage 1's fills are not a learned inpainter's (`budget.adversarial_skip`).
+phase 0 steps where stage 1's fills are not a learned inpainter's (`coin_plan.adversarial_skip`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,130 @@
+"""The plan of a CoIn run: `budget`'s rules applied to a `CoInConfig` (its step counts, budget,
+probes and the rates another run measured). `budget` knows nothing of `CoInConfig`, so the modules
+the config is made of (`refine_masks`, through `pipeline.refgs`) can use its rules without an
+import cycle."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from coin_cl.pipeline.budget import (
+    PLAN_FILE,
+    PRIOR_MIN_SECONDS,
+    Plan,
+    plan_run,
+    probe_seconds_per_step,
+    read_plan,
+)
+from coin_cl.pipeline.config import CoInConfig
+
+if TYPE_CHECKING:
+    from coin_cl.scene import Scene
+
+log = logging.getLogger(__name__)
+
+# A timing probe: () -> seconds (per step, or added to a step); None where the run needs none.
+Probe = Callable[[], float] | None
+
+
+def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan:
+    """The plan of a CoIn run (`train` its training views): `plan_run` keyed by the settings the
+    step counts depend on, probing `scene` at its working size."""
+    cam = scene.cameras[train[0]]
+    explicit = explicit_steps(cfg)
+    skip_adv = adversarial_skip(scene, cfg) if explicit["ted_adversarial"] is None else None
+    if skip_adv:
+        explicit["ted_adversarial"] = 0
+        log.info("TE-D's adversarial phase skipped: %s (an explicit count runs it: --iters, "
+                 "CoInConfig.iters_ted_adversarial)", skip_adv)  # fmt: skip
+    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
+           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
+           "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
+    probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
+              prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
+    if skip_adv:
+        key["ted_adversarial"] = f"skipped: {skip_adv}"
+    if cfg.rates_from is not None:
+        key["rates_from"] = str(cfg.rates_from)  # only when set: plans made before keep their key
+        probes = inherited_rates(Path(cfg.rates_from), *probes)
+    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes)
+
+
+def adversarial_skip(scene: Scene, cfg: CoInConfig) -> str | None:
+    """Why a run leaves TE-D's adversarial phase out (None: it runs). Its discriminator takes the
+    stage-1 fills as the "real" texture (paper 4.4); that transfers a learned inpainter's texture
+    (SD2, LaMa), but the embedded fills' texture is a collage of the scene's other patches (exemplar),
+    a blur (Telea) or noise (scene prior), and the phase makes exactly that crisp: measured on two
+    virtual-object scenes of a real capture, it left the masked VGG distance 24% and 90% worse than
+    the fine-tune phase before it (docs/RESULTS.md)."""
+    from coin_cl.pipeline.inpaint2d import GENERATIVE_SOURCES, fill_source
+
+    source = fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path)
+    if source in GENERATIVE_SOURCES:
+        return None
+    return (f"stage 1's fills come from the {source} inpainter, whose texture the discriminator would "
+            "make crisp rather than true")  # fmt: skip
+
+
+def inherited_rates(run: Path, probe: Probe, prior: Probe, disc: Probe) -> tuple[Probe, Probe, Probe]:
+    """The three probes of a run that takes its measured rates from the plan of run folder `run`
+    (`CoInConfig.rates_from`): each returns that plan's figure instead of measuring again, so a
+    comparison row at the same budget gets the same counts (the scene prior's steps, which stage 1's
+    key holds, included: probed anew they could differ by a step and redo the shared stages). A
+    rate the plan lacks (not probed there) is measured here; a probe this run does not need
+    (None) stays None."""
+    path = Path(run) / PLAN_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: cannot take the rates from it; run that folder "
+                                "first or leave rates_from unset")  # fmt: skip
+    have = read_plan(path)
+
+    def take(name: str, own: Probe) -> Probe:
+        value = getattr(have, name)
+        if own is None or value is None:
+            return own
+        return lambda: float(value)
+
+    log.info("plan: the measured rates come from %s", path)
+    return (take("probe_seconds_per_step", probe), take("prior_seconds_per_step", prior),
+            take("disc_seconds_per_step", disc))  # fmt: skip
+
+
+def disc_probe(cfg: CoInConfig, width: int, height: int) -> Probe:
+    """TE-D's discriminator probe for a CoIn run: a callable -> seconds it
+    adds to an adversarial step at this image size; None where TE-D is skipped."""
+    if "ted" in cfg.skip:
+        return None
+    from coin_cl.pipeline.ted import TEDConfig, probe_discriminator_seconds
+
+    ted = cfg.ted or TEDConfig()
+    return lambda: probe_discriminator_seconds(ted, height, width)
+
+
+def prior_probe(cfg: CoInConfig, width: int, height: int) -> Probe:
+    """The scene prior's timing probe for a CoIn run (views `width` x `height`):
+    a callable -> seconds per step of the prior stage 1 and CLG will train; None where no prior is
+    trained (SD2 given) or its step count is fixed (`ScenePriorConfig.train_steps`)."""
+    if cfg.sd_path or cfg.inpaint2d.prior.train_steps is not None:
+        return None
+    from coin_cl.diffusion.scene_prior import probe_seconds_per_step as prior_rate
+    from coin_cl.pipeline.inpaint2d import effective_config
+
+    prior_cfg = effective_config(cfg.inpaint2d, PRIOR_MIN_SECONDS, cfg.seed, width, height).prior
+    return lambda: prior_rate(prior_cfg)
+
+
+def explicit_steps(cfg: CoInConfig) -> dict[str, int | None]:
+    """{"refgs", "ted_finetune", "ted_adversarial": the step count `cfg` gives, or
+    None for the plan's}. TE-D's may come from `CoInConfig.iters_ted_*` or `cfg.ted.iters_*`; set in
+    both, they must agree (ValueError naming both)."""
+    out = {"refgs": cfg.iters_refgs}
+    for phase in ("finetune", "adversarial"):
+        top, nested = getattr(cfg, f"iters_ted_{phase}"), getattr(cfg.ted, f"iters_{phase}")
+        if top is not None and nested is not None and top != nested:
+            raise ValueError(f"CoInConfig.iters_ted_{phase}={top} and CoInConfig.ted.iters_{phase}={nested} "
+                             "disagree: set one of them")  # fmt: skip
+        out[f"ted_{phase}"] = top if top is not None else nested
+    return out
