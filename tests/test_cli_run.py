@@ -39,8 +39,8 @@ def test_cli_hands_the_reference_over_as_typed(monkeypatch, tmp_path):
 
 
 def test_every_stage_shows_progress(tmp_path, capsys):
-    """Each stage that loops (prior training, Ref-GS and its depth GS, CLG views, TE-D, eval renders)
-    draws a progress bar that reaches its total: none runs its steps silently."""
+    """Each stage that loops (stage 1's views, prior training, Ref-GS and its depth GS, CLG views,
+    TE-D, eval renders) draws a progress bar that reaches its total: none runs its steps silently."""
     from dataclasses import replace
 
     from coin_cl.diffusion.scene_prior import ScenePriorConfig
@@ -66,6 +66,7 @@ def test_every_stage_shows_progress(tmp_path, capsys):
     assert ("train scaffold", 9) in done and ("train scaffold", 5) in done  # Ref-GS, its depth GS
     assert ("train scaffold", 4) in done and ("train scaffold", 3) in done  # TE-D's two phases
     assert any(name.startswith("CLG") for name in names)
+    assert "stage 1 inpaint" in names  # one tick a view
     assert "eval renders" in names and "orbit" in names
 
 

@@ -251,7 +251,10 @@ def run_inpaint2d(
         sources[name] = done[name] = src
         write_text(record, json.dumps(done, indent=1, sort_keys=True))
 
-    for i in views:
+    from tqdm import tqdm
+
+    # a bar per view: the exemplar inpainter takes about a second a view, LaMa and SD2 much longer
+    for i in tqdm(views, desc="stage 1 inpaint", unit="view"):
         name = Path(scene.cameras[i].name).stem + ".png"
         path = img_dir / name
         if path.is_file():
