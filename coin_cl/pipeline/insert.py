@@ -58,7 +58,23 @@ class InsertConfig:
     ref_match_tol: mean absolute difference outside the mask above which the edited image is not
     taken for a view of this scene. propagate: False = the naive alternative the benchmark scores
     against: no lift; the other views keep their captures (empty footprints), so a GS is simply
-    trained on the edited reference beside the unedited views."""
+    trained on the edited reference beside the unedited views.
+
+    The one-photo path (`coin_cl.pipeline.insert_geometry`, its module doc has the measurements):
+    regions: where the object may appear in the other views. "hull": the scene's masks cover it
+    in every view and the edit is lifted by their visual hull (the path above). "derive": only
+    the edited photo is needed; the object is stood on the surface under it and every other view's
+    region is its projection grown by `region_margin` px (the masks of every later stage; the
+    scene's own masks are not used). "auto" (default): "hull" when every training view other than
+    the edited one has a mask, else "derive". min_component: connected parts of the edit region
+    under this share of the largest are dropped (stray retouches). surface_tol: RANSAC inlier
+    distance of the surface fit, as a share of the depth there. contact: "columns" (a vertical
+    front over the silhouette's contact curve) or "plane" (one billboard through the contacts).
+    profile: "extrude" (constant thickness) or "rounded" (thickness from the silhouette's distance
+    transform). thickness: the object's depth as a share of its width. region_margin: px the
+    derived regions extend beyond the object's projection (None: 1 % of the view's longer side,
+    at least 1). max_points: cap on lifted points
+    (samples along the rays get coarser beyond it)."""
 
     edit_tol: float = 2.0 / 255.0
     hull_fraction: float = 0.9
@@ -66,6 +82,14 @@ class InsertConfig:
     hull_samples: int = 128
     ref_match_tol: float = 0.08
     propagate: bool = True
+    regions: str = "auto"
+    min_component: float = 0.05
+    surface_tol: float = 0.01
+    contact: str = "columns"
+    profile: str = "extrude"
+    thickness: float = 0.65
+    region_margin: int | None = None
+    max_points: int = 2_000_000
 
     def __post_init__(self) -> None:
         for name, ok, what in (
@@ -78,6 +102,23 @@ class InsertConfig:
                 "an integer >= 2",
             ),
             ("ref_match_tol", self.ref_match_tol > 0, "> 0"),
+            ("regions", self.regions in ("auto", "hull", "derive"), "'auto', 'hull' or 'derive'"),
+            ("min_component", 0.0 <= self.min_component <= 1.0, "in [0, 1]"),
+            ("surface_tol", 0.0 < self.surface_tol < 1.0, "in (0, 1)"),
+            ("contact", self.contact in ("columns", "plane"), "'columns' or 'plane'"),
+            ("profile", self.profile in ("extrude", "rounded"), "'extrude' or 'rounded'"),
+            ("thickness", 0.0 <= self.thickness <= 10.0, "in [0, 10]"),
+            (
+                "region_margin",
+                self.region_margin is None
+                or (isinstance(self.region_margin, int) and self.region_margin >= 0),
+                "an integer >= 0 or None",
+            ),
+            (
+                "max_points",
+                isinstance(self.max_points, int) and self.max_points >= 1000,
+                "an integer >= 1000",
+            ),
         ):
             if not ok:
                 raise ValueError(f"InsertConfig.{name} is {getattr(self, name)!r}: give {what}")
@@ -305,6 +346,11 @@ def run_insert(scene: Scene, masks: list[np.ndarray], train: list[int], k: int, 
     from coin_cl.scene.ply import write_points_ply
 
     out_dir = Path(out_dir)
+    if cfg.propagate and cfg.regions == "derive":
+        from coin_cl.pipeline.insert_geometry import run_insert_derived
+
+        return run_insert_derived(scene, masks, train, k, edited, out_dir, cfg, "the edited reference",
+                                  device=device)  # fmt: skip
     if not cfg.propagate:
         region = edit_region(edited, scene.images[k], masks[k], cfg.edit_tol)
         for i in train:
@@ -342,6 +388,36 @@ def run_insert(scene: Scene, masks: list[np.ndarray], train: list[int], k: int, 
             sum(v["footprint_px"] for v in views.values()) / max(1, sum(v["mask_px"] for v in views.values()))
         ),
     }
+
+
+def prepare_edit(
+    edited: np.ndarray,
+    scene: Scene,
+    masks: list[np.ndarray],
+    train: list[int],
+    ref: int | str | None,
+    cfg: InsertConfig,
+    source: str,
+) -> tuple[int, list[np.ndarray], InsertConfig]:
+    """Before any stage: (the edited view k, the masks of every stage, `cfg` with `regions`
+    resolved). "hull" keeps `masks` and checks the edit inside the reference's mask; "derive"
+    replaces every view's mask by the region the lifted object covers there
+    (`insert_geometry.derive_masks`). `source` names the edited image in errors."""
+    from dataclasses import replace
+
+    from coin_cl.pipeline.insert_geometry import derive_masks
+
+    k = find_reference(edited, scene, masks, train, ref, cfg.ref_match_tol)
+    mode = cfg.regions
+    if mode == "auto":
+        mode = "hull" if all(np.asarray(masks[i]).any() for i in train if i != k) else "derive"
+        why = "the masks cover every other training view" if mode == "hull" else "some training views "
+        log.info("insertion regions: %s (%s)", mode, why if mode == "hull" else why + "have no mask")
+    cfg = replace(cfg, regions=mode)
+    if mode == "hull" or not cfg.propagate:
+        check_edit(edited, scene.images[k], masks[k], scene.cameras[k].name, cfg)
+        return k, masks, cfg
+    return k, derive_masks(edited, scene, masks, k, source, cfg), cfg
 
 
 def read_lift(folder: Path) -> EditLift | None:
