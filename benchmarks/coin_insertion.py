@@ -45,7 +45,7 @@ from common import cpu_model, git_commit, mean_std, other_references, write_resu
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, CoInResult, inpaint
-from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
 from coin_cl.scene import load_scene

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from coin_cl.pipeline.coin import CoInConfig, inpaint
-from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.pipeline.insert_geometry import (
     clean_region,
     derive_masks,

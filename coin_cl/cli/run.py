@@ -85,7 +85,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.cli.guard import output_folder
     from coin_cl.pipeline.coin import CoInConfig, inpaint
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
-    from coin_cl.pipeline.insert import InsertConfig
+    from coin_cl.pipeline.insert_config import InsertConfig
     from coin_cl.pipeline.report import run_report
     from coin_cl.report_html import write_report
 
