@@ -145,7 +145,7 @@ def test_pipeline_derives_regions_without_masks(edit, tmp_path):
     foot = read_mask(tmp_path / "run" / "1_inpaint" / "footprints" / f"{stem}.png", scene.masks[i].shape)
     np.testing.assert_array_equal(saved.masks[i], foot)
     assert (foot & scene.masks[i]).sum() >= 0.95 * scene.masks[i].sum()
-    # the hull path, asked for, still needs masks: without them it says the edit is outside the mask
-    with pytest.raises(ValueError, match="nothing to insert"):
+    # the hull path, asked for, still needs masks: without them it says so
+    with pytest.raises(ValueError, match="has no mask, and the hull path needs masks"):
         hull = replace(cfg, insert=InsertConfig(regions="hull"))
         inpaint(scene, tmp_path / "hull", config=hull, masks=none, edited_ref=edited)

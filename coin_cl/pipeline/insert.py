@@ -343,6 +343,11 @@ def prepare_edit(
         log.info("insertion regions: %s (%s)", mode, why if mode == "hull" else why + "have no mask")
     cfg = replace(cfg, regions=mode)
     if mode == "hull" or not cfg.propagate:
+        if not np.asarray(masks[k]).any():
+            raise ValueError(
+                f"{source}: view {scene.cameras[k].name} has no mask, and the hull path needs masks covering "
+                "the object in every view: give them, or let the regions be derived (--insert-regions derive)"
+            )
         check_edit(edited, scene.images[k], masks[k], scene.cameras[k].name, cfg)
         return k, masks, cfg
     return k, derive_masks(edited, scene, masks, k, source, cfg), cfg
