@@ -213,6 +213,12 @@ def lift_one_photo(edited: np.ndarray, region: np.ndarray, cam: Any, points: np.
     c = cam.center
     ys, xs = np.nonzero(region)
     y0, y1 = ys.min(), ys.max() + 1
+    if y1 >= region.shape[0]:
+        log.warning(
+            "insert: the edit in view %s reaches the bottom of the image: its contact with the surface "
+            "may lie below the frame, and the object then stands too near",
+            cam.name,
+        )
     cols = np.unique(xs)
     bottom = np.array([ys[xs == x].max() for x in cols])
     # a contact: the lowest edited pixel of a column near the bottom of E_k; its lower edge meets the surface
