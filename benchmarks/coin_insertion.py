@@ -244,8 +244,11 @@ def run(args: argparse.Namespace) -> int:
     _progress("insert_one_photo", rows["insert_one_photo"])
     if args.insertion_rows_only:
         _insertion_table(rows, ref_name)
-        write_result(out, {f"{n}_{k}": rows[n].get(k) for n in rows for k in ("m_psnr", "m_psnr_train",
-                     "depth_err", "depth_rel", "colour_reach", "leak_max", "minutes")}, rows)  # fmt: skip
+        keys = ("m_psnr", "m_psnr_train", "depth_err", "depth_rel", "colour_reach", "leak_max", "minutes")
+        summary = {f"{n}_{k}": rows[n].get(k) for n in rows for k in keys}
+        run_info = {"size": [w, h], "views": args.views, "iters": args.iters, "ted_iters": args.ted_iters,
+                    "commit": git_commit(), "cpu": cpu_model()}  # fmt: skip
+        write_result(out, {**summary, **run_info}, rows)
         return 0
 
     # -- refined vs input masks on a 360-degree capture (removal) ---------------------------------
