@@ -8,6 +8,9 @@ stage folders with `share_stages`, and the runner keeps exactly those whose sett
                   appearance (`paste_object`), the full pipeline with `edited_ref`
     insert_naive  the naive alternative: `InsertConfig(propagate=False)`, plain Scaffold-GS on the
                   edited reference beside the unedited views, as many GS steps as insert's Ref-GS + TE-D
+    insert_one_photo  what a user has: the same room and edited reference but no mask in any view;
+                  the box is stood on the table under it and every view's region derived
+                  (`coin_cl.pipeline.insert_geometry`, `InsertConfig.regions = "derive"`)
     input_360     removal on a 360-degree capture with the input (seg) masks
     refined_360   the same with 3D-first refined masks (`inpaint_region="refined"`, stage 0_refine)
     seg           removal on the room (a 90-degree arc, forward-facing) with seg masks; also the
@@ -42,7 +45,7 @@ from common import cpu_model, git_commit, mean_std, other_references, write_resu
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig, CoInResult, inpaint
-from coin_cl.pipeline.insert import InsertConfig
+from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.pipeline.refine_masks import RefineConfig
 from coin_cl.pipeline.runner import share_stages
 from coin_cl.scene import load_scene
@@ -80,6 +83,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--mask-kinds", default="seg,scribble", help="mask rows on the room: seg,scribble[,bbox]")
     g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--insertion-rows-only", action="store_true",
+                   help="only insert, insert_naive and insert_one_photo (no removal rows)")  # fmt: skip
 
 
 def _scene(root: Path, **kw) -> tuple[SyntheticScene, object]:
@@ -230,6 +235,21 @@ def run(args: argparse.Namespace) -> int:
     rows["insert_naive"] = {**score_insertion(res_n, sc_i, syn_i, ref_name), "minutes": minutes,
                             "ran": _ran(res_n)}  # fmt: skip
     _progress("insert_naive", rows["insert_naive"])
+    # no mask anywhere: not sharing insert's 0_scene, whose saved masks are the hull path's
+    none = [np.zeros_like(m) for m in sc_i.masks]
+    one = replace(icfg, insert=InsertConfig(regions="derive"))
+    res_1, minutes = _run(sc_i, out / "insert_one_photo", one, edited_ref=edited, masks=none)
+    rows["insert_one_photo"] = {**score_insertion(res_1, sc_i, syn_i, ref_name), "minutes": minutes,
+                                "ran": _ran(res_1), **_regions(res_1, sc_i, syn_i)}  # fmt: skip
+    _progress("insert_one_photo", rows["insert_one_photo"])
+    if args.insertion_rows_only:
+        _insertion_table(rows, ref_name)
+        keys = ("m_psnr", "m_psnr_train", "depth_err", "depth_rel", "colour_reach", "leak_max", "minutes")
+        summary = {f"{n}_{k}": rows[n].get(k) for n in rows for k in keys}
+        run_info = {"size": [w, h], "views": args.views, "iters": args.iters, "ted_iters": args.ted_iters,
+                    "commit": git_commit(), "cpu": cpu_model()}  # fmt: skip
+        write_result(out, {**summary, **run_info}, rows)
+        return 0
 
     # -- refined vs input masks on a 360-degree capture (removal) ---------------------------------
     syn_r, sc_r = _scene(out / "scenes" / "room360", task="removal", coverage=360, **gen)
@@ -276,20 +296,7 @@ def run(args: argparse.Namespace) -> int:
     def f(v, d=2):
         return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{d}f}"
 
-    print(
-        f"\nInsertion from one edited view (reference {ref_name}; other views against the room with the box)"
-    )
-    print("\n| row | m-PSNR test | m-PSNR other train | depth err (median, m) | rel. | colour reach | "
-          "leak (max) | minutes | stages run |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|")
-    for name in ("insert", "insert_naive"):
-        r = rows[name]
-        print(f"| {name} | {f(r['m_psnr'])} | {f(r['m_psnr_train'])} | {f(r['depth_err'], 3)} | "
-              f"{f(r['depth_rel'], 3)} | {f(r['colour_reach'], 3)} | {f(r['leak_max'], 4)} | "
-              f"{r['minutes']:.1f} | {r['ran']} |")  # fmt: skip
-    ri = rows["insert"]
-    empty = f"{f(ri['m_psnr_empty'])} | | {f(ri['depth_err_empty'], 3)} | | 0 | | | |"
-    print(f"| (no box: the empty room) | {empty}")
+    _insertion_table(rows, ref_name)
 
     print("\nRemoval, refined vs input masks (360-degree capture)")
     print("\n| row | m-PSNR | HF ratio | PSNR | refined / input mask area | truly-unseen recall | "
@@ -327,6 +334,10 @@ def run(args: argparse.Namespace) -> int:
         "insert_colour_reach": g("insert", "colour_reach"),
         "insert_naive_colour_reach": g("insert_naive", "colour_reach"),
         "insert_leak_max": g("insert", "leak_max"),
+        "insert_one_photo_mpsnr": g("insert_one_photo", "m_psnr"),
+        "insert_one_photo_depth_rel": g("insert_one_photo", "depth_rel"),
+        "insert_one_photo_colour_reach": g("insert_one_photo", "colour_reach"),
+        "insert_one_photo_leak_max": g("insert_one_photo", "leak_max"),
         "refined_mask_ratio": g("refined_360", "refined_mask_ratio"),
         "refined_unseen_recall": g("refined_360", "unseen_recall"),
         "refined_mpsnr": g("refined_360", "m_psnr"),
@@ -351,6 +362,48 @@ def run(args: argparse.Namespace) -> int:
     }
     write_result(out, result, rows)
     return 0
+
+
+def _f(v, d=2) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{d}f}"
+
+
+def _insertion_table(rows: dict, ref_name: str) -> None:
+    f = _f
+    print(
+        f"\nInsertion from one edited view (reference {ref_name}; other views against the room with the box)"
+    )
+    print("\n| row | m-PSNR test | m-PSNR other train | depth err (median, m) | rel. | colour reach | "
+          "leak (max) | minutes | stages run |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in ("insert", "insert_naive", "insert_one_photo"):
+        r = rows[name]
+        print(f"| {name} | {f(r['m_psnr'])} | {f(r['m_psnr_train'])} | {f(r['depth_err'], 3)} | "
+              f"{f(r['depth_rel'], 3)} | {f(r['colour_reach'], 3)} | {f(r['leak_max'], 4)} | "
+              f"{r['minutes']:.1f} | {r['ran']} |")  # fmt: skip
+    ri = rows["insert"]
+    empty = f"{f(ri['m_psnr_empty'])} | | {f(ri['depth_err_empty'], 3)} | | 0 | | | |"
+    print(f"| (no box: the empty room) | {empty}")
+    r1 = rows["insert_one_photo"]
+    print(f"\ninsert_one_photo's derived regions against the box's true footprint: recall min "
+          f"{f(r1['region_recall_min'], 3)}, area / true area max {f(r1['region_area_max'], 2)}")  # fmt: skip
+
+
+def _regions(res: CoInResult, scene, syn: SyntheticScene) -> dict:
+    """The derived regions (0_scene's saved masks) against the box's true footprint, over the
+    views other than the reference: the lowest recall and the largest area ratio."""
+    from coin_cl.scene import load_scene as _load
+
+    saved = _load(res.out / "0_scene" / "scene")
+    ref = res.stages["1_inpaint"]["result"]["reference"]
+    rec, area = [], []
+    for i, cam in enumerate(scene.cameras):
+        if cam.name == ref:
+            continue
+        true, got = syn.masks[_syn_index(syn, cam.name)], saved.masks[i]
+        rec.append((got & true).sum() / true.sum())
+        area.append(got.sum() / true.sum())
+    return {"region_recall_min": float(min(rec)), "region_area_max": float(max(area))}
 
 
 def _removal(res: CoInResult) -> dict:

@@ -170,6 +170,7 @@ FLAG_FIELDS = {
     "sd_path": "sd_path",
     "sd2_mode": "inpaint2d.sd2_mode",
     "inpainter": "inpaint2d.inpainter",
+    "insert_regions": "insert.regions",
     "lama_path": "inpaint2d.lama_path",
     "dino_path": "dino_path",
     "device": "device",
@@ -207,8 +208,8 @@ def test_every_run_flag_has_its_config_fields_default():
             target, _, name = f"x.{path}".rpartition(".")
             if target == "x":
                 CoInConfig(**{name: (choice,) if dest == "skip_stage" else choice})
-            else:
-                Inpaint2DConfig(**{name: choice})
+            else:  # a nested config: the field's own dataclass
+                type(_field(cfg, target[2:]))(**{name: choice})
     # --iters sets every GS stage's count (`CoInConfig.with_iters`): all three default to None
     assert (cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial) == (None, None, None)
 

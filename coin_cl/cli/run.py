@@ -39,8 +39,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prompt", default="", help="text for insertion (needs --sd-path or COIN_SD2_PATH)")
     p.add_argument("--edited-ref", type=Path, default=None,
                    help="insertion without weights: the reference view edited in a 2D tool (the object "
-                        "painted in; the masks cover where it goes in every view); its view is --ref or "
-                        "the one it matches")  # fmt: skip
+                        "painted in); its view is --ref or the one it matches")  # fmt: skip
+    p.add_argument("--insert-regions", choices=("auto", "hull", "derive"), default="auto",
+                   help="with --edited-ref: derive = the object is stood on the surface under the edit "
+                        "and every other view's region is derived (no masks needed); hull = the masks "
+                        "cover it in every view; auto = hull when every training view has a mask, else "
+                        "derive")  # fmt: skip
     p.add_argument("--budget", type=values.positive_float, default=30.0,
                    help="training minutes (scene prior, Ref-GS, TE-D; CLG and eval come on top); a timing "
                         "probe turns them into steps, recorded in OUT/plan.json (default 30)")  # fmt: skip
@@ -81,6 +85,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.cli.guard import output_folder
     from coin_cl.pipeline.coin import CoInConfig, inpaint
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+    from coin_cl.pipeline.insert_config import InsertConfig
     from coin_cl.pipeline.report import run_report
     from coin_cl.report_html import write_report
 
@@ -90,6 +95,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         mask_dilate=args.mask_dilate,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
         inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
+        insert=InsertConfig(regions=args.insert_regions),
     ).with_iters(args.iters)  # fmt: skip
     with output_folder(args.out, "run"):
         res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,

@@ -171,9 +171,11 @@ def inpaint(
         budget: minutes of training to aim at (default `config.budget_minutes`).
         config: everything else (`CoInConfig`). device: the OpenCL device (Runtime or name).
         edited_ref: the reference view edited in a 2D tool (a path, or (H, W, 3) uint8 / float in
-            [0, 1]) at the captured or the run's resolution; the masks must cover where the object
-            is to appear in every view. Its view is `reference` or, without one, the training view
-            it matches outside the mask (`coin_cl.pipeline.insert`).
+            [0, 1]) at the captured or the run's resolution. Without masks of the object in the
+            other views it is stood on the surface under it and their regions are derived
+            (`coin_cl.pipeline.insert_geometry`); with masks covering it in every view it is lifted
+            by their visual hull (`InsertConfig.regions`). Its view is `reference` or, without one,
+            the training view it matches outside the mask (`coin_cl.pipeline.insert`).
     Returns:
         `CoInResult` (paths, metrics, final model).
     """
@@ -237,7 +239,7 @@ def inpaint(
         )  # fmt: skip
     if cfg.resolution != 1.0:
         scene = scene.resized(cfg.resolution)
-    if not any(scene.masks[i].any() for i in scene.train_idx):
+    if not any(scene.masks[i].any() for i in scene.train_idx) and edited_ref is None and not cfg.edited_ref:
         raise ValueError(
             f"scene {scene.path} has no training view with a mask: nothing to inpaint "
             "(give masks, e.g. a label/ or masks/ folder)"
@@ -310,13 +312,12 @@ def _run(
     if cfg.inpaint_region == "auto":
         cfg = replace(cfg, inpaint_region=_choose_region(scene, masks, cfg))
     train = list(scene.train_idx)
-    if edited is not None:
-        from coin_cl.pipeline.insert import check_edit, find_reference
+    if edited is not None:  # before any stage; a one-photo insertion's masks are derived here
+        from coin_cl.pipeline.insert import prepare_edit
 
-        ref = find_reference(edited, scene, masks, train, cfg.ref, cfg.insert.ref_match_tol)
-        check_edit(
-            edited, scene.images[ref], masks[ref], scene.cameras[ref].name, cfg.insert
-        )  # before any stage
+        ref, masks, icfg = prepare_edit(edited, scene, masks, train, cfg.ref, cfg.insert,
+                                        cfg.edited_ref or "the edited reference")  # fmt: skip
+        cfg = replace(cfg, insert=icfg)
     else:
         ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]

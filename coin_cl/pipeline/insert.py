@@ -3,7 +3,11 @@ gives the reference view already edited in a 2D tool (`--edited-ref IMAGE`), wit
 
 The paper inserts with a text prompt: SD2 inpaints every view and CLG pulls them toward the
 reference's object. An edited reference carries the object for one view only; nothing here can
-generate it in the others, so stage 1 lifts the edit to 3D and carries it there geometrically:
+generate it in the others, so stage 1 lifts the edit to 3D and carries it there geometrically.
+Two ways (`InsertConfig.regions`): without masks of the object in the other views (a user's one
+edited photo) the object is stood on the surface under it and every view's region is derived from
+its projection (`coin_cl.pipeline.insert_geometry`); with masks covering it in every view it is
+lifted by their visual hull, as follows:
 
 1. the edit E_k: the reference's mask pixels where the edited image differs from the capture
    (any channel by more than `InsertConfig.edit_tol`); an edit identical to the capture is an error;
@@ -33,54 +37,19 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import cv2
 import numpy as np
 
+from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.scene.io import read_image, to_uint8, write_npy, write_png, write_text
 
 if TYPE_CHECKING:
     from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class InsertConfig:
-    """edit_tol: a reference pixel is edited when a channel differs from the capture by more than
-    this ([0, 1] units; 2/255 absorbs 8-bit round trips). hull_fraction: share of the seeing views
-    whose mask must hold a point for it to be in the hull (0.9 tolerates masks a pixel short).
-    min_views: views that must see a point for the hull to decide. hull_samples: depth samples per
-    ray (then one refinement between the last outside and first inside sample, as many again).
-    ref_match_tol: mean absolute difference outside the mask above which the edited image is not
-    taken for a view of this scene. propagate: False = the naive alternative the benchmark scores
-    against: no lift; the other views keep their captures (empty footprints), so a GS is simply
-    trained on the edited reference beside the unedited views."""
-
-    edit_tol: float = 2.0 / 255.0
-    hull_fraction: float = 0.9
-    min_views: int = 2
-    hull_samples: int = 128
-    ref_match_tol: float = 0.08
-    propagate: bool = True
-
-    def __post_init__(self) -> None:
-        for name, ok, what in (
-            ("edit_tol", 0.0 <= self.edit_tol < 1.0, "in [0, 1)"),
-            ("hull_fraction", 0.0 < self.hull_fraction <= 1.0, "in (0, 1]"),
-            ("min_views", isinstance(self.min_views, int) and self.min_views >= 1, "an integer >= 1"),
-            (
-                "hull_samples",
-                isinstance(self.hull_samples, int) and self.hull_samples >= 2,
-                "an integer >= 2",
-            ),
-            ("ref_match_tol", self.ref_match_tol > 0, "> 0"),
-        ):
-            if not ok:
-                raise ValueError(f"InsertConfig.{name} is {getattr(self, name)!r}: give {what}")
 
 
 class EditLift(NamedTuple):
@@ -305,6 +274,11 @@ def run_insert(scene: Scene, masks: list[np.ndarray], train: list[int], k: int, 
     from coin_cl.scene.ply import write_points_ply
 
     out_dir = Path(out_dir)
+    if cfg.propagate and cfg.regions == "derive":
+        from coin_cl.pipeline.insert_geometry import run_insert_derived
+
+        return run_insert_derived(scene, masks, train, k, edited, out_dir, cfg, "the edited reference",
+                                  device=device)  # fmt: skip
     if not cfg.propagate:
         region = edit_region(edited, scene.images[k], masks[k], cfg.edit_tol)
         for i in train:
@@ -342,6 +316,41 @@ def run_insert(scene: Scene, masks: list[np.ndarray], train: list[int], k: int, 
             sum(v["footprint_px"] for v in views.values()) / max(1, sum(v["mask_px"] for v in views.values()))
         ),
     }
+
+
+def prepare_edit(
+    edited: np.ndarray,
+    scene: Scene,
+    masks: list[np.ndarray],
+    train: list[int],
+    ref: int | str | None,
+    cfg: InsertConfig,
+    source: str,
+) -> tuple[int, list[np.ndarray], InsertConfig]:
+    """Before any stage: (the edited view k, the masks of every stage, `cfg` with `regions`
+    resolved). "hull" keeps `masks` and checks the edit inside the reference's mask; "derive"
+    replaces every view's mask by the region the lifted object covers there
+    (`insert_geometry.derive_masks`). `source` names the edited image in errors."""
+    from dataclasses import replace
+
+    from coin_cl.pipeline.insert_geometry import derive_masks
+
+    k = find_reference(edited, scene, masks, train, ref, cfg.ref_match_tol)
+    mode = cfg.regions
+    if mode == "auto":
+        mode = "hull" if all(np.asarray(masks[i]).any() for i in train if i != k) else "derive"
+        why = "the masks cover every other training view" if mode == "hull" else "some training views "
+        log.info("insertion regions: %s (%s)", mode, why if mode == "hull" else why + "have no mask")
+    cfg = replace(cfg, regions=mode)
+    if mode == "hull" or not cfg.propagate:
+        if not np.asarray(masks[k]).any():
+            raise ValueError(
+                f"{source}: view {scene.cameras[k].name} has no mask, and the hull path needs masks covering "
+                "the object in every view: give them, or let the regions be derived (--insert-regions derive)"
+            )
+        check_edit(edited, scene.images[k], masks[k], scene.cameras[k].name, cfg)
+        return k, masks, cfg
+    return k, derive_masks(edited, scene, masks, k, source, cfg), cfg
 
 
 def read_lift(folder: Path) -> EditLift | None:
