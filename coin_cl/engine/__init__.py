@@ -21,9 +21,10 @@ from coin_cl.engine.rendering import (
     rasterize_to_pixels,
     ssim_map,
 )
-from coin_cl.engine.runtime import Runtime, get_runtime, resolve_device
+from coin_cl.engine.runtime import DeviceLike, Runtime, get_runtime, resolve_device
 
 __all__ = [
+    "DeviceLike",
     "Gaussians",
     "NoDeviceError",
     "PairOverflowError",

@@ -322,6 +322,12 @@ class Runtime:
         del in_flight  # released only once the queue has drained
 
 
+# What every `device=` argument takes: an OpenCL `Runtime` (used as is), a device-name substring
+# (matched by `devices.choose_device`), or None for the default device ($COIN_CL_DEVICE, else the
+# first that builds the kernels); `resolve_device` turns one into a Runtime.
+DeviceLike = Runtime | str | None
+
+
 # What makes a kernel's result depend on its work-group: local arrays, barriers, a required size,
 # or reading the group's geometry. Decided from the source because the driver's answers differ:
 # NVIDIA's OpenCL reports CL_KERNEL_LOCAL_MEM_SIZE = 1 byte for kernels that declare no local
@@ -362,7 +368,7 @@ def get_runtime(device: str | None = None) -> Runtime:
     return rt
 
 
-def resolve_device(device: Runtime | str | None) -> Runtime:
+def resolve_device(device: DeviceLike) -> Runtime:
     """The runtime for `device`: a Runtime as is, a name substring, or None for the default."""
     if isinstance(device, Runtime):
         return device

@@ -38,15 +38,17 @@ import numpy as np
 
 from coin_cl.diffusion.sampling import Denoiser
 from coin_cl.pipeline.clg_config import CLGConfig
+from coin_cl.pipeline.clg_detail import ReferenceView
 from coin_cl.pipeline.clg_guard import pick
-from coin_cl.pipeline.clg_view import ReferenceView, sample_view, warp_view
+from coin_cl.pipeline.clg_view import sample_view, warp_view
 from coin_cl.scene.io import atomic_write, view_stem, write_png
 from coin_cl.schema import CLG_VIEW, SD2_PLAN, parse_optional, run_folder_fix
 
 if TYPE_CHECKING:
+    from coin_cl.engine import DeviceLike
     from coin_cl.pipeline.run_inputs import RunInputs
     from coin_cl.pipeline.runner import StageContext
-    from coin_cl.scene import Scene
+    from coin_cl.scene import Camera, Scene
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +88,7 @@ def _usable_points(points: np.ndarray, max_points: int) -> np.ndarray:
     return points
 
 
-def _check_sequences(reference: int, views: Sequence[int], cameras: Sequence[Any], inpaints: Sequence[Any],
+def _check_sequences(reference: int, views: Sequence[int], cameras: Sequence[Camera], inpaints: Sequence[Any],
                      renders: Sequence[Any], depths: Sequence[Any] | None,
                      masks: Sequence[Any]) -> None:  # fmt: skip
     n_views = len(cameras)
@@ -111,7 +113,7 @@ def _write_view(js: Path, png: Path, rec: dict[str, Any], out: np.ndarray) -> No
 def run_clg(
     reference: int,
     views: Sequence[int],
-    cameras: Sequence[Any],
+    cameras: Sequence[Camera],
     inpaints: Sequence[np.ndarray | None],
     renders: Sequence[np.ndarray | None],
     depths: Sequence[np.ndarray | None] | None,
@@ -121,7 +123,7 @@ def run_clg(
     features: Callable | None,
     out_dir: str | Path,
     cfg: CLGConfig | None = None,
-    device: Any = None,
+    device: DeviceLike = None,
 ) -> dict[str, Any]:
     """Consistency Loss Guidance for `views` against the reference view (see the module docstring).
 

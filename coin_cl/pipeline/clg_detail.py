@@ -42,13 +42,30 @@ pixel, and the sample steers the lightness alone. On the shared scene's LaMa inp
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from coin_cl.crop import crop_image, resize_to
 from coin_cl.pipeline.clg_config import DETAILS
 from coin_cl.pipeline.reprojection import reference_in_view
+
+if TYPE_CHECKING:
+    from coin_cl.engine import DeviceLike
+    from coin_cl.scene import Camera
+
+
+@dataclass
+class ReferenceView:
+    """The reference view as every view's CLG sees it (what `reference_warp` warps from)."""
+
+    k: int
+    cam: Camera
+    image: np.ndarray  # [Hk, Wk, 3] I^_k
+    depth: np.ndarray | None  # [Hk, Wk] rendered camera z or None
+    points: np.ndarray  # [M, 3] P_k
+    mask: np.ndarray | None = None  # [Hk, Wk] bool its mask (the lifted residual's target region)
 
 
 def high_band(img: np.ndarray, w_low: int, h_low: int) -> np.ndarray:
@@ -63,7 +80,7 @@ def high_band(img: np.ndarray, w_low: int, h_low: int) -> np.ndarray:
 
 
 def reference_warp(
-    ref: Any, cam_n: Any, device: Any, detail_scale: float | None = None
+    ref: ReferenceView, cam_n: Camera, device: DeviceLike, detail_scale: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The reference image warped into view n through P_k in one pass, with its high band (split at
     `detail_scale` x its size: view n's working scale) as three more channels when a scale is given:
@@ -158,10 +175,23 @@ def crop_bands(
     return back, hi
 
 
-def compose_crop(*args: Any, detail_gain: float = 1.0, **kwargs: Any) -> np.ndarray:
+def compose_crop(
+    fill: np.ndarray,
+    inp_n: np.ndarray,
+    y0: int,
+    x0: int,
+    side: int,
+    detail: str,
+    ref_detail: tuple[np.ndarray, np.ndarray] | None = None,
+    split: float = 1.0,
+    colour: tuple[np.ndarray, np.ndarray] | None = None,
+    chroma: bool = False,
+    *,
+    detail_gain: float = 1.0,
+) -> np.ndarray:
     """The crop [side, side, 3] CLG pastes: low + detail_gain x high of `crop_bands` (same
     arguments); detail_gain is the top-up's gain on the high band (`texture_gain` picks it)."""
-    back, hi = crop_bands(*args, **kwargs)
+    back, hi = crop_bands(fill, inp_n, y0, x0, side, detail, ref_detail, split, colour, chroma)
     return (back + detail_gain * hi).astype(np.float32)
 
 

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
@@ -44,7 +43,7 @@ import torch.nn.functional as F
 from coin_cl.crop import crop_image, crop_intrinsics, resize_to
 from coin_cl.diffusion.inpaint2d import crop_box
 from coin_cl.diffusion.sampling import Denoiser
-from coin_cl.engine import support_mask, warp_features
+from coin_cl.engine import DeviceLike, support_mask, warp_features
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.reprojection import depth_tensor
 from coin_cl.scene.conventions import interpolate_pose
@@ -65,7 +64,7 @@ def warp_chunked(
     h: int,
     src_depth: torch.Tensor | None,
     cfg: CLGConfig,
-    device: Any,
+    device: DeviceLike,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """warp_features over channel chunks of at most MAX_WARP_CHANNELS (DINO has 384); returns
     (features [h, w, C], weight [h, w])."""
@@ -125,8 +124,8 @@ def work_size(denoiser: Denoiser) -> int:
 
 
 def setup_view(
-    cam_k: Any,
-    cam_n: Any,
+    cam_k: Camera,
+    cam_n: Camera,
     inpaint_k: np.ndarray,
     inpaint_n: np.ndarray,
     render_n: np.ndarray,
@@ -137,7 +136,7 @@ def setup_view(
     extractor: Callable,
     work: int,
     cfg: CLGConfig,
-    device: Any,
+    device: DeviceLike,
 ) -> ViewProblem:
     H, W = mask_n.shape
     y0, x0, side = crop_box(mask_n, work, cfg.context)
@@ -216,7 +215,7 @@ def setup_view(
     )  # fmt: skip
 
 
-def make_energy(p: ViewProblem, extractor: Callable, cfg: CLGConfig, device: Any) -> Callable:
+def make_energy(p: ViewProblem, extractor: Callable, cfg: CLGConfig, device: DeviceLike) -> Callable:
     hole_b = p.hole[0, 0] > 0
     n_hole = max(1, int(hole_b.sum()))
     n_sup = int(p.support.sum())

@@ -29,11 +29,11 @@ def colour_distance(img: np.ndarray, mask: np.ndarray, ring_px: int = 8) -> floa
     return float(np.abs(a.mean(0) - b.mean(0)).sum() + np.abs(a.std(0) - b.std(0)).sum())
 
 
-def _finite(x: Any) -> bool:
+def _finite(x: float | None) -> bool:
     return x is not None and bool(np.isfinite(x))
 
 
-def _rose(before: Any, after: Any) -> bool:
+def _rose(before: float | None, after: float | None) -> bool:
     return _finite(before) and _finite(after) and after > before
 
 

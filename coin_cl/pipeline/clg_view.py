@@ -6,8 +6,7 @@ over the views; the energy is `coin_cl.pipeline.clg_energy`."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -17,6 +16,7 @@ from coin_cl.diffusion.sampling import DDIMSampler, Denoiser
 from coin_cl.metrics import mask_texture
 from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.clg_detail import (
+    ReferenceView,
     colour_target,
     crop_bands,
     reference_detail,
@@ -27,17 +27,9 @@ from coin_cl.pipeline.clg_energy import make_energy, setup_view, work_size
 from coin_cl.pipeline.reprojection import masked_residual, residual_to_reference, warp_fill
 from coin_cl.scene.io import to_uint8
 
-
-@dataclass
-class ReferenceView:
-    """The reference view as every view's CLG sees it."""
-
-    k: int
-    cam: Any
-    image: np.ndarray  # [Hk, Wk, 3] I^_k
-    depth: np.ndarray | None  # [Hk, Wk] rendered camera z or None
-    points: np.ndarray  # [M, 3] P_k
-    mask: np.ndarray | None = None  # [Hk, Wk] bool its mask (the lifted residual's target region)
+if TYPE_CHECKING:
+    from coin_cl.engine import DeviceLike
+    from coin_cl.scene import Camera
 
 
 def written(out: np.ndarray) -> np.ndarray:
@@ -45,7 +37,7 @@ def written(out: np.ndarray) -> np.ndarray:
     return to_uint8(out).astype(np.float32) / 255
 
 
-def lifted_residual(img: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.ndarray | None,
+def lifted_residual(img: np.ndarray, cam: Camera, mask: np.ndarray, depth_n: np.ndarray | None,
                     ref: ReferenceView) -> float:  # fmt: skip
     """The residual to the reference by the other geometric route (`residual_to_reference`): view n's
     mask pixels of `img` lifted with its own depth and projected into the reference's mask; nan
@@ -57,7 +49,7 @@ def lifted_residual(img: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.nda
                                  ref.image, ref.mask)  # fmt: skip
 
 
-def input_residuals(inp_n: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.ndarray | None,
+def input_residuals(inp_n: np.ndarray, cam: Camera, mask: np.ndarray, depth_n: np.ndarray | None,
                     ref: ReferenceView, warp: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:  # fmt: skip
     """The input's residuals by both routes and the support (once per view, shared by its candidates)."""
     r_before, n_sup = masked_residual(inp_n, *warp, mask)
@@ -65,7 +57,7 @@ def input_residuals(inp_n: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.n
             "lifted_before": lifted_residual(inp_n, cam, mask, depth_n, ref)}  # fmt: skip
 
 
-def output_residuals(out: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.ndarray | None,
+def output_residuals(out: np.ndarray, cam: Camera, mask: np.ndarray, depth_n: np.ndarray | None,
                      ref: ReferenceView, warp: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:  # fmt: skip
     """A candidate's residuals by both routes, of what its PNG will hold."""
     w = written(out)
@@ -73,9 +65,9 @@ def output_residuals(out: np.ndarray, cam: Any, mask: np.ndarray, depth_n: np.nd
             "lifted_after": lifted_residual(w, cam, mask, depth_n, ref)}  # fmt: skip
 
 
-def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: np.ndarray | None,
+def warp_view(n: int, cam: Camera, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: np.ndarray | None,
               mask: np.ndarray, ref: ReferenceView,
-              device: Any) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+              device: DeviceLike) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """CLG without a sampler for view n: (output [H, W, 3], record). The fill is the reference itself
     (both bands: no band split is needed, the detail comes through the same warp as the colours)."""
     warp = reference_warp(ref, cam, device)
@@ -86,10 +78,10 @@ def warp_view(n: int, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: n
     return out, rec
 
 
-def sample_view(n: int, stem: str, cam: Any, inp_n: np.ndarray, ren_n: np.ndarray,
+def sample_view(n: int, stem: str, cam: Camera, inp_n: np.ndarray, ren_n: np.ndarray,
                 depth_n: np.ndarray | None, mask: np.ndarray, ref: ReferenceView, denoiser: Denoiser,
                 features: Callable, cfg: CLGConfig,
-                device: Any) -> list[tuple[np.ndarray, dict[str, Any]]]:  # fmt: skip
+                device: DeviceLike) -> list[tuple[np.ndarray, dict[str, Any]]]:  # fmt: skip
     """Guided sampling for view n on its crop, pasted back inside the mask: candidate (output
     [H, W, 3], record) pairs, the colour-matched one first (`CLGConfig.colour_match`), then the
     unmatched one; `clg_guard.pick` chooses."""

@@ -53,6 +53,7 @@ from coin_cl.pipeline.stages import (
 )
 
 if TYPE_CHECKING:
+    from coin_cl.engine import DeviceLike
     from coin_cl.gs.base import Model
     from coin_cl.scene import Scene
 
@@ -153,7 +154,7 @@ def inpaint(
     prompt: str | None = None,
     budget: float | None = None,
     config: CoInConfig | None = None,
-    device: Any = None,
+    device: DeviceLike = None,
     force: tuple[str, ...] = (),
     edited_ref: str | Path | np.ndarray | None = None,
 ) -> CoInResult:

@@ -4,9 +4,10 @@ scene's own prior (`coin_cl.diffusion.scene_prior`, trained by stage 1)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from coin_cl.diffusion.sampling import Denoiser
     from coin_cl.diffusion.sd2 import SD2Denoiser
 
 
@@ -27,8 +28,8 @@ SD2_ALL_VIEWS_MAX_HOURS = 2.0
 SD2_MODES = ("auto", "reference_only", "all")
 
 
-def sd2_on_cpu(sd2: Any) -> bool:
-    """Whether the SD2 denoiser's UNet runs on the CPU."""
+def sd2_on_cpu(sd2: Denoiser) -> bool:
+    """Whether the SD2 denoiser's UNet runs on the CPU (True for a denoiser without a UNet)."""
     try:
         return next(sd2.unet.parameters()).device.type == "cpu"
     except (AttributeError, StopIteration):

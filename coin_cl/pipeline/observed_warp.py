@@ -23,19 +23,22 @@ render R^rmv_n).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+if TYPE_CHECKING:
+    from coin_cl.scene import Camera
+
 
 def warp_observed(
-    cams: dict[int, Any],
+    cams: dict[int, Camera],
     images: dict[int, np.ndarray],
     masks: dict[int, np.ndarray],
     depth_n: np.ndarray,
     captured_depth: dict[int, np.ndarray],
-    cam_n: Any,
+    cam_n: Camera,
     pixels: np.ndarray,
     tol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -7,12 +7,15 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from coin_cl.scene.masks import bbox
+
+if TYPE_CHECKING:
+    from coin_cl.scene import Camera, Scene
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +77,8 @@ def resolve_reference(ref: str | int, names: Sequence[str], candidates: Sequence
 
 
 def choose_reference(
-    scene_or_masks: Any,
-    cameras: Sequence[Any] | None = None,
+    scene_or_masks: Scene | Sequence[np.ndarray],
+    cameras: Sequence[Camera] | None = None,
     *,
     train_idx: Sequence[int] | None = None,
     ref: str | int | None = None,
@@ -165,7 +168,7 @@ def reference_pixels(
 
 
 def reference_points(
-    camera: Any,
+    camera: Camera,
     depth: np.ndarray,
     mask: np.ndarray,
     margin_px: int | None = None,

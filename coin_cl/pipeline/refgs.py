@@ -55,6 +55,7 @@ from coin_cl.scene.io import view_stem, write_npy, write_png, write_text
 from coin_cl.schema import DEPTH_PRIOR, REFGS_STAGE, parse, parse_optional, run_folder_fix
 
 if TYPE_CHECKING:
+    from coin_cl.engine import DeviceLike
     from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -66,7 +67,7 @@ STAGE_JSON = "stage.json"
 
 
 def fit_captured(scene: Scene, train_idx: Sequence[int], kind: str, iters: int, seed: int, backend: str,
-                 device: Any, out: Path) -> Trainer:  # fmt: skip
+                 device: DeviceLike, out: Path) -> Trainer:  # fmt: skip
     """A short GS (`kind` 'scaffold' or '3dgs', `iters` steps, default schedules compressed to
     them) fitted to the captured (unmasked) training images, resumable in `out`; the trained
     `Trainer` (its `model`, `train_views`)."""
@@ -87,7 +88,7 @@ def fit_captured(scene: Scene, train_idx: Sequence[int], kind: str, iters: int, 
 
 
 def _aux_gs_depth(scene: Scene, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
-                  device: Any, out: Path) -> np.ndarray:  # fmt: skip
+                  device: DeviceLike, out: Path) -> np.ndarray:  # fmt: skip
     """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
     (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
     tr = fit_captured(scene, train_idx, "scaffold", iters, seed, backend, device, out)
@@ -100,7 +101,7 @@ def _aux_gs_depth(scene: Scene, train_idx: Sequence[int], k: int, iters: int, se
 
 
 def _depth_prior(scene: Scene, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
-                 device: Any, gs_depth: np.ndarray | None, out: Path,
+                 device: DeviceLike, gs_depth: np.ndarray | None, out: Path,
                  aux_iters: int | None = None,
                  known_depth: np.ndarray | None = None) -> DepthPrior:  # fmt: skip
     """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it.
@@ -157,7 +158,7 @@ def run_refgs(
     budget_minutes: float | None,
     iters: int | None,
     max_seconds: float = 0.0,
-    device: Any = None,
+    device: DeviceLike = None,
     seed: int = 0,
     backend: str = "opencl",
     gs_depth: np.ndarray | None = None,

@@ -75,7 +75,8 @@ from coin_cl.pipeline.observed_warp import warp_observed
 from coin_cl.scene.io import to_uint8, write_png, write_text
 
 if TYPE_CHECKING:
-    from coin_cl.scene import Scene
+    from coin_cl.engine import DeviceLike
+    from coin_cl.scene import Camera, Scene
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +161,7 @@ def refine_masks(
     cfg: RefineConfig,
     iters: int,
     seed: int = 0,
-    device: Any = None,
+    device: DeviceLike = None,
     also: list[int] | tuple[int, ...] = (),
     vote_masks: list[np.ndarray] | None = None,
 ) -> dict[str, Any]:
@@ -285,7 +286,7 @@ def fit_renders(
     cfg: RefineConfig,
     iters: int,
     seed: int = 0,
-    device: Any = None,
+    device: DeviceLike = None,
     also: list[int] | tuple[int, ...] = (),
     vote_masks: list[np.ndarray] | None = None,
 ) -> tuple[Renders, int, int]:
@@ -338,7 +339,7 @@ def fit_renders(
 
 
 def seen_elsewhere(
-    cams: dict[int, Any],
+    cams: dict[int, Camera],
     masks: list[np.ndarray],
     renders: Renders,
     n: int,

@@ -6,12 +6,15 @@ with it, and benchmarks and tests score the residual to the reference with the d
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from coin_cl.engine import warp_features
+from coin_cl.engine import DeviceLike, warp_features
+
+if TYPE_CHECKING:
+    from coin_cl.scene import Camera
 
 
 def depth_tensor(d: np.ndarray | None) -> torch.Tensor | None:
@@ -24,11 +27,11 @@ def depth_tensor(d: np.ndarray | None) -> torch.Tensor | None:
 
 def reference_in_view(
     image_k: np.ndarray,
-    cam_n: Any,
-    cam_k: Any,
+    cam_n: Camera,
+    cam_k: Camera,
     points: np.ndarray,
     depth_k: np.ndarray | None = None,
-    device: Any = None,
+    device: DeviceLike = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The reference image_k (Hk, Wk, 3) warped into view n at full resolution through P_k
     `points` [M, 3] (`warp_features`: k -> n, occlusion-tested against depth_k): (H, W, 3) colours
@@ -45,12 +48,12 @@ def reference_in_view(
 def consistency_residual(
     image_n: np.ndarray,
     image_k: np.ndarray,
-    cam_n: Any,
-    cam_k: Any,
+    cam_n: Camera,
+    cam_k: Camera,
     points: np.ndarray,
     mask_n: np.ndarray,
     depth_k: np.ndarray | None = None,
-    device: Any = None,
+    device: DeviceLike = None,
 ) -> tuple[float, int]:
     """Masked reprojection error of view n to the reference through P_k: the reference image warped
     into view n at full resolution (`warp_features(P_k: k -> n)`), compared inside the support
@@ -89,7 +92,7 @@ def warp_fill(
 
 
 def residual_to_reference(
-    cameras: Sequence[Any],
+    cameras: Sequence[Camera],
     depths: Sequence[np.ndarray | None],
     images: Sequence[np.ndarray | None],
     regions: Sequence[np.ndarray | None],

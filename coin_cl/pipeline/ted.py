@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -41,6 +41,9 @@ from coin_cl.gs.strategy import Strategy
 from coin_cl.gs.terms import LossContext, LossTerm, PhotometricLoss
 from coin_cl.gs.trainer import TrainConfig, Trainer
 from coin_cl.timing import mean_step_seconds
+
+if TYPE_CHECKING:
+    from coin_cl.gs.base import Model
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +221,7 @@ def _train_phase(model, views, test, cfg: TrainConfig, out: Path, terms: list[Lo
 
 
 def run_ted(
-    model,
+    model: Model,
     views: list,
     test_views: list,
     out_dir: Path,
@@ -226,7 +229,7 @@ def run_ted(
     train_cfg: TrainConfig | None = None,
     extra_terms: list[LossTerm] = (),
     max_seconds: dict[str, float] | None = None,
-) -> tuple[dict, Any]:
+) -> tuple[dict[str, Any], Model]:
     """Run both TE-D phases from `model` (the Ref-GS scene).
 
     Args:
