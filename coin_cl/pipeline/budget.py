@@ -42,6 +42,7 @@ from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
 
 if TYPE_CHECKING:
+    from coin_cl.engine import DeviceLike
     from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -219,7 +220,9 @@ def prior_seconds(budget_minutes: float) -> float:
     return max(PRIOR_MIN_SECONDS, 60.0 * BUDGET_SHARES["prior"] * budget_minutes)
 
 
-def probe_seconds_per_step(scene: Scene, train_idx: list[int], device: Any = None, seed: int = 0) -> float:
+def probe_seconds_per_step(
+    scene: Scene, train_idx: list[int], device: DeviceLike = None, seed: int = 0
+) -> float:
     """Seconds per step of a plain Scaffold-GS trained on `scene`'s captured training views (the
     model every GS stage of CoIn trains), measured over PROBE_STEPS steps after PROBE_WARMUP.
     The model is thrown away."""

@@ -47,7 +47,8 @@ from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.scene.io import read_image, to_uint8, write_npy, write_png, write_text
 
 if TYPE_CHECKING:
-    from coin_cl.scene import Scene
+    from coin_cl.engine import DeviceLike
+    from coin_cl.scene import Camera, Scene
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +152,7 @@ def edit_region(edited: np.ndarray, captured: np.ndarray, mask: np.ndarray, tol:
     return np.asarray(mask, bool) & (np.abs(edited - captured).max(-1) > tol)
 
 
-def hull_depth(cam: Any, region: np.ndarray, cameras: list[Any], masks: list[np.ndarray], near: float,
+def hull_depth(cam: Camera, region: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], near: float,
                far: float, cfg: InsertConfig) -> np.ndarray:  # fmt: skip
     """Camera z of the first point along each ray of `region` (H, W) bool of `cam` that lies in the
     masks' visual hull (`InsertConfig`), searched in [near, far] (camera z); NaN where none.
@@ -188,7 +189,7 @@ def hull_depth(cam: Any, region: np.ndarray, cameras: list[Any], masks: list[np.
     return out
 
 
-def depth_range(cam: Any, points: np.ndarray) -> tuple[float, float]:
+def depth_range(cam: Camera, points: np.ndarray) -> tuple[float, float]:
     """Search range in camera z for `hull_depth`: from 1 % of the median depth of the sparse points
     seen by `cam` to twice their 99.5th percentile (the hull stops the search well before)."""
     uv, z = cam.project(np.asarray(points, np.float64))
@@ -243,8 +244,8 @@ def lift_edit(edited: np.ndarray, captured: np.ndarray, k: int, scene: Scene, ma
     )
 
 
-def propagate(edited: np.ndarray, lift: EditLift, cam_k: Any, cam_n: Any, captured_n: np.ndarray,
-              mask_n: np.ndarray, device: Any = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def propagate(edited: np.ndarray, lift: EditLift, cam_k: Camera, cam_n: Camera, captured_n: np.ndarray,
+              mask_n: np.ndarray, device: DeviceLike = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Step 3 for one view: (I^_n (H, W, 3) float32, footprint F_n (H, W) bool). The lift's points
     carry the edited colours from the reference into view n (z-buffered splat); F_n is where they
     land inside mask_n, with one-pixel cracks closed (colours there filled by Telea)."""
@@ -266,7 +267,7 @@ def propagate(edited: np.ndarray, lift: EditLift, cam_k: Any, cam_n: Any, captur
 
 
 def run_insert(scene: Scene, masks: list[np.ndarray], train: list[int], k: int, edited: np.ndarray,
-               out_dir: Path, cfg: InsertConfig, device: Any = None) -> dict[str, Any]:  # fmt: skip
+               out_dir: Path, cfg: InsertConfig, device: DeviceLike = None) -> dict[str, Any]:  # fmt: skip
     """Stage 1 for insertion from an edited reference view k (module doc); writes the files the module
     doc lists into `out_dir`. Returns JSON-able figures: edited pixels, lifted points, per-view
     footprint area against the input mask area."""

@@ -58,7 +58,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from coin_cl.pipeline.insert_config import InsertConfig
-    from coin_cl.scene import Scene
+    from coin_cl.scene import Camera, Scene
 
 log = logging.getLogger(__name__)
 
@@ -122,18 +122,18 @@ def edit_region_free(edited: np.ndarray, captured: np.ndarray, mask: np.ndarray 
     return clean_region(raw, cfg.min_component)
 
 
-def _up(cam: Any) -> np.ndarray:
+def _up(cam: Camera) -> np.ndarray:
     """The camera's up direction in world coordinates (image y points down)."""
     return -cam.camtoworld[:3, 1]
 
 
-def _rays(cam: Any, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+def _rays(cam: Camera, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """World directions (N, 3) with camera z = 1 through pixel coordinates (xs, ys)."""
     uv = np.stack([xs, ys], 1).astype(np.float64)
     return cam.unproject(uv, np.ones(len(uv))) - cam.center
 
 
-def fit_surface(cam: Any, region: np.ndarray, points: np.ndarray, source: str, seed: int = 0,
+def fit_surface(cam: Camera, region: np.ndarray, points: np.ndarray, source: str, seed: int = 0,
                 tol: float = 0.01) -> np.ndarray:  # fmt: skip
     """The plane (n, d) (4,) float64 the object rests on (module doc, step 2): n . x = d, n unit and
     toward `cam`. `points` [N, 3] world; `tol`: inlier distance as a share of the band points'
@@ -197,7 +197,7 @@ def fit_surface(cam: Any, region: np.ndarray, points: np.ndarray, source: str, s
     return plane
 
 
-def lift_one_photo(edited: np.ndarray, region: np.ndarray, cam: Any, points: np.ndarray, source: str,
+def lift_one_photo(edited: np.ndarray, region: np.ndarray, cam: Camera, points: np.ndarray, source: str,
                    cfg: InsertConfig, seed: int = 0) -> OnePhotoLift:  # fmt: skip
     """Steps 2-4 of the module doc for the reference camera `cam`: E_k `region` (H, W) bool of the
     `edited` (H, W, 3) image lifted onto the surface fitted to the scene's sparse `points` [N, 3].
@@ -300,7 +300,7 @@ def lift_one_photo(edited: np.ndarray, region: np.ndarray, cam: Any, points: np.
                         region, depth, plane, width, float(D_max))  # fmt: skip
 
 
-def splat_depth(points: np.ndarray, cam: Any) -> np.ndarray:
+def splat_depth(points: np.ndarray, cam: Camera) -> np.ndarray:
     """Z-buffer of `points` [M, 3] in `cam`: (H, W) float32 camera z of the nearest point per pixel,
     inf where none lands."""
     px, ok = cam.pixels(points)
@@ -310,7 +310,7 @@ def splat_depth(points: np.ndarray, cam: Any) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def footprint(points: np.ndarray, cam: Any) -> np.ndarray:
+def footprint(points: np.ndarray, cam: Camera) -> np.ndarray:
     """F_n: where `points` [M, 3] land in `cam`, one-pixel cracks closed and holes filled. (H, W) bool."""
     hit = np.isfinite(splat_depth(points, cam))
     if not hit.any():
@@ -327,7 +327,7 @@ def grow(mask: np.ndarray, margin: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
 
 
-def derive_regions(points: np.ndarray, cameras: list[Any], margin: int) -> list[np.ndarray]:
+def derive_regions(points: np.ndarray, cameras: list[Camera], margin: int) -> list[np.ndarray]:
     """R_n for every camera: the footprint of the lifted `points` grown by `margin` px."""
     return [grow(footprint(points, cam), margin) for cam in cameras]
 
@@ -357,7 +357,7 @@ def contact_sheet(images: list[np.ndarray], regions: list[np.ndarray], names: li
     return sheet
 
 
-def margin_px(cfg: InsertConfig, cam: Any) -> int:
+def margin_px(cfg: InsertConfig, cam: Camera) -> int:
     """The regions' margin in px: `cfg.region_margin`, or 1 % of the view's longer side (>= 1)."""
     if cfg.region_margin is not None:
         return int(cfg.region_margin)
