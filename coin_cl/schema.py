@@ -210,6 +210,12 @@ PLAN = Obj(
         "prior_steps": Field(int, required=False, nullable=True, lo=0, hi=MAX_STEPS),
         "prior_seconds_per_step": Field(float, required=False, nullable=True, lo=1e-9, hi=1e6),
         "disc_seconds_per_step": Field(float, required=False, nullable=True, lo=0, hi=1e6),
+        "shares": Field(
+            dict,
+            required=False,
+            nullable=True,
+            obj=Obj({k: Field(float, lo=0, hi=1) for k in ("prior", *_STAGE_KEYS)}),
+        ),
     }
 )
 

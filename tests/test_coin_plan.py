@@ -24,8 +24,9 @@ class _OwnCapture(_Scene):
 
 def test_the_adversarial_phase_runs_only_on_a_learned_inpainters_fills(tmp_path, monkeypatch):
     """TE-D's discriminator takes stage 1's fills as the real texture: with the embedded inpainters
-    (exemplar, Telea, scene prior) the plan leaves the phase out, says why in its key, and gives the
-    fine-tune phase Ref-GS's spare time alone; an explicit count runs it; dataset / LaMa fills keep it."""
+    (exemplar, Telea, scene prior) the plan leaves the phase out, says why in its key, and gives its
+    share of the budget to the fine-tune phase, in the plan and in the re-plan from Ref-GS's rate (a
+    written plan reads back the same); an explicit count runs it; dataset / LaMa fills keep it."""
     from coin_cl.pipeline.coin import CoInConfig
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 
@@ -33,9 +34,23 @@ def test_the_adversarial_phase_runs_only_on_a_learned_inpainters_fills(tmp_path,
     monkeypatch.setattr(CP, "disc_probe", lambda *a: lambda: 0.1)
     auto, _ = B.steps_from_rate(4.0, 0.5)
     own = CP.plan_for(_OwnCapture(), tmp_path / "own", CoInConfig(budget_minutes=4.0), [0, 1])
-    assert own.steps == {**auto, "ted_adversarial": 0} and own.minutes["ted_adversarial"] is None
+    both = B.BUDGET_SHARES["ted_finetune"] + B.BUDGET_SHARES["ted_adversarial"]
+    assert own.steps == {
+        **auto,
+        "ted_adversarial": 0,
+        "ted_finetune": B.stage_steps("ted_finetune", both * 4.0, 0.5),
+    }
+    assert own.steps["ted_finetune"] > 2 * auto["ted_finetune"] and own.minutes["ted_adversarial"] is None
     assert "embedded" in own.key["ted_adversarial"] and own.disc_seconds_per_step is None
-    assert B.replan_ted(own, auto["refgs"], 1.0, 4.0)["ted_adversarial"] == 0
+    assert B.read_plan(tmp_path / "own" / B.PLAN_FILE) == own
+    # Ref-GS ran exactly as planned: the fine-tune phase gets both phases' minutes at its own cost
+    refgs_s = B.BUDGET_SHARES["refgs"] * 4.0 * 60.0
+    again = B.replan_ted(own, 100, refgs_s, 4.0)
+    spp = refgs_s / 100
+    assert again == {
+        "ted_finetune": int(both * 4.0 * 60.0 / B.ted_step_seconds(own, "ted_finetune", spp)),
+        "ted_adversarial": 0,
+    }
     telea = CoInConfig(budget_minutes=4.0, inpaint2d=Inpaint2DConfig(inpainter="telea"))
     assert "telea" in CP.plan_for(_OwnCapture(), tmp_path / "telea", telea, [0, 1]).key["ted_adversarial"]
     asked = CoInConfig(budget_minutes=4.0, iters_ted_adversarial=9)

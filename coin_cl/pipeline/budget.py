@@ -107,6 +107,9 @@ class Plan:
     prior_steps: int | None = None
     prior_seconds_per_step: float | None = None
     disc_seconds_per_step: float | None = None
+    # The budget's shares this plan split (None: BUDGET_SHARES): a run without TE-D's adversarial
+    # phase gives its share to the fine-tune phase (`coin_plan.plan_for`).
+    shares: dict[str, float] | None = None
 
     def cap_seconds(self, stage: str) -> float:
         """The safety cap of a GS stage (0: none, for explicit step counts)."""
@@ -168,18 +171,20 @@ def read_plan(path: Path) -> Plan:
 
 
 def steps_from_rate(
-    budget_minutes: float, seconds_per_step: float
+    budget_minutes: float, seconds_per_step: float, shares: dict[str, float] | None = None
 ) -> tuple[dict[str, int], dict[str, float]]:
     """({stage: steps}, {stage: minutes}) for a budget at a probe rate: each GS stage gets its share
-    of the budget divided by its cost. Monotone: more budget or a faster machine never gives fewer
-    steps. At least 1 Ref-GS step; TE-D may get 0 (then it passes Ref-GS through, logged)."""
+    of the budget (`shares`, default BUDGET_SHARES) divided by its cost. Monotone: more budget or a
+    faster machine never gives fewer steps. At least 1 Ref-GS step; TE-D may get 0 (then it passes
+    Ref-GS through, logged)."""
     if not math.isfinite(seconds_per_step) or seconds_per_step <= 0:
         raise ValueError(f"probe seconds per step must be a positive number, got {seconds_per_step}")
     if not math.isfinite(budget_minutes) or budget_minutes <= 0:
         raise ValueError(f"budget must be a positive number of minutes, got {budget_minutes}")
+    shares = shares or BUDGET_SHARES
     steps, minutes = {}, {}
     for k in ("refgs", "ted_finetune", "ted_adversarial"):
-        minutes[k] = BUDGET_SHARES[k] * budget_minutes
+        minutes[k] = shares[k] * budget_minutes
         steps[k] = stage_steps(k, minutes[k], seconds_per_step)
     steps["refgs"] = max(1, steps["refgs"])
     return steps, minutes
@@ -258,6 +263,7 @@ def plan_run(
     probe: Callable[[], float],
     prior_probe: Callable[[], float] | None = None,
     disc_probe: Callable[[], float] | None = None,
+    shares: dict[str, float] | None = None,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
@@ -285,7 +291,7 @@ def plan_run(
         log.info("timing probe: %d Scaffold-GS steps on this machine to turn %.0f minutes into steps",
                  PROBE_STEPS + PROBE_WARMUP, budget_minutes)  # fmt: skip
         spp = probe()
-        auto, auto_min = steps_from_rate(budget_minutes, spp)
+        auto, auto_min = steps_from_rate(budget_minutes, spp, shares)
         steps = {k: int(explicit[k]) if explicit.get(k) is not None else auto[k] for k in auto}
         minutes = {k: None if explicit.get(k) is not None else auto_min[k] for k in auto}
         source = "probe"
@@ -315,6 +321,7 @@ def plan_run(
         prior_steps=prior_steps,
         prior_seconds_per_step=prior_spp,
         disc_seconds_per_step=disc,
+        shares=None if shares is None else dict(shares),
     )
     write_text(path, json.dumps(asdict(plan), indent=2, sort_keys=True))
     log.info("plan (%s%s%s%s): %s; written to %s", source,
@@ -342,10 +349,11 @@ def replan_ted(
         60.0 * BUDGET_SHARES["refgs"] * budget_minutes if plan.minutes.get("refgs") is not None else 0.0
     )
     spare = planned_refgs - refgs_train_seconds if planned_refgs else 0.0
-    pool = sum(60.0 * BUDGET_SHARES[k] * budget_minutes for k in free) + spare
-    total_share = sum(BUDGET_SHARES[k] for k in free)
+    shares = plan.shares or BUDGET_SHARES
+    pool = sum(60.0 * shares[k] * budget_minutes for k in free) + spare
+    total_share = sum(shares[k] for k in free)
     for k in free:
-        seconds = max(0.0, pool * BUDGET_SHARES[k] / total_share)
+        seconds = max(0.0, pool * shares[k] / total_share) if total_share > 0 else 0.0
         out[k] = int(seconds / ted_step_seconds(plan, k, spp))
     return out
 
