@@ -208,11 +208,6 @@ def render_checkpoint(
         if views == "test" and not cams.get("test") and run is not None:
             # a run's stages train on the training views only: its scene holds the test cameras
             cams = {**cams, "test": _run_folder(run)[1]["test"]}
-    if views != "orbit" and not cams.get(views):
-        raise ValueError(
-            f"{out_dir / CAMERAS_NAME} has no {views} cameras: nothing to render; "
-            f"choose --views {'train' if views == 'test' else 'test'} or orbit"
-        )
     if ckpt.parent == out_dir:
         remedy = f"delete it and train into {out_dir} again"
     else:  # a run folder's stage (4_ted/<phase>/ckpt.pt, 2_refgs/gs/ckpt.pt)
@@ -224,6 +219,11 @@ def render_checkpoint(
     except (KeyError, TypeError, AttributeError, IndexError) as exc:
         raise malformed(ckpt, exc, remedy) from None
     model.device = device
+    if views != "orbit" and not cams.get(views):  # after the checkpoint: a bad one is said first
+        raise ValueError(
+            f"{out_dir} has no {views} cameras: nothing to render; "
+            f"choose --views {'train' if views == 'test' else 'test'} or orbit"
+        )
     root = out_dir / "renders" if dest is None else Path(dest)
     dest = root / views
     if views == "orbit":
