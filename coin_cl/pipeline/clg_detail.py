@@ -43,7 +43,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -175,23 +175,11 @@ def crop_bands(
     return back, hi
 
 
-def compose_crop(
-    fill: np.ndarray,
-    inp_n: np.ndarray,
-    y0: int,
-    x0: int,
-    side: int,
-    detail: str,
-    ref_detail: tuple[np.ndarray, np.ndarray] | None = None,
-    split: float = 1.0,
-    colour: tuple[np.ndarray, np.ndarray] | None = None,
-    chroma: bool = False,
-    *,
-    detail_gain: float = 1.0,
-) -> np.ndarray:
+def compose_crop(*args: Any, detail_gain: float = 1.0, **kwargs: Any) -> np.ndarray:
     """The crop [side, side, 3] CLG pastes: low + detail_gain x high of `crop_bands` (same
-    arguments); detail_gain is the top-up's gain on the high band (`texture_gain` picks it)."""
-    back, hi = crop_bands(fill, inp_n, y0, x0, side, detail, ref_detail, split, colour, chroma)
+    arguments, forwarded as given); detail_gain is the top-up's gain on the high band
+    (`texture_gain` picks it)."""
+    back, hi = crop_bands(*args, **kwargs)
     return (back + detail_gain * hi).astype(np.float32)
 
 

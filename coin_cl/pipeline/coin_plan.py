@@ -36,22 +36,21 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
     cam = scene.cameras[train[0]]
     explicit = explicit_steps(cfg)
     skip_adv = adversarial_skip(scene, cfg) if explicit["ted_adversarial"] is None else None
+    shares, skipped = None, {}
     if skip_adv:
-        explicit["ted_adversarial"] = 0
         log.info("TE-D's adversarial phase skipped: %s (an explicit count runs it: --iters, "
                  "CoInConfig.iters_ted_adversarial)", skip_adv)  # fmt: skip
-    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
-           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
-           "explicit": [*explicit.values(), cfg.prior_seconds]}  # fmt: skip
-    probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
-              prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
-    shares = None
-    if skip_adv:
-        key["ted_adversarial"] = f"skipped: {skip_adv}"
+        explicit["ted_adversarial"] = 0
+        skipped = {"ted_adversarial": f"skipped: {skip_adv}"}
         # its minutes go to the fine-tune phase, which trains on CLG's images (measured on a real
         # capture: 2.5x the fine-tune steps, masked VGG distance -18%, PSNR +1.2 dB; docs/RESULTS.md)
         both = BUDGET_SHARES["ted_finetune"] + BUDGET_SHARES["ted_adversarial"]
         shares = {**BUDGET_SHARES, "ted_adversarial": 0.0, "ted_finetune": both}
+    key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
+           "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
+           "explicit": [*explicit.values(), cfg.prior_seconds], **skipped}  # fmt: skip
+    probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
+              prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
     if cfg.rates_from is not None:
         key["rates_from"] = str(cfg.rates_from)  # only when set: plans made before keep their key
         probes = inherited_rates(Path(cfg.rates_from), *probes)
