@@ -16,14 +16,16 @@ Rows (`--rows`; each a run folder OUT/<scene>/<row>):
                   default row trained (`coin_cl.demo.baseline_config`, stages 0-1 shared)
     masked_recon  3DGS with the object's pixels left out of the loss, the same GS steps
                   (`coin_cl.demo.room_baseline` on the default row's working-resolution scene)
-    smooth        the default pipeline at the default row's steps (`coin.steps_from`) with OpenCV's
-                  Telea fill alone as stage 1 (`Inpaint2DConfig(inpainter="telea", use_dataset=False)`)
-    embedded      (spinnerf only) the default pipeline at the default row's steps with the embedded
-                  exemplar inpainter as stage 1 (`Inpaint2DConfig(use_dataset=False)`): `coin-cl run`
-                  takes the dataset's LaMa inpaints on SPIn-NeRF (use_dataset is on by default), so
-                  there the default row is CoIn with LaMa and this row is what a user without
-                  precomputed fills gets; on the cup scenes the default row is already that. The
-                  "stage 1" column names the sources each row really used
+    smooth        the default pipeline at the default row's steps (`coin.steps_from`; TE-D's
+                  adversarial steps as fine-tune steps, as `coin-cl run` plans a run with such fills)
+                  with OpenCV's Telea fill alone as stage 1
+                  (`Inpaint2DConfig(inpainter="telea", use_dataset=False)`)
+    embedded      (spinnerf only) the default pipeline at the default row's steps (as smooth's) with
+                  the embedded exemplar inpainter as stage 1 (`Inpaint2DConfig(use_dataset=False)`):
+                  `coin-cl run` takes the dataset's LaMa inpaints on SPIn-NeRF (use_dataset is on by
+                  default), so there the default row is CoIn with LaMa and this row is what a user
+                  without precomputed fills gets; on the cup scenes the default row is already that.
+                  The "stage 1" column names the sources each row really used
 
 Columns: PSNR, m-PSNR, VGG-PD (whole view), m-VGG-PD (mask's bounding box), bbox GMSD, HF ratio
 (`coin_cl.evaluation`), the ghost figure (`benchmarks/ghost.py`: the share of the test masks rendered
@@ -161,13 +163,18 @@ def pipeline_row(scene: Path, run: Path, cfg: CoInConfig) -> dict:
 def at_default_steps(default_run: Path, cfg: CoInConfig, args) -> CoInConfig:
     """`cfg` with the default row's schedule given explicitly (`coin.steps_from`: its resolution,
     step counts after TE-D's re-plan, scene prior seconds), so a variant trains what the default did;
-    its plan takes the default row's measured rates (`rates_from`: nothing probed twice)."""
+    its plan takes the default row's measured rates (`rates_from`: nothing probed twice). The variants
+    that call this fill stage 1 with a non-learned inpainter (embedded, Telea), for which `coin-cl run`
+    leaves TE-D's adversarial phase out and gives its share to the fine-tune phase
+    (`coin_plan.adversarial_skip`): so does the variant, with the default row's adversarial steps."""
     cfg = replace(cfg, rates_from=str(default_run))
     if args.iters is not None:  # the smoke pass-through is already explicit
         return cfg
     from coin import steps_from
 
-    return steps_from(default_run, cfg)
+    cfg = steps_from(default_run, cfg)
+    return replace(cfg, iters_ted_finetune=cfg.iters_ted_finetune + cfg.iters_ted_adversarial,
+                   iters_ted_adversarial=0)  # fmt: skip
 
 
 def masked_recon_row(default_run: Path, run: Path, steps: int) -> dict:
