@@ -336,3 +336,29 @@ def test_small_observed_islands_go_back_to_the_unseen_core():
     np.testing.assert_array_equal(fill_islands(unseen, mask, 0), unseen)  # 0: off
     with pytest.raises(ValueError, match="RefineConfig.island_px"):
         RefineConfig(island_px=-1)
+
+
+def test_enclosed_observed_parts_go_back_to_the_unseen_core():
+    from coin_cl.pipeline.refine_masks import enclosed_parts
+
+    mask = np.zeros((40, 60), bool)
+    mask[5:35, 5:60] = True  # reaches the image's right border
+    observed = np.zeros_like(mask)
+    observed[5:35, 5:12] = True  # along the mask's left edge: touches the outside, stays observed
+    observed[15:25, 25:40] = True  # 150 px in the middle of the unseen core: enclosed
+    observed[10:14, 55:60] = True  # at the image border, unseen all around inside the frame: enclosed
+    got = enclosed_parts(observed, mask)
+    assert got[15:25, 25:40].all() and got[10:14, 55:60].all()
+    assert not got[:, :12].any()
+    assert got.sum() == 150 + 20
+    assert not enclosed_parts(np.zeros_like(mask), mask).any()
+    # a diagonal contact with the outside counts as touching it (8-neighbourhood)
+    full = np.ones((10, 10), bool)
+    full[4, 4] = False  # the only pixel outside
+    diag = np.zeros_like(full)
+    diag[5, 5] = True
+    assert not enclosed_parts(diag, full).any()
+    diag[5, 5], diag[7, 7] = False, True  # two pixels away: enclosed
+    assert enclosed_parts(diag, full)[7, 7]
+    with pytest.raises(ValueError, match="RefineConfig.enclosed"):
+        RefineConfig(enclosed=1)
