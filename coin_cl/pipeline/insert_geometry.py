@@ -74,8 +74,10 @@ SURFACE_BAND = 0.35
 # bottom (a handle or an overhang above it is not on the surface).
 CONTACT_BAND = 0.25
 # A contact lying farther behind the median contact than this share of the contacts' sideways
-# spread is not on the surface (lift_one_photo): a disc's rim recedes by at most half its width.
-RECEDE_MAX = 0.5
+# spread is not on the surface (lift_one_photo): a disc's rim recedes by about half its width at
+# most. Measured: the synthetic box's farthest true contact 0.51 (kept: its depth error at 33
+# degrees rose from 0.9 % to 1.0 % when it was dropped at 0.5), the cup capture's flanks 0.59, 0.66.
+RECEDE_MAX = 0.55
 # Largest angle between a fitted surface's normal and the reference camera's up direction.
 MAX_TILT_DEG = 60.0
 RANSAC_ITERS = 256
