@@ -102,3 +102,35 @@ def test_use_sd2(room, tmp_path):
     res = load("use_sd2").main([str(room), "--sd-path", str(sd), "--out", str(tmp_path / "u"), *args])
     assert res.ply.is_file() and res.stages["3_clg"]["status"].startswith("skipped: asked")
     assert res.stages["1_inpaint"]["result"]["sources"] == ["Stable Diffusion 2 inpainting"]
+
+
+def test_insert_object_paste_and_upright(room):
+    # the example's non-training parts on the synthetic room: quarter turns keep every ray, and the
+    # paste changes the photo only where the pasted alpha is > 0
+    ex = load("insert_object")
+    from coin_cl.scene import load_scene
+
+    scene = load_scene(room)
+    cam, img = scene.cameras[0], scene.images[0]
+    pts = scene.points[:200]
+    for k in range(4):
+        t = ex.turn_camera(cam, k)
+        assert (t.width, t.height) == ((cam.width, cam.height) if k % 2 == 0 else (cam.height, cam.width))
+        px, ok = cam.pixels(pts)
+        tpx, tok = t.pixels(pts)
+        both = ok & tok
+        assert both.sum() > 20
+        turned = np.rot90(img, -k)
+        np.testing.assert_array_equal(turned[tpx[both, 1], tpx[both, 0]], img[px[both, 1], px[both, 0]])
+        # the world's up comes back upright after the inverse turns
+        up = -cam.camtoworld[:3, 1]
+        assert (ex.quarter_turns(t, up) + k) % 4 == 0
+    src, dst = scene.images[1], scene.images[2]
+    hard = ex.polygon_mask([(10, 8), (40, 8), (44, 40), (8, 40)], src.shape[0], src.shape[1])
+    edited, pasted = ex.paste(dst, src, ex.soft_alpha(hard), (26.0, 40.0), (30.0, 44.0), 0.8)
+    assert edited.shape == dst.shape and edited.dtype == np.float32 and np.isfinite(edited).all()
+    assert pasted.any() and pasted.sum() < 0.6 * pasted.size
+    changed = np.abs(edited - dst).max(-1) > 0
+    assert changed.any() and not (changed & ~pasted).any()
+    with pytest.raises(ValueError, match="paste scale"):
+        ex.paste(dst, src, ex.soft_alpha(hard), (26.0, 40.0), (30.0, 44.0), float("nan"))

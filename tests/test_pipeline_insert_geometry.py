@@ -13,7 +13,9 @@ from coin_cl.pipeline.coin import CoInConfig, inpaint
 from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.pipeline.insert_geometry import (
     clean_region,
+    contact_sheet,
     derive_masks,
+    lift_one_photo,
     lift_reference,
     run_insert_derived,
     splat_depth,
@@ -22,6 +24,7 @@ from coin_cl.scene import load_scene, write_synthetic
 from coin_cl.scene.io import read_image, write_png
 from coin_cl.scene.masks import read_mask
 from coin_cl.scene.synthetic import make_synthetic, paste_object
+from coin_cl.scene.types import Camera
 
 CFG = InsertConfig(regions="derive")
 
@@ -62,6 +65,50 @@ def test_clean_region_drops_specks_and_fills_holes():
     assert out[10:14, 10:14].all() and not out[35, 35]
     assert out.sum() == 400
     assert not clean_region(np.zeros((4, 4), bool), 0.05).any()
+
+
+def _look_at(eye, target, width: int, height: int, f: float) -> Camera:
+    """A camera at `eye` looking at `target`, world z up (image y down)."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    fwd = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(fwd, right), fwd])
+    V = np.eye(4)
+    V[:3, :3], V[:3, 3] = R, -R @ eye
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+    return Camera(K=K, viewmat=V, width=width, height=height, name="v.png")
+
+
+def test_object_wider_above_its_foot_stands_on_its_foot():
+    """A cup-like silhouette (a trapezoid wider at the top) on the ground z = 0, seen 35 degrees from
+    above: the columns beside the foot whose lowest pixel falls in the bottom band are the object's
+    flanks, not contacts. Their fronts stay with the foot's (taken as contacts, their rays met the
+    ground far behind it: the object then reached 4.7 deep along the view instead of 3.4)."""
+    cam = _look_at([0.0, -6.0, 4.2], [0.0, 0.0, 0.8], 120, 160, 150.0)
+    g = np.linspace(-4, 4, 41)
+    ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
+    u0, v0 = cam.project(np.zeros((1, 3)))[0][0]
+    yy, xx = np.mgrid[0:160, 0:120] + 0.5
+    top, bottom = v0 - 80, v0
+    half = 10 + 30 * (bottom - yy) / (bottom - top)  # 20 px wide at the foot, 80 at the top
+    region = (yy >= top) & (yy <= bottom) & (np.abs(xx - u0) <= half)
+    edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
+    lift = lift_one_photo(edited, region, cam, ground, "cup.png", CFG)
+    to_cam = cam.center - lift.points.mean(0)
+    b = to_cam - to_cam[2] * np.array([0.0, 0.0, 1.0])
+    b /= np.linalg.norm(b)
+    extent = np.ptp(lift.points @ b)  # along the horizontal view direction
+    assert extent <= lift.thickness + 0.45 * lift.width, (extent, lift.thickness, lift.width)
+    assert lift.points[:, 2].min() >= -0.01  # nothing under the ground (1e-3 of the depth)
+
+
+def test_contact_sheet_mixes_portrait_and_landscape_views():
+    land, port = np.full((30, 40, 3), 0.2, np.float32), np.full((40, 30, 3), 0.8, np.float32)
+    regions = [np.zeros((30, 40), bool), np.zeros((40, 30), bool)]
+    sheet = contact_sheet([land, port], regions, ["a", "b"], cols=2)
+    assert sheet.shape[2] == 3 and sheet.shape[0] >= 4 * 40 and sheet.shape[1] >= 2 * 4 * 40
+    assert (sheet == 51).any() and (sheet == 204).any()  # both views drawn
 
 
 def test_derived_regions_cover_the_object_in_every_view(edit):
