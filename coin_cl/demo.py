@@ -230,7 +230,7 @@ def baseline_config(cfg: CoInConfig, run: Path) -> CoInConfig:
     """The naive row's `CoInConfig` beside CoIn's `cfg` and its finished run folder `run`:
     Scaffold-GS alone (no Ref-GS, CLG, TE-D) for the GS steps that run really trained
     (`baseline_steps` of `budget.trained_steps`: a stage stopped at its time cap counts what it
-    did), on CoIn's very stages 0-1: the refined split's fit stays at CoIn's planned Ref-GS count
+    did), on CoIn's very stages 0-1: the refined split's fit stays at CoIn's planned count
     (`budget.run_steps`, what stage 0_refine is keyed by), so the runner reuses CoIn's folders
     instead of fitting again; its plan takes the measured rates of CoIn's (`rates_from`), so the
     scene prior's step count in stage 1's key is CoIn's and nothing is probed twice. It trains on all
@@ -240,7 +240,8 @@ def baseline_config(cfg: CoInConfig, run: Path) -> CoInConfig:
     22.80). The step count is the result's `iters_refgs`."""
     from coin_cl.pipeline.budget import run_steps, trained_steps
 
-    fit = cfg.refine.iters if cfg.refine.iters is not None else run_steps(run)["refgs"]
+    counts = run_steps(run)
+    fit = cfg.refine.iters if cfg.refine.iters is not None else counts.get("refine", counts["refgs"])
     return replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=baseline_steps(trained_steps(run)),
                    refine=replace(cfg.refine, iters=fit), rates_from=str(run), observed="target")  # fmt: skip
 

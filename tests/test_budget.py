@@ -37,7 +37,7 @@ def test_steps_grow_with_budget_and_machine_speed():
     for minutes in (1, 4, 10, 30, 60, 240):
         steps, planned = B.steps_from_rate(minutes, 0.2)
         assert steps["refgs"] >= 1
-        assert sum(planned.values()) == pytest.approx(minutes * (1 - B.BUDGET_SHARES["prior"]))
+        assert sum(planned.values()) == pytest.approx(minutes)  # the GS pool is split whole
         if prev is not None:
             assert all(steps[k] >= prev[k] for k in steps)
         prev = steps
@@ -99,7 +99,7 @@ def test_scene_prior_steps_follow_its_own_probe(tmp_path):
     assert (fast.prior_steps, slow.prior_steps) == (133, 67)  # explicit seconds: as asked
     # from the budget (60 min: 540 s): steps at the measured rate, never under the minimum's steps
     big = B.plan_run(tmp_path / "e", {"k": 1}, 60, none, None, lambda: 0.2, lambda: 1.8)
-    small = B.plan_run(tmp_path / "f", {"k": 1}, 3, none, None, lambda: 0.2, lambda: 1.8)
+    small = B.plan_run(tmp_path / "f", {"k": 1}, 3, none, None, lambda: 0.05, lambda: 1.8)
     assert big.prior_seconds == 540 and big.prior_steps == 300
     assert small.prior_seconds == B.PRIOR_MIN_SECONDS and small.prior_steps == 133
     assert fast.prior_seconds_per_step == 0.9 and "(133 steps)" in fast.describe()
@@ -131,7 +131,8 @@ def test_adversarial_steps_add_the_discriminators_measured_cost(tmp_path):
     assert B.ted_step_seconds(ratio, "ted_adversarial", spp) == pytest.approx(spp * 69 / 68)
     for plan in (ratio, measured):
         assert B.ted_step_seconds(plan, "ted_finetune", spp) == pytest.approx(spp * 69 / 84)
-    a, b = (B.replan_ted(p, 300, 300 * spp, 3) for p in (ratio, measured))
+    _stage(tmp_path, "2_refgs", {"steps": 300, "train_minutes": 300 * spp / 60}, 300 * spp)
+    a, b = (B.ted_schedule(tmp_path, p, 3).steps for p in (ratio, measured))
     assert a["ted_finetune"] == b["ted_finetune"] and b["ted_adversarial"] < a["ted_adversarial"] / 2
     # the plan measures it when the GS probe runs, unless the adversarial count is given
     calls = []
@@ -155,25 +156,36 @@ def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
     assert math.isfinite(spp) and 0 < spp < 10
 
 
-def test_ted_is_planned_again_from_refgs_measured_rate():
-    steps, minutes = B.steps_from_rate(30, 0.25)
+def test_ted_is_planned_again_from_what_the_stages_before_it_recorded(tmp_path):
+    """TE-D's counts once Ref-GS has run: the budget less the prior and the seconds 2_refgs's
+    manifest records, at Ref-GS's measured rate; a Ref-GS that overran leaves TE-D less, one that
+    ran early leaves it more; an explicit count is kept."""
+    steps, minutes = B.steps_from_rate(30 * 0.85, 0.25)
     plan = B.Plan(steps, minutes, 270.0, 0.25, "probe", {})
     planned_refgs = 60 * minutes["refgs"]
-    on_plan = B.replan_ted(plan, steps["refgs"], planned_refgs, 30)
-    slow = B.replan_ted(plan, steps["refgs"], 1.2 * planned_refgs, 30)  # Ref-GS overran: TE-D gets less
-    fast = B.replan_ted(plan, steps["refgs"], 0.6 * planned_refgs, 30)  # ran early: TE-D gets the rest
-    for k in on_plan:
-        assert fast[k] > on_plan[k] > slow[k] > 0
-    # the seconds TE-D is given add up to its share plus what Ref-GS left
+    got = {}
+    for name, f in (("on_plan", 1.0), ("slow", 1.2), ("fast", 0.6)):
+        _stage(tmp_path / name, "2_refgs", {"steps": steps["refgs"], "train_minutes": f * planned_refgs / 60},
+               f * planned_refgs)  # fmt: skip
+        got[name] = B.ted_schedule(tmp_path / name, plan, 30).steps
+    for k in got["on_plan"]:
+        assert got["fast"][k] > got["on_plan"][k] > got["slow"][k] > 0
+        assert abs(got["on_plan"][k] - steps[k]) <= 1  # on plan: the probe's counts
+    # the seconds TE-D is given: the budget less the prior and what Ref-GS took
     spp = 0.6 * planned_refgs / steps["refgs"]
-    given = sum(fast[k] * spp * B.TED_PER_REFGS_STEP[k] for k in fast)
-    want = 60 * (minutes["ted_finetune"] + minutes["ted_adversarial"]) + 0.4 * planned_refgs
-    assert given == pytest.approx(want, rel=0.01)
+    given = sum(got["fast"][k] * spp * B.TED_PER_REFGS_STEP[k] for k in got["fast"])
+    assert given == pytest.approx(30 * 60 - 270 - 0.6 * planned_refgs, rel=0.01)
     explicit = B.Plan(
         {**steps, "ted_finetune": 5}, {**minutes, "ted_finetune": None}, 270.0, 0.25, "probe", {}
     )
-    assert B.replan_ted(explicit, steps["refgs"], planned_refgs, 30)["ted_finetune"] == 5
-    assert B.replan_ted(plan, 0, 0.0, 30) == {k: steps[k] for k in on_plan}  # nothing measured: as planned
+    assert B.ted_schedule(tmp_path / "slow", explicit, 30).steps["ted_finetune"] == 5
+    assert B.ted_schedule(tmp_path / "none", plan, 30).steps == {k: steps[k] for k in got["on_plan"]}
+
+
+def _stage(out, stage: str, result: dict, seconds: float) -> None:
+    """A finished stage's manifest in run folder `out` (as the runner writes it) recording `seconds`."""
+    (out / stage).mkdir(parents=True, exist_ok=True)
+    (out / stage / "manifest.json").write_text(json.dumps({**_manifest(result), "seconds": seconds}))
 
 
 def test_run_steps_reads_back_what_a_run_trains(tmp_path):
@@ -183,13 +195,10 @@ def test_run_steps_reads_back_what_a_run_trains(tmp_path):
     none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
     plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
     assert B.run_steps(tmp_path) == plan.steps
-    (tmp_path / "2_refgs").mkdir()
     slow = 1.5 * 60 * plan.minutes["refgs"]  # Ref-GS overran: TE-D gets fewer steps
-    (tmp_path / "2_refgs" / "manifest.json").write_text(
-        json.dumps(_manifest({"steps": plan.steps["refgs"], "train_minutes": slow / 60}))
-    )
+    _stage(tmp_path, "2_refgs", {"steps": plan.steps["refgs"], "train_minutes": slow / 60}, slow)
     got = B.run_steps(tmp_path)
-    assert got == {**plan.steps, **B.replan_ted(plan, plan.steps["refgs"], slow, 30)}
+    assert got == {**plan.steps, **B.ted_schedule(tmp_path, plan, 30).steps}
     assert got["ted_finetune"] < plan.steps["ted_finetune"] and got["refgs"] == plan.steps["refgs"]
     with pytest.raises(FileNotFoundError, match="plan.json"):
         B.run_steps(tmp_path / "nothing")
@@ -210,16 +219,14 @@ def test_ted_schedule_is_a_pure_function_of_the_plan_and_refgs_manifest(tmp_path
     none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
     plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
     before = B.ted_schedule(tmp_path, plan, 30)
-    assert before == B.TedSchedule({k: plan.steps[k] for k in ("ted_finetune", "ted_adversarial")}, {}, None)
-    (tmp_path / "2_refgs").mkdir()
+    ted = ("ted_finetune", "ted_adversarial")
+    assert before == B.Schedule({k: plan.steps[k] for k in ted}, {k: plan.cap_seconds(k) for k in ted}, None)
     slow = 1.5 * 60 * plan.minutes["refgs"]
-    (tmp_path / "2_refgs" / "manifest.json").write_text(
-        json.dumps(_manifest({"steps": plan.steps["refgs"], "train_minutes": slow / 60}))
-    )
+    _stage(tmp_path, "2_refgs", {"steps": plan.steps["refgs"], "train_minutes": slow / 60}, slow)
     files = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     kept = copy.deepcopy(plan)
     first, second = B.ted_schedule(tmp_path, plan, 30), B.ted_schedule(tmp_path, plan, 30)
-    assert first == second and first.steps == B.replan_ted(plan, plan.steps["refgs"], slow, 30)
+    assert first == second and all(first.steps[k] < plan.steps[k] for k in ted)  # Ref-GS overran
     spp = slow / plan.steps["refgs"]
     assert first.refgs_seconds_per_step == pytest.approx(spp)
     for k, n in first.steps.items():
@@ -330,3 +337,115 @@ def test_explicit_counts_win_over_a_planted_plan(tmp_path):
     (tmp_path / "plan.json").write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="steps.refgs is 1000000 but key.explicit gives 3"):
         B.plan_run(tmp_path, key, 30, counts, None, lambda: 0.25)
+
+
+# The whole-run rule: the budget holds every stage (module doc, `stage_costs`).
+_VIEWS = {"0_scene": 40, "1_inpaint": 30, "3_clg": 30, "eval": 40}
+_NONE = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+_REFINED = {**B.BUDGET_SHARES, "refine": B.REFINE_SHARE}
+
+
+def _plan(out, budget, spp=0.2, prior=0.9, views=_VIEWS, shares=_REFINED, wall=5.0):
+    return B.plan_run(out, {"budget_minutes": budget, "spp": spp, "prior": prior}, budget, _NONE, None,
+                      lambda: spp, lambda: prior, lambda: 0.05, shares=shares, views=views,
+                      probe_wall_seconds=wall)  # fmt: skip
+
+
+def test_the_budget_holds_every_stage_fixed_costs_off_then_gs_steps(tmp_path):
+    """Stage costs in, steps out: the GS pool is the budget less the probes, the fixed stages and the
+    prior; each GS stage's steps x its cost (growth included: STEP_COST) spend its share of it; more
+    views (dearer fixed stages) leave fewer GS steps; every stage has its own count (0_refine's fit too)."""
+    plan = _plan(tmp_path / "a", 20)
+    fixed = sum(plan.fixed_seconds.values())
+    assert set(plan.fixed_seconds) == {*_VIEWS, "prior"} and plan.probe_wall_seconds == 5.0
+    pool = 20 * 60 - 5.0 - fixed
+    assert sum(60 * m for m in plan.minutes.values()) == pytest.approx(pool)
+    for k in ("refine", "refgs", "ted_finetune"):
+        step = 0.2 * B.STEP_COST[k]
+        assert plan.steps[k] * step == pytest.approx(60 * plan.minutes[k], abs=step)
+    adv = B.gs_step_seconds(plan, "ted_adversarial", None)  # the discriminator's measured cost in it
+    assert plan.steps["ted_adversarial"] * adv == pytest.approx(60 * plan.minutes["ted_adversarial"], abs=adv)
+    crowded = _plan(tmp_path / "b", 20, views={k: 4 * n for k, n in _VIEWS.items()})
+    assert all(crowded.steps[k] < plan.steps[k] for k in plan.steps)
+    plain = _plan(tmp_path / "c", 20, shares=None)  # a run without the split: no refine share
+    assert "refine" not in plain.steps and plain.steps["refgs"] > plan.steps["refgs"]
+
+
+def test_steps_are_monotone_in_budget_and_machine_speed(tmp_path):
+    prev = None
+    for budget in (10, 15, 20, 30, 60, 120):
+        plan = _plan(tmp_path / f"b{budget}", budget)
+        if prev is not None:
+            assert all(plan.steps[k] >= prev.steps[k] for k in plan.steps), budget
+        prev = plan
+    fast, slow = (
+        _plan(tmp_path / "fast", 30, spp=0.1, prior=0.5),
+        _plan(tmp_path / "slow", 30, spp=0.3, prior=1.5),
+    )
+    assert all(fast.steps[k] > slow.steps[k] for k in fast.steps)
+
+
+def test_a_budget_too_small_is_refused_with_the_minimum_that_fits(tmp_path):
+    """Before any stage: one line naming the minimum budget on this machine; nothing written. The
+    minimum itself fits, and a slower machine needs more."""
+    with pytest.raises(
+        B.BudgetTooSmall, match=r"--budget 3 minutes cannot fit .* at least ([0-9.]+) minutes"
+    ) as exc:
+        _plan(tmp_path / "small", 3)
+    least = exc.value.minimum
+    assert isinstance(exc.value, ValueError) and 3 < least < 30 and "\n" not in str(exc.value)
+    assert not (tmp_path / "small" / B.PLAN_FILE).exists()
+    plan = _plan(tmp_path / "least", least)  # the minimum fits: every GS stage gets its fewest useful steps
+    from coin_cl.pipeline.stage_costs import MIN_STEPS
+
+    assert all(plan.steps[k] >= MIN_STEPS[k] - 1 for k in plan.steps)
+    with pytest.raises(B.BudgetTooSmall) as slower:
+        _plan(tmp_path / "slow", 3, spp=0.4, prior=1.8)
+    assert slower.value.minimum > least
+
+
+def _finish(out, stage: str, seconds: float, result: dict | None = None) -> None:
+    _stage(out, stage, result or {}, seconds)
+
+
+def test_each_gs_stage_is_planned_again_from_what_the_stages_before_recorded(tmp_path):
+    """After each stage: the later GS stages share what is left (the budget less the recorded seconds
+    and the estimates still to come). Stages on their estimate: the plan's counts; a stage that
+    overran: every later GS stage gets less; one that ran early: more. The same files give the
+    same counts (a resumed run trains what the first one planned)."""
+    plan = _plan(tmp_path / "ref", 20)
+    est = plan.fixed_seconds
+    counts = {}
+    for name, f in (("on", 1.0), ("over", 3.0), ("early", 0.5)):
+        out = tmp_path / name
+        out.mkdir()
+        (out / B.PLAN_FILE).write_bytes((tmp_path / "ref" / B.PLAN_FILE).read_bytes())
+        _finish(out, "0_scene", est["0_scene"])
+        _finish(out, "0_refine", 60 * plan.minutes["refine"], {"iters": plan.steps["refine"]})
+        _finish(out, "1_inpaint", f * est["1_inpaint"])  # the fixed stage that overran (or not)
+        refgs = B.stage_schedule(out, plan, "2_refgs", 20)
+        spent = refgs.steps["refgs"] * 0.2 * B.STEP_COST["refgs"]  # Ref-GS at its planned rate
+        _finish(out, "2_refgs", spent, {"steps": refgs.steps["refgs"], "train_minutes": spent / 60})
+        _finish(out, "3_clg", est["3_clg"] + est["prior"])
+        counts[name] = B.run_steps(out)
+        assert B.run_steps(out) == counts[name]  # the same files: the same counts
+    for k in ("refgs", "ted_finetune", "ted_adversarial"):
+        assert abs(counts["on"][k] - plan.steps[k]) <= 1, k  # on estimate: as planned
+        assert counts["over"][k] < counts["on"][k] < counts["early"][k], k
+    # the re-plan spends the budget: what TE-D is given plus what ran is the budget less eval's estimate
+    out = tmp_path / "over"
+    sched = B.ted_schedule(out, plan, 20)
+    ted = sum(sched.steps[k] * B.gs_step_seconds(plan, k, sched.refgs_seconds_per_step) for k in sched.steps)
+    ran = sum(json.loads((p / "manifest.json").read_text())["seconds"] for p in out.iterdir() if p.is_dir())
+    assert ted + ran + est["eval"] + plan.probe_wall_seconds == pytest.approx(20 * 60, abs=5)
+
+
+def test_a_resumed_run_reuses_its_plan_without_probing(tmp_path):
+    plan = _plan(tmp_path, 20)
+
+    def never():
+        raise AssertionError("probed again")
+
+    again = B.plan_run(tmp_path, {"budget_minutes": 20, "spp": 0.2, "prior": 0.9}, 20, _NONE, None, never,
+                       never, never, shares=_REFINED, views=_VIEWS)  # fmt: skip
+    assert again == plan and B.read_plan(tmp_path / B.PLAN_FILE) == plan
