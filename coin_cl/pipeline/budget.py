@@ -81,10 +81,10 @@ GS_KEYS = ("refine", "refgs", "ted_finetune", "ted_adversarial")
 # primitives, anchor attention on), 0.513 s/step on average over the 1535 steps its cap allowed of
 # the 1668 planned at 1.6x: 2.2x the probe over a whole run. TE-D follows from it by
 # TED_PER_REFGS_STEP and is planned again from Ref-GS's measured rate.
-# 0_refine's fit (plain 3DGS, `RefineConfig.model`) ran its count of Ref-GS's steps in 2.5-5.5 min
-# where Ref-GS had 3.5 planned at 2.2 (budget 10, two real captures): 1.6-3.5x the probe; the upper
-# end is taken, the re-plan gives back what it does not use.
-STEP_COST = {"refine": 3.0, "refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
+# 0_refine's fit (plain 3DGS, `RefineConfig.model`) at budget 10: 731 steps in 154 s on cup_plain
+# (probe 0.13 s/step: 1.6x), up to 5.5 min on a 71-view orbit capture (about 3.5x); 2.5 is taken,
+# and the re-plan after it gives the later GS stages what it did not use (or takes what it overran).
+STEP_COST = {"refine": 2.5, "refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
 # A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
 # Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md, issue 12). TE-D's
 # counts are planned again from Ref-GS's measured rate once it has run (`replan_ted`).
@@ -599,8 +599,8 @@ def run_steps(out: Path) -> dict[str, int]:
 
 
 def trained_steps(out: Path) -> dict[str, int]:
-    """The GS steps a finished run folder really trained: Ref-GS's and TE-D's phases as their
-    manifests recorded them (a phase stopped at its time cap trained fewer than `run_steps` says),
+    """The GS steps a finished run folder really trained: 0_refine's fit, Ref-GS's and TE-D's phases
+    as their manifests recorded them (a phase stopped at its time cap trained fewer than `run_steps` says),
     `run_steps`' count for a stage that recorded none (not run yet, or skipped: 0 then)."""
     out = Path(out)
     got = dict(run_steps(out))
@@ -611,7 +611,9 @@ def trained_steps(out: Path) -> dict[str, int]:
         man = read_manifest(out / stage)
         return None if man is None else man["result"]
 
-    refgs, ted = result("2_refgs"), result("4_ted")
+    refine, refgs, ted = result("0_refine"), result("2_refgs"), result("4_ted")
+    if "refine" in got and refine is not None and isinstance(refine.get("iters"), int):
+        got["refine"] = int(refine["iters"])
     if refgs is not None and "steps" in refgs:
         got["refgs"] = int(refgs["steps"])
     for phase in ("finetune", "adversarial"):
