@@ -9,7 +9,7 @@ Per point (a run folder OUT/<scene>/b<B>): the wall minutes of the whole command
 eval; what `--budget` promises to hold), m-PSNR, m-VGG-PD (the perceptual distance in the mask's
 bounding box), bbox GMSD (`coin_cl.evaluation`) and the ghost figure (`ghost.py`, through `real.py`'s
 `ghost_figures`; one reference GS per scene, cached). A budget the machine cannot fit is a point
-"refused" with the minimum the run named. Writes OUT/budget_curve.md (the table), OUT/budget_curve.png
+"refused" with the minimum the run named (not kept: a rerun probes again). Writes OUT/budget_curve.md (the table), OUT/budget_curve.png
 (m-PSNR and m-VGG-PD against wall minutes, one line per scene, drawn with OpenCV) and, last, one
 JSON line.
 
@@ -52,7 +52,8 @@ POINT = "point.json"
 def run_point(scene: Path, run: Path, budget: float, args) -> dict:
     """One point: `coin-cl run SCENE --out RUN --budget B` through the CLI as a user runs it (its log
     passed through), timed whole; its figures from RUN/eval. A refused budget is {"refused": the
-    CLI's line, "minimum": the minutes it named}. Kept in RUN/point.json once finished."""
+    CLI's line, "minimum": the minutes it named}, probed again by every invocation. A finished point
+    is kept in RUN/point.json."""
     done = run / POINT
     if done.is_file():
         return json.loads(done.read_text())
@@ -82,7 +83,9 @@ def run_point(scene: Path, run: Path, budget: float, args) -> dict:
             "resumed": resumed,
             **{k: metrics.get(k) for k in KEYS},
         }
-    if not args.no_ghost and "refused" not in point:
+    if "refused" in point:  # not kept: a rerun on a quieter machine probes again (seconds)
+        return point
+    if not args.no_ghost:
         point["ghost"] = ghost_figures({"run": run}, run, run.parent, args.ghost_iters)["run"]
     write_text(done, json.dumps(point, indent=1))
     return point

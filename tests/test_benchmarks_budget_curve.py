@@ -65,3 +65,4 @@ def test_budget_curve_tiny_room_points_table_plot_resume_and_refusal(tmp_path, c
     assert refused["room_b0.05_refused_minimum"] > 0.05
     assert not any((tmp_path / "tiny" / "room" / "b0.05").glob("[0-9]_*"))  # no stage folder
     assert "refused" in (tmp_path / "tiny" / "budget_curve.md").read_text()
+    assert not (tmp_path / "tiny" / "room" / "b0.05" / "point.json").exists()  # probed again next time

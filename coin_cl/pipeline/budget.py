@@ -111,8 +111,10 @@ def working_resolution(width: int, height: int, max_pixels: int = MAX_WORK_PIXEL
 
 @dataclass(frozen=True)
 class Plan:
-    """What each stage is given. steps: {"refgs", "ted_finetune", "ted_adversarial"} -> steps;
-    minutes: the planned minutes of each (None where counts were given explicitly); prior_seconds:
+    """What each stage is given, as planned before any stage ran (each GS stage is planned again
+    when reached: `stage_schedule`). steps: {"refgs", "ted_finetune", "ted_adversarial", and
+    "refine" (0_refine's fit) in a run that refines its masks} -> steps; minutes: the planned
+    minutes of each (None where counts were given explicitly); prior_seconds:
     the scene prior's training; probe_seconds_per_step: the probe's figure (None: no probe);
     source: "probe" or "explicit"; key: the settings the plan was made for (a rerun with the same
     key reuses it); prior_steps: the scene prior's step count, from `prior_seconds` at the rate its
@@ -137,7 +139,8 @@ class Plan:
     # {stage: estimated seconds} of the fixed stages ("0_scene", "1_inpaint", "3_clg", "eval",
     # "prior": the scene prior's training; `stage_costs.fixed_costs`); None: none estimated.
     fixed_seconds: dict[str, float] | None = None
-    # The probes' own wall time, measured when the plan was made (0 for a reused rate).
+    # The probes' own wall time, measured when the plan was made (a plan taking another run's rates
+    # takes its figure too); None: no probe ran.
     probe_wall_seconds: float | None = None
 
     def cap_seconds(self, stage: str) -> float:
@@ -542,7 +545,8 @@ def stage_schedule(out: Path, plan: Plan, stage: str, budget_minutes: float) -> 
         if k not in weights:
             continue
         per_step = rates[k]
-        steps[k] = int(share[k] / per_step)
+        # never past the schema's bound: a planted plan's tiny rate must not ask for 10^12 steps
+        steps[k] = min(MAX_STEPS, int(share[k] / per_step))
         if k == "refgs":
             steps[k] = max(1, steps[k])
         caps[k] = CAP_FACTOR * max(steps[k], 1) * per_step
