@@ -9,9 +9,9 @@ Per point (a run folder OUT/<scene>/b<B>): the wall minutes of the whole command
 eval; what `--budget` promises to hold), m-PSNR, m-VGG-PD (the perceptual distance in the mask's
 bounding box), bbox GMSD (`coin_cl.evaluation`) and the ghost figure (`ghost.py`, through `real.py`'s
 `ghost_figures`; one reference GS per scene, cached). A budget the machine cannot fit is a point
-"refused" with the minimum the run named (not kept: a rerun probes again). Writes OUT/budget_curve.md (the table), OUT/budget_curve.png
-(m-PSNR and m-VGG-PD against wall minutes, one line per scene, drawn with OpenCV) and, last, one
-JSON line.
+"refused" with the minimum the run named (not kept: a rerun probes again). Writes
+OUT/budget_curve.md (the table), OUT/budget_curve.png (m-PSNR and m-VGG-PD against wall minutes,
+one line per scene, drawn with OpenCV) and, last, one JSON line.
 
 Resumable: a finished point keeps its figures in OUT/<scene>/b<B>/point.json and is not run again; a
 killed one resumes its run folder (its wall minutes are then this invocation's only, flagged
