@@ -171,7 +171,9 @@ def inpaint(
         reference: the reference view: an index, or a view name (with or without extension); a
             name that exists wins over an index; default: chosen by rule.
         prompt: text for insertion (needs Stable Diffusion 2 weights: `config.sd_path`).
-        budget: minutes of training to aim at (default `config.budget_minutes`).
+        budget: the run's wall-clock minutes, every stage included (default
+            `config.budget_minutes`); one this machine cannot fit raises
+            `budget.BudgetTooSmall` (a ValueError naming the minimum) before any stage runs.
         config: everything else (`CoInConfig`). device: the OpenCL device (Runtime or name).
         edited_ref: the reference view edited in a 2D tool (a path, or (H, W, 3) uint8 / float in
             [0, 1]) at the captured or the run's resolution. Without masks of the object in the
