@@ -228,7 +228,7 @@ def room_markdown(table: dict) -> str:
 
 def baseline_steps(plan_steps: dict[str, int]) -> int:
     """The baselines' step count at CoIn's budget: the GS steps CoIn's run trained (Ref-GS, TE-D's
-    fine-tuning and adversarial phases; `coin_cl.pipeline.budget.trained_steps`) together. At 400
+    fine-tuning and adversarial phases; `coin_cl.pipeline.schedule.trained_steps`) together. At 400
     steps (the demo's figure before) masked reconstruction scored 2.1 dB m-PSNR below its own
     figure at CoIn's 1501 on the demo room (docs/RESULTS.md, "The baselines at CoIn's budget")."""
     return int(sum(plan_steps.get(k, 0) for k in ("refgs", "ted_finetune", "ted_adversarial")))
@@ -237,16 +237,16 @@ def baseline_steps(plan_steps: dict[str, int]) -> int:
 def baseline_config(cfg: CoInConfig, run: Path) -> CoInConfig:
     """The naive row's `CoInConfig` beside CoIn's `cfg` and its finished run folder `run`:
     Scaffold-GS alone (no Ref-GS, CLG, TE-D) for the GS steps that run really trained
-    (`baseline_steps` of `budget.trained_steps`: a stage stopped at its time cap counts what it
+    (`baseline_steps` of `schedule.trained_steps`: a stage stopped at its time cap counts what it
     did), on CoIn's very stages 0-1: the refined split's fit stays at CoIn's planned count
-    (`budget.run_steps`, what stage 0_refine is keyed by), so the runner reuses CoIn's folders
+    (`schedule.run_steps`, what stage 0_refine is keyed by), so the runner reuses CoIn's folders
     instead of fitting again; its plan takes the measured rates of CoIn's (`rates_from`), so the
     scene prior's step count in stage 1's key is CoIn's and nothing is probed twice. It trains on all
     of stage 1's pixels (`observed="target"`): leaving the observed part to the other views'
     captures is CoIn's, and without CoIn's background-depth term a plain Scaffold-GS, untaught
     there, keeps the object's volume (the demo room at budget 2: ghost 0.71, m-PSNR 17.79 against
     22.80). The step count is the result's `iters_refgs`."""
-    from coin_cl.pipeline.budget import run_steps, trained_steps
+    from coin_cl.pipeline.schedule import run_steps, trained_steps
 
     counts = run_steps(run)
     fit = cfg.refine.iters if cfg.refine.iters is not None else counts.get("refine", counts["refgs"])

@@ -8,6 +8,7 @@ import pytest
 
 from coin_cl.pipeline import budget as B
 from coin_cl.pipeline import coin_plan as CP
+from coin_cl.pipeline import schedule as S
 
 
 class _Cam:
@@ -57,7 +58,7 @@ def test_the_adversarial_phase_runs_only_on_a_learned_inpainters_fills(tmp_path,
     # Ref-GS ran exactly as planned: the fine-tune phase gets both phases' minutes at its own cost
     refgs_s = 60.0 * own.minutes["refgs"]
     _manifest(tmp_path / "own" / "2_refgs", refgs_s, {"steps": 100, "train_minutes": refgs_s / 60})
-    again = B.ted_schedule(tmp_path / "own", own, 10.0).steps
+    again = S.ted_schedule(tmp_path / "own", own, 10.0).steps
     want = int(60.0 * own.minutes["ted_finetune"] / B.ted_step_seconds(own, "ted_finetune", refgs_s / 100))
     assert abs(again["ted_finetune"] - want) <= 1 and again["ted_adversarial"] == 0
     telea = CoInConfig(budget_minutes=10.0, inpaint2d=Inpaint2DConfig(inpainter="telea"))
@@ -92,7 +93,7 @@ def test_ted_counts_none_follow_the_plan_and_numbers_are_honoured(tmp_path, monk
     _manifest(
         tmp_path / "seven" / "2_refgs", slow, {"steps": plan.steps["refgs"], "train_minutes": slow / 60}
     )
-    again = B.ted_schedule(tmp_path / "seven", plan, 10.0).steps
+    again = S.ted_schedule(tmp_path / "seven", plan, 10.0).steps
     assert again["ted_finetune"] == 7 and again["ted_adversarial"] < plan.steps["ted_adversarial"]
     # Both spellings may be used when they agree; disagreeing ones are an error, not a silent choice.
     both = CoInConfig(iters_ted_finetune=7, ted=TEDConfig(iters_finetune=7))

@@ -444,16 +444,17 @@ def test_same_settings_give_bit_identical_outputs(room, first_run, tmp_path):
 
 def test_ted_key_leaves_the_run_inputs_as_they_were(room, tmp_path):
     """TE-D's stage key (computed once Ref-GS has run) is the re-planned schedule of
-    `budget.ted_schedule`: computed twice it is the same, and it changes nothing: the run's inputs
+    `schedule.ted_schedule`: computed twice it is the same, and it changes nothing: the run's inputs
     (frozen) and plan hold what they held, and no file is written. Ref-GS's key likewise holds its
     count re-planned from what the stages before it recorded."""
     import copy
     import dataclasses
     import json
 
-    from coin_cl.pipeline.budget import Plan, stage_schedule, ted_schedule
+    from coin_cl.pipeline.budget import Plan
     from coin_cl.pipeline.coin import coin_stages
     from coin_cl.pipeline.run_inputs import RunInputs
+    from coin_cl.pipeline.schedule import stage_schedule, ted_schedule
 
     scene = load_scene(room)
     # the dilation resolved, as `_run` gives it; TE-D's counts left to the plan

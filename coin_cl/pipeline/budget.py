@@ -20,12 +20,13 @@ Ref-GS steps, 10k + 10k TE-D, paper supp. A) is far beyond 2 CPU cores, so a run
    into steps with the measured cost of each stage relative to the probe's step (`STEP_COST`).
    A budget whose pool cannot give every GS stage `stage_costs.MIN_STEPS` is refused before any
    stage runs (`BudgetTooSmall`, a ValueError naming the minimum budget that fits here).
-4. The re-plan (`stage_schedule`): when a GS stage is reached, its count is planned again from what
-   is left: the budget minus the probes, minus the seconds the finished stages' manifests record,
-   minus the estimates of the fixed stages still to come; shared with the GS stages after it by
-   their weights. TE-D's steps are costed from Ref-GS's measured rate (`ted_step_seconds`). Every
-   figure is a pure function of plan.json and the manifests already written, so a killed run
-   resumes to the same schedule, and a stage's key changes only when its counts do.
+4. The re-plan (`coin_cl.pipeline.schedule`): when a GS stage is reached, its count is planned
+   again from what is left: the budget minus the probes, minus the seconds the finished stages'
+   manifests record, minus the estimates of the fixed stages still to come; shared with the GS
+   stages after it by their weights. TE-D's steps are costed from Ref-GS's measured rate
+   (`ted_step_seconds`). Every figure is a pure function of plan.json and the manifests already
+   written, so a killed run resumes to the same schedule, and a stage's key changes only when its
+   counts do.
 5. A safety cap: each GS stage also stops at `CAP_FACTOR` x its planned seconds (logged), so a
    machine much slower than its probe (another job starting) cannot run far over the budget.
 
@@ -52,7 +53,7 @@ from typing import TYPE_CHECKING, Any
 
 from coin_cl.atomic import write_text
 from coin_cl.pipeline import stage_costs as costs
-from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
+from coin_cl.schema import PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
 
 if TYPE_CHECKING:
@@ -87,7 +88,7 @@ GS_KEYS = ("refine", "refgs", "ted_finetune", "ted_adversarial")
 STEP_COST = {"refine": 2.5, "refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
 # A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
 # Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md, issue 12). TE-D's
-# counts are planned again from Ref-GS's measured rate once it has run (`replan_ted`).
+# counts are planned again from Ref-GS's measured rate once it has run (`schedule.stage_schedule`).
 TED_PER_REFGS_STEP = {"ted_finetune": 69 / 84, "ted_adversarial": 69 / 68}
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
 PROBE_WARMUP = 3
@@ -112,7 +113,7 @@ def working_resolution(width: int, height: int, max_pixels: int = MAX_WORK_PIXEL
 @dataclass(frozen=True)
 class Plan:
     """What each stage is given, as planned before any stage ran (each GS stage is planned again
-    when reached: `stage_schedule`). steps: {"refgs", "ted_finetune", "ted_adversarial", and
+    when reached: `schedule.stage_schedule`). steps: {"refgs", "ted_finetune", "ted_adversarial", and
     "refine" (0_refine's fit) in a run that refines its masks} -> steps; minutes: the planned
     minutes of each (None where counts were given explicitly); prior_seconds:
     the scene prior's training; probe_seconds_per_step: the probe's figure (None: no probe);
@@ -454,110 +455,6 @@ def gs_step_seconds(plan: Plan, stage: str, refgs_seconds_per_step: float | None
     return plan.probe_seconds_per_step * STEP_COST[stage]
 
 
-def seconds_left(out: Path, plan: Plan, stage: str, budget_minutes: float) -> tuple[float, bool]:
-    """(seconds the budget leaves for the budget-planned GS stages from `stage` on, whether any
-    stage before it recorded its seconds). The budget's seconds less: the probes' wall time; each
-    stage before `stage` (in `stage_costs.STAGE_ORDER`) by the seconds its manifest in `out`
-    records, or by its estimate where it has none; the estimates of the fixed stages after it and
-    of the explicit GS counts; the scene prior's training until a stage that trains it (1_inpaint
-    where its result names a prior, else 3_clg) has recorded its seconds. Only the stages the plan
-    has count (a fixed stage the run leaves out has no estimate). A pure function of the plan and
-    the manifests (it writes and logs nothing)."""
-    from coin_cl.pipeline.runner import read_manifest
-
-    fixed = plan.fixed_seconds if plan.fixed_seconds is not None else {"prior": plan.prior_seconds}
-    order = costs.STAGE_ORDER
-    at = order.index(stage)
-    gs_of = {s: [k for k in plan.steps if costs.GS_STAGES[k] == s] for s in order}
-
-    def estimate(s: str) -> float:
-        if s in fixed:
-            return fixed[s]
-        return sum(_planned_seconds(plan, k) for k in gs_of[s])
-
-    left = 60.0 * budget_minutes - (plan.probe_wall_seconds or 0.0)
-    measured = prior_spent = False
-    for s in order[:at]:
-        if s not in fixed and not gs_of[s]:
-            continue
-        man = read_manifest(Path(out) / s)
-        if man is None:
-            left -= estimate(s)
-            continue
-        left -= float(man["seconds"])
-        measured = True
-        prior_spent |= s == "3_clg" or (s == "1_inpaint" and bool(man["result"].get("prior")))
-    for s in order[at + 1 :]:
-        left -= fixed.get(s, 0.0)
-        left -= sum(_planned_seconds(plan, k) for k in gs_of[s] if plan.minutes.get(k) is None)
-    left -= sum(_planned_seconds(plan, k) for k in gs_of[stage] if plan.minutes.get(k) is None)
-    if not prior_spent:
-        left -= fixed.get("prior", 0.0)
-    return left, measured
-
-
-def _planned_seconds(plan: Plan, k: str) -> float:
-    """The seconds the plan gives GS stage `k`: its minutes, or its explicit count at its cost."""
-    m = plan.minutes.get(k)
-    if m is not None:
-        return 60.0 * m
-    if plan.probe_seconds_per_step is None:
-        return 0.0
-    return plan.steps[k] * gs_step_seconds(plan, k, None)
-
-
-@dataclass(frozen=True)
-class Schedule:
-    """A GS stage's schedule when it is reached. steps: {plan key: steps} of its GS stages
-    ("refine"; "refgs"; "ted_finetune" and "ted_adversarial"); caps: the same keys -> seconds a
-    budget-planned one may take (`CAP_FACTOR` x its planned time); refgs_seconds_per_step: Ref-GS's
-    measured rate TE-D's counts were planned from (None: not run)."""
-
-    steps: dict[str, int]
-    caps: dict[str, float]
-    refgs_seconds_per_step: float | None
-
-
-def stage_schedule(out: Path, plan: Plan, stage: str, budget_minutes: float) -> Schedule:
-    """The schedule of GS stage folder `stage` ("0_refine", "2_refgs", "4_ted") in run folder
-    `out`: each budget-planned count planned again from what is left (`seconds_left`), shared with
-    the budget-planned GS stages after it by their weights (`gs_weights`), at its cost per step
-    (`gs_step_seconds`: TE-D's from the Ref-GS rate OUT/2_refgs/manifest.json records). Explicit
-    counts are kept (no cap). Before any stage recorded its seconds: the plan's counts. A pure
-    function of the plan and the manifests, so the stage's key and the stage itself get the same
-    numbers, and a resumed run too."""
-    mine = [k for k in plan.steps if costs.GS_STAGES[k] == stage]
-    steps = {k: plan.steps[k] for k in mine}
-    n, seconds = refgs_rate(out)
-    rate = seconds / n if n else None
-    left, measured = seconds_left(out, plan, stage, budget_minutes)
-    at = costs.STAGE_ORDER.index(stage)
-    weights = {k: w for k, w in gs_weights(plan.shares).items()
-               if k in plan.steps and plan.minutes.get(k) is not None
-               and costs.STAGE_ORDER.index(costs.GS_STAGES[k]) >= at}  # fmt: skip
-    if not measured or plan.probe_seconds_per_step is None:
-        caps = {k: plan.cap_seconds(k) for k in mine if k in weights}
-        return Schedule(steps, caps, rate)
-    rates = {k: gs_step_seconds(plan, k, rate) for k in weights}
-    share = costs.split_seconds(left, weights, costs.min_floors(weights, rates))
-    caps = {}
-    for k in mine:
-        if k not in weights:
-            continue
-        per_step = rates[k]
-        # never past the schema's bound: a planted plan's tiny rate must not ask for 10^12 steps
-        steps[k] = min(MAX_STEPS, int(share[k] / per_step))
-        if k == "refgs":
-            steps[k] = max(1, steps[k])
-        caps[k] = CAP_FACTOR * max(steps[k], 1) * per_step
-    return Schedule(steps, caps, rate)
-
-
-def ted_schedule(out: Path, plan: Plan, budget_minutes: float) -> Schedule:
-    """TE-D's schedule in run folder `out` (`stage_schedule` of 4_ted)."""
-    return stage_schedule(out, plan, "4_ted", budget_minutes)
-
-
 def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> float:
     """Seconds a TE-D step of `phase` ("ted_finetune", "ted_adversarial") takes, from Ref-GS's
     measured seconds per step: a fine-tune step costs a fixed share of a Ref-GS step (the same
@@ -569,58 +466,3 @@ def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> f
     if plan.disc_seconds_per_step is not None:
         return finetune + plan.disc_seconds_per_step
     return refgs_seconds_per_step * TED_PER_REFGS_STEP[phase]
-
-
-def refgs_rate(out: Path) -> tuple[int, float]:
-    """(steps, training seconds) that Ref-GS recorded in OUT/2_refgs/manifest.json; (0, 0.0) when it
-    has not run."""
-    from coin_cl.pipeline.runner import read_manifest
-
-    man = read_manifest(Path(out) / "2_refgs")
-    if man is None:
-        return 0, 0.0
-    res = man["result"]
-    steps, minutes = res.get("steps", 0), res.get("train_minutes", 0.0)
-    if not (isinstance(steps, int) and 0 <= steps <= MAX_STEPS and isinstance(minutes, int | float)
-            and math.isfinite(minutes) and minutes >= 0):  # fmt: skip
-        path = Path(out) / "2_refgs" / "manifest.json"
-        raise SchemaError(f"{path}: result.steps {steps!r} / result.train_minutes {minutes!r} are not a "
-                          f"step count and minutes; {run_folder_fix(path, 'Ref-GS runs again')}")  # fmt: skip
-    return int(steps), 60.0 * float(minutes)
-
-
-def run_steps(out: Path) -> dict[str, int]:
-    """The step counts a run folder trains: its plan.json's, each GS stage's as re-planned when it
-    was reached (`stage_schedule`, as during the run, from the manifests the folder holds)."""
-    path = Path(out) / PLAN_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: not a CoIn run folder (coin-cl run writes it)")
-    plan = read_plan(path)
-    steps = dict(plan.steps)
-    for stage in ("0_refine", "2_refgs", "4_ted"):
-        steps.update(stage_schedule(out, plan, stage, plan.key["budget_minutes"]).steps)
-    return steps
-
-
-def trained_steps(out: Path) -> dict[str, int]:
-    """The GS steps a finished run folder really trained: 0_refine's fit, Ref-GS's and TE-D's phases
-    as their manifests recorded them (a phase stopped at its time cap trained fewer than `run_steps` says),
-    `run_steps`' count for a stage that recorded none (not run yet, or skipped: 0 then)."""
-    out = Path(out)
-    got = dict(run_steps(out))
-
-    from coin_cl.pipeline.runner import read_manifest
-
-    def result(stage: str) -> dict | None:
-        man = read_manifest(out / stage)
-        return None if man is None else man["result"]
-
-    refine, refgs, ted = result("0_refine"), result("2_refgs"), result("4_ted")
-    if "refine" in got and refine is not None and isinstance(refine.get("iters"), int):
-        got["refine"] = int(refine["iters"])
-    if refgs is not None and "steps" in refgs:
-        got["refgs"] = int(refgs["steps"])
-    for phase in ("finetune", "adversarial"):
-        if ted is not None and isinstance(ted.get(phase), dict) and "step" in ted[phase]:
-            got[f"ted_{phase}"] = int(ted[phase]["step"])
-    return got

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, stage_schedule, working_resolution
+from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_resolution
 from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
@@ -43,6 +43,7 @@ from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
 from coin_cl.pipeline.run_inputs import RunInputs
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
+from coin_cl.pipeline.schedule import stage_schedule
 from coin_cl.pipeline.stages import (
     carves,
     load_model,
@@ -370,7 +371,7 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
     settings (everything its output depends on besides what it reads). Building it computes
     nothing and writes nothing; the GS stages' settings are functions the runner calls when it
     reaches them (their counts are planned again from what the stages before them recorded:
-    `budget.stage_schedule`)."""
+    `schedule.stage_schedule`)."""
     cfg, plan, ref, edited = run.cfg, run.plan, run.ref, run.edited
     cam = run.scene.cameras[run.scene.train_idx[0]]
     base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask_kind, "dilate": cfg.mask_dilate}
@@ -385,7 +386,7 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
     ring = vote_ring(cam.width, cam.height, cfg.mask_dilate)  # 0 with the default dilation
 
     # The GS stages' counts are planned again when each is reached, from the seconds the stages
-    # before it recorded (`budget.stage_schedule`): their settings are functions the runner calls then.
+    # before it recorded (`schedule.stage_schedule`): their settings are functions the runner calls then.
     def steps(stage: str) -> dict[str, int]:
         return stage_schedule(run.out, plan, stage, cfg.budget_minutes).steps
 

@@ -51,7 +51,8 @@ def run_report(res: CoInResult) -> str:
     if plan_path.is_file():
         from dataclasses import asdict
 
-        from coin_cl.pipeline.budget import read_plan, run_steps
+        from coin_cl.pipeline.budget import read_plan
+        from coin_cl.pipeline.schedule import run_steps
 
         plan = asdict(read_plan(plan_path))
         # the counts as each GS stage was re-planned when reached (plan.json holds the probe's)

@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from coin_cl.pipeline.budget import CAP_FACTOR, stage_schedule, ted_schedule
+from coin_cl.pipeline.budget import CAP_FACTOR
 from coin_cl.pipeline.inpaint2d import planned_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.models import resolve_sd2_mode, sd2_denoiser, sd2_on_cpu
 from coin_cl.pipeline.runner import StageContext, jsonable
+from coin_cl.pipeline.schedule import stage_schedule, ted_schedule
 
 if TYPE_CHECKING:
     from coin_cl.diffusion.sampling import Denoiser
