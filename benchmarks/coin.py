@@ -165,9 +165,10 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
 
 
 def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
-    """`base` with the resolution, step counts (`budget.run_steps`: TE-D's as the run re-planned
+    """`base` with the resolution, step counts (`schedule.run_steps`: TE-D's as the run re-planned
     them) and scene prior seconds of the run folder `run`, given explicitly."""
-    from coin_cl.pipeline.budget import PLAN_FILE, run_steps
+    from coin_cl.pipeline.budget import PLAN_FILE
+    from coin_cl.pipeline.schedule import run_steps
 
     try:
         st = run_steps(run)

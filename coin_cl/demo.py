@@ -24,11 +24,12 @@ ROOM_METRICS = ("psnr", "m_psnr", "ssim", "hf_ratio", "bbox_gmsd")
 # capped at 10 (50k) it trained CoIn's 891 steps in 131 s instead of 257 s, at 0.12 dB less
 # m-PSNR (20.16 against 20.28; docs/RESULTS.md, "The demo in 10 minutes").
 MR_PIXELS_PER_GAUSSIAN = 10
-# CoIn's training minutes on the room. The demo takes about 2.5x this (CoIn's GS stages, then both
-# baselines at CoIn's GS steps) plus a part that does not follow the budget (on a Zen 3 core pair
-# 4.4 minutes: the scene prior's 133-step minimum 3 of them, probes, fits, CLG's views, scoring):
-# at 3 minutes 12 min there, at 2 minutes 9 min 15 s (docs/RESULTS.md, "The demo in 10 minutes").
-DEMO_BUDGET_MINUTES = 2.0
+# CoIn's wall-clock minutes on the room (`--budget` holds every stage: `pipeline.budget`). Chosen to
+# keep the GS training the demo had when its budget counted training alone (2 minutes, beside ~4 of
+# fixed stages on a Zen 3 core pair: the scene prior's 133-step minimum 3 of them, probes, CLG's
+# views, scoring; docs/RESULTS.md, "The demo in 10 minutes"); the demo adds both baselines at
+# CoIn's GS steps. A machine that cannot fit it runs CoIn at the minimum it names (logged).
+DEMO_BUDGET_MINUTES = 6.0
 
 
 def run_demo(
@@ -45,8 +46,8 @@ def run_demo(
     prior_seconds: float | None = None,
 ) -> dict:
     """Part 1: render a procedural Gaussian scene (the engine). Part 2: the synthetic room with
-    ground truth, an object to remove: CoIn end to end (`coin_cl.inpaint`, `budget` minutes of
-    training) beside two baselines, scored on the object-absent test views (`room`).
+    ground truth, an object to remove: CoIn end to end (`coin_cl.inpaint`, `budget` wall-clock
+    minutes) beside two baselines, scored on the object-absent test views (`room`).
     Writes `out/demo.json` (the returned summary), `out/turntable/` and `out/room/`.
     `device`: a runtime or an OpenCL device name; `iters` / `prior_seconds` override every training
     stage's steps / the scene prior's training time (both for smoke runs)."""
@@ -130,7 +131,7 @@ def room(
       (no inpainting at all).
 
     Both baselines train CoIn's GS step count (`baseline_steps`); masked reconstruction also stops
-    at CoIn's `budget` minutes of training (`steps` sets its count instead, without that limit).
+    at CoIn's `budget` minutes (`steps` sets its count instead, without that limit).
 
     Writes `out/scene/`, one folder per method, CoIn's page `out/coin/report.html`
     (`coin_cl.report_html`) and `out/results.md`; returns the table as a dict."""
@@ -147,9 +148,16 @@ def room(
         write_synthetic(scene_dir, coverage=90, n_views=n_views, width=size[0], height=size[1], seed=0)
     cfg = CoInConfig(budget_minutes=budget, prior_seconds=prior_seconds).with_iters(iters)
     rows = {}
-    log.info("demo: CoIn on the synthetic room (%.1f min training budget)", budget)
+    log.info("demo: CoIn on the synthetic room (%.1f min budget)", budget)
     t = time.perf_counter()
-    coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
+    from coin_cl.pipeline.budget import BudgetTooSmall
+
+    try:
+        coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
+    except BudgetTooSmall as exc:  # the demo must run: at the least budget this machine fits, said so
+        log.warning("demo: %s; the demo runs CoIn at %.1f minutes", exc, exc.minimum)
+        budget, cfg = exc.minimum, replace(cfg, budget_minutes=exc.minimum)
+        coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
     write_report(out / "coin")
     what = "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints"
     rows["coin"] = _row(coin.metrics, time.perf_counter() - t, what)
@@ -167,7 +175,7 @@ def room(
     what = f"plain Scaffold-GS, {total} steps, on the same stage-1 inpaints (no Ref-GS, CLG, TE-D)"
     rows["inpaint_then_gs"] = _row(res.metrics, time.perf_counter() - t, what)
     # ... with its 3DGS growth capped (`MR_PIXELS_PER_GAUSSIAN`) and, as a guard, no more training
-    # minutes than CoIn's budget.
+    # minutes than CoIn's whole budget.
     cap = 0.0 if steps else 60.0 * budget
     rows["masked_recon"] = room_baseline(
         out / "masked_recon", scene_dir, steps or total, device, cap, MR_PIXELS_PER_GAUSSIAN
@@ -220,7 +228,7 @@ def room_markdown(table: dict) -> str:
 
 def baseline_steps(plan_steps: dict[str, int]) -> int:
     """The baselines' step count at CoIn's budget: the GS steps CoIn's run trained (Ref-GS, TE-D's
-    fine-tuning and adversarial phases; `coin_cl.pipeline.budget.trained_steps`) together. At 400
+    fine-tuning and adversarial phases; `coin_cl.pipeline.schedule.trained_steps`) together. At 400
     steps (the demo's figure before) masked reconstruction scored 2.1 dB m-PSNR below its own
     figure at CoIn's 1501 on the demo room (docs/RESULTS.md, "The baselines at CoIn's budget")."""
     return int(sum(plan_steps.get(k, 0) for k in ("refgs", "ted_finetune", "ted_adversarial")))
@@ -229,18 +237,19 @@ def baseline_steps(plan_steps: dict[str, int]) -> int:
 def baseline_config(cfg: CoInConfig, run: Path) -> CoInConfig:
     """The naive row's `CoInConfig` beside CoIn's `cfg` and its finished run folder `run`:
     Scaffold-GS alone (no Ref-GS, CLG, TE-D) for the GS steps that run really trained
-    (`baseline_steps` of `budget.trained_steps`: a stage stopped at its time cap counts what it
-    did), on CoIn's very stages 0-1: the refined split's fit stays at CoIn's planned Ref-GS count
-    (`budget.run_steps`, what stage 0_refine is keyed by), so the runner reuses CoIn's folders
+    (`baseline_steps` of `schedule.trained_steps`: a stage stopped at its time cap counts what it
+    did), on CoIn's very stages 0-1: the refined split's fit stays at CoIn's planned count
+    (`schedule.run_steps`, what stage 0_refine is keyed by), so the runner reuses CoIn's folders
     instead of fitting again; its plan takes the measured rates of CoIn's (`rates_from`), so the
     scene prior's step count in stage 1's key is CoIn's and nothing is probed twice. It trains on all
     of stage 1's pixels (`observed="target"`): leaving the observed part to the other views'
     captures is CoIn's, and without CoIn's background-depth term a plain Scaffold-GS, untaught
     there, keeps the object's volume (the demo room at budget 2: ghost 0.71, m-PSNR 17.79 against
     22.80). The step count is the result's `iters_refgs`."""
-    from coin_cl.pipeline.budget import run_steps, trained_steps
+    from coin_cl.pipeline.schedule import run_steps, trained_steps
 
-    fit = cfg.refine.iters if cfg.refine.iters is not None else run_steps(run)["refgs"]
+    counts = run_steps(run)
+    fit = cfg.refine.iters if cfg.refine.iters is not None else counts.get("refine", counts["refgs"])
     return replace(cfg, skip=("refgs", "clg", "ted"), iters_refgs=baseline_steps(trained_steps(run)),
                    refine=replace(cfg.refine, iters=fit), rates_from=str(run), observed="target")  # fmt: skip
 

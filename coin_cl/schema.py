@@ -196,13 +196,17 @@ def parse_optional(path: str | Path, spec: Obj | Field, fix: str) -> dict | None
 # the run folder's files
 
 _COUNT = Field(int, lo=0, hi=MAX_STEPS)
+_OPT_COUNT = Field(int, required=False, lo=0, hi=MAX_STEPS)
 _STAGE_KEYS = ("refgs", "ted_finetune", "ted_adversarial")
+_MINUTES = Field(float, nullable=True, lo=0, hi=1e7)
+_OPT_MINUTES = Field(float, required=False, nullable=True, lo=0, hi=1e7)
 _RATE = Field(float, nullable=True, lo=1e-9, hi=1e6)  # seconds per step, when measured
 
 PLAN = Obj(
     {
-        "steps": Field(dict, obj=Obj({k: _COUNT for k in _STAGE_KEYS})),
-        "minutes": Field(dict, obj=Obj({k: Field(float, nullable=True, lo=0, hi=1e7) for k in _STAGE_KEYS})),
+        # "refine" (0_refine's fit) only in a plan of a run that refines its masks
+        "steps": Field(dict, obj=Obj({k: _COUNT for k in _STAGE_KEYS} | {"refine": _OPT_COUNT})),
+        "minutes": Field(dict, obj=Obj({k: _MINUTES for k in _STAGE_KEYS} | {"refine": _OPT_MINUTES})),
         "prior_seconds": Field(float, lo=0, hi=1e9),
         "probe_seconds_per_step": _RATE,
         "source": Field(str, choices=("probe", "explicit")),
@@ -214,8 +218,14 @@ PLAN = Obj(
             dict,
             required=False,
             nullable=True,
-            obj=Obj({k: Field(float, lo=0, hi=1) for k in ("prior", *_STAGE_KEYS)}),
+            obj=Obj(
+                {k: Field(float, lo=0, hi=1) for k in ("prior", *_STAGE_KEYS)}
+                | {"refine": Field(float, required=False, lo=0, hi=1)}
+            ),
         ),
+        # the fixed stages' estimated seconds and the probes' wall time (`budget.Plan`)
+        "fixed_seconds": Field(dict, required=False, nullable=True, items=Field(float, lo=0, hi=1e9)),
+        "probe_wall_seconds": Field(float, required=False, nullable=True, lo=0, hi=1e9),
     }
 )
 

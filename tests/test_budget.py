@@ -7,6 +7,7 @@ import math
 import pytest
 
 from coin_cl.pipeline import budget as B
+from coin_cl.pipeline import schedule as S
 
 
 def test_working_resolution_brings_views_under_the_pixel_cap():
@@ -37,7 +38,7 @@ def test_steps_grow_with_budget_and_machine_speed():
     for minutes in (1, 4, 10, 30, 60, 240):
         steps, planned = B.steps_from_rate(minutes, 0.2)
         assert steps["refgs"] >= 1
-        assert sum(planned.values()) == pytest.approx(minutes * (1 - B.BUDGET_SHARES["prior"]))
+        assert sum(planned.values()) == pytest.approx(minutes)  # the GS pool is split whole
         if prev is not None:
             assert all(steps[k] >= prev[k] for k in steps)
         prev = steps
@@ -99,7 +100,7 @@ def test_scene_prior_steps_follow_its_own_probe(tmp_path):
     assert (fast.prior_steps, slow.prior_steps) == (133, 67)  # explicit seconds: as asked
     # from the budget (60 min: 540 s): steps at the measured rate, never under the minimum's steps
     big = B.plan_run(tmp_path / "e", {"k": 1}, 60, none, None, lambda: 0.2, lambda: 1.8)
-    small = B.plan_run(tmp_path / "f", {"k": 1}, 3, none, None, lambda: 0.2, lambda: 1.8)
+    small = B.plan_run(tmp_path / "f", {"k": 1}, 3, none, None, lambda: 0.05, lambda: 1.8)
     assert big.prior_seconds == 540 and big.prior_steps == 300
     assert small.prior_seconds == B.PRIOR_MIN_SECONDS and small.prior_steps == 133
     assert fast.prior_seconds_per_step == 0.9 and "(133 steps)" in fast.describe()
@@ -131,7 +132,8 @@ def test_adversarial_steps_add_the_discriminators_measured_cost(tmp_path):
     assert B.ted_step_seconds(ratio, "ted_adversarial", spp) == pytest.approx(spp * 69 / 68)
     for plan in (ratio, measured):
         assert B.ted_step_seconds(plan, "ted_finetune", spp) == pytest.approx(spp * 69 / 84)
-    a, b = (B.replan_ted(p, 300, 300 * spp, 3) for p in (ratio, measured))
+    _stage(tmp_path, "2_refgs", {"steps": 300, "train_minutes": 300 * spp / 60}, 300 * spp)
+    a, b = (S.ted_schedule(tmp_path, p, 3).steps for p in (ratio, measured))
     assert a["ted_finetune"] == b["ted_finetune"] and b["ted_adversarial"] < a["ted_adversarial"] / 2
     # the plan measures it when the GS probe runs, unless the adversarial count is given
     calls = []
@@ -155,99 +157,15 @@ def test_probe_measures_a_positive_rate_on_a_tiny_scene(tmp_path):
     assert math.isfinite(spp) and 0 < spp < 10
 
 
-def test_ted_is_planned_again_from_refgs_measured_rate():
-    steps, minutes = B.steps_from_rate(30, 0.25)
-    plan = B.Plan(steps, minutes, 270.0, 0.25, "probe", {})
-    planned_refgs = 60 * minutes["refgs"]
-    on_plan = B.replan_ted(plan, steps["refgs"], planned_refgs, 30)
-    slow = B.replan_ted(plan, steps["refgs"], 1.2 * planned_refgs, 30)  # Ref-GS overran: TE-D gets less
-    fast = B.replan_ted(plan, steps["refgs"], 0.6 * planned_refgs, 30)  # ran early: TE-D gets the rest
-    for k in on_plan:
-        assert fast[k] > on_plan[k] > slow[k] > 0
-    # the seconds TE-D is given add up to its share plus what Ref-GS left
-    spp = 0.6 * planned_refgs / steps["refgs"]
-    given = sum(fast[k] * spp * B.TED_PER_REFGS_STEP[k] for k in fast)
-    want = 60 * (minutes["ted_finetune"] + minutes["ted_adversarial"]) + 0.4 * planned_refgs
-    assert given == pytest.approx(want, rel=0.01)
-    explicit = B.Plan(
-        {**steps, "ted_finetune": 5}, {**minutes, "ted_finetune": None}, 270.0, 0.25, "probe", {}
-    )
-    assert B.replan_ted(explicit, steps["refgs"], planned_refgs, 30)["ted_finetune"] == 5
-    assert B.replan_ted(plan, 0, 0.0, 30) == {k: steps[k] for k in on_plan}  # nothing measured: as planned
-
-
-def test_run_steps_reads_back_what_a_run_trains(tmp_path):
-    """A run folder's counts: plan.json's before Ref-GS ran, TE-D re-planned from 2_refgs's
-    recorded rate after (the same numbers `ted_schedule` gives the run)."""
-    key = {"budget_minutes": 30, "size": [64, 48]}
-    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
-    plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
-    assert B.run_steps(tmp_path) == plan.steps
-    (tmp_path / "2_refgs").mkdir()
-    slow = 1.5 * 60 * plan.minutes["refgs"]  # Ref-GS overran: TE-D gets fewer steps
-    (tmp_path / "2_refgs" / "manifest.json").write_text(
-        json.dumps(_manifest({"steps": plan.steps["refgs"], "train_minutes": slow / 60}))
-    )
-    got = B.run_steps(tmp_path)
-    assert got == {**plan.steps, **B.replan_ted(plan, plan.steps["refgs"], slow, 30)}
-    assert got["ted_finetune"] < plan.steps["ted_finetune"] and got["refgs"] == plan.steps["refgs"]
-    with pytest.raises(FileNotFoundError, match="plan.json"):
-        B.run_steps(tmp_path / "nothing")
+def _stage(out, stage: str, result: dict, seconds: float) -> None:
+    """A finished stage's manifest in run folder `out` (as the runner writes it) recording `seconds`."""
+    (out / stage).mkdir(parents=True, exist_ok=True)
+    (out / stage / "manifest.json").write_text(json.dumps({**_manifest(result), "seconds": seconds}))
 
 
 def _manifest(result: dict) -> dict:
     """A stage manifest as the runner writes it (`coin_cl.schema.MANIFEST`), holding `result`."""
     return {"key": "k", "settings": {}, "outputs": {}, "result": result, "seconds": 1.0}
-
-
-def test_ted_schedule_is_a_pure_function_of_the_plan_and_refgs_manifest(tmp_path):
-    """TE-D's schedule (its stage key and the stage itself both compute it): the re-planned counts of
-    `replan_ted` with each budget-planned phase's cap, the same numbers on every call, and nothing
-    written or changed (the plan, its file, the manifest). Before Ref-GS ran: the plan's counts, no caps."""
-    import copy
-
-    key = {"budget_minutes": 30, "size": [64, 48]}
-    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
-    plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
-    before = B.ted_schedule(tmp_path, plan, 30)
-    assert before == B.TedSchedule({k: plan.steps[k] for k in ("ted_finetune", "ted_adversarial")}, {}, None)
-    (tmp_path / "2_refgs").mkdir()
-    slow = 1.5 * 60 * plan.minutes["refgs"]
-    (tmp_path / "2_refgs" / "manifest.json").write_text(
-        json.dumps(_manifest({"steps": plan.steps["refgs"], "train_minutes": slow / 60}))
-    )
-    files = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
-    kept = copy.deepcopy(plan)
-    first, second = B.ted_schedule(tmp_path, plan, 30), B.ted_schedule(tmp_path, plan, 30)
-    assert first == second and first.steps == B.replan_ted(plan, plan.steps["refgs"], slow, 30)
-    spp = slow / plan.steps["refgs"]
-    assert first.refgs_seconds_per_step == pytest.approx(spp)
-    for k, n in first.steps.items():
-        assert n > 0 and first.caps[k] == pytest.approx(B.CAP_FACTOR * n * B.ted_step_seconds(plan, k, spp))
-    assert plan == kept and {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == files
-    # an explicit phase keeps its count and gets no cap
-    fixed = B.Plan({**plan.steps, "ted_finetune": 5}, {**plan.minutes, "ted_finetune": None}, 270.0, 0.25,
-                   "probe", {})  # fmt: skip
-    sched = B.ted_schedule(tmp_path, fixed, 30)
-    assert sched.steps["ted_finetune"] == 5 and set(sched.caps) == {"ted_adversarial"}
-
-
-def test_trained_steps_count_what_stopped_at_a_cap(tmp_path):
-    """The baselines' budget (`demo.baseline_steps`) is what CoIn trained: a TE-D phase stopped at
-    its time cap recorded fewer steps than `run_steps` plans, and that count is taken; a stage
-    with no manifest keeps the planned count."""
-    key = {"budget_minutes": 30, "size": [64, 48]}
-    none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
-    plan = B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25)
-    assert B.trained_steps(tmp_path) == B.run_steps(tmp_path) == plan.steps
-    planned = 60 * plan.minutes["refgs"]
-    for stage, result in (("2_refgs", {"steps": plan.steps["refgs"], "train_minutes": planned / 60}),
-                          ("4_ted", {"finetune": {"step": 7}, "adversarial": {"step": 5}})):  # fmt: skip
-        (tmp_path / stage).mkdir()
-        (tmp_path / stage / "manifest.json").write_text(json.dumps(_manifest(result)))
-    got = B.trained_steps(tmp_path)
-    assert got == {"refgs": plan.steps["refgs"], "ted_finetune": 7, "ted_adversarial": 5}
-    assert B.run_steps(tmp_path)["ted_adversarial"] > 5  # the plan still says what was planned
 
 
 def test_standalone_steps_use_the_pipelines_rule():
@@ -309,7 +227,7 @@ def test_a_plan_no_run_could_have_made_is_refused(tmp_path, change, field):
     none = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
     for read in (
         lambda: B.plan_run(tmp_path, key, 30, none, None, lambda: 0.25),
-        lambda: B.run_steps(tmp_path),
+        lambda: S.run_steps(tmp_path),
     ):
         with pytest.raises(ValueError) as e:
             read()
@@ -330,3 +248,79 @@ def test_explicit_counts_win_over_a_planted_plan(tmp_path):
     (tmp_path / "plan.json").write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="steps.refgs is 1000000 but key.explicit gives 3"):
         B.plan_run(tmp_path, key, 30, counts, None, lambda: 0.25)
+
+
+# The whole-run rule: the budget holds every stage (module doc, `stage_costs`).
+_VIEWS = {"0_scene": 40, "1_inpaint": 30, "3_clg": 30, "eval": 40}
+_NONE = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
+_REFINED = {**B.BUDGET_SHARES, "refine": B.REFINE_SHARE}
+
+
+def _plan(out, budget, spp=0.2, prior=0.9, views=_VIEWS, shares=_REFINED, wall=5.0):
+    return B.plan_run(out, {"budget_minutes": budget, "spp": spp, "prior": prior}, budget, _NONE, None,
+                      lambda: spp, lambda: prior, lambda: 0.05, shares=shares, views=views,
+                      probe_wall_seconds=wall)  # fmt: skip
+
+
+def test_the_budget_holds_every_stage_fixed_costs_off_then_gs_steps(tmp_path):
+    """Stage costs in, steps out: the GS pool is the budget less the probes, the fixed stages and the
+    prior; each GS stage's steps x its cost (growth included: STEP_COST) spend its share of it; more
+    views (dearer fixed stages) leave fewer GS steps; every stage has its own count (0_refine's fit too)."""
+    plan = _plan(tmp_path / "a", 20)
+    fixed = sum(plan.fixed_seconds.values())
+    assert set(plan.fixed_seconds) == {*_VIEWS, "prior"} and plan.probe_wall_seconds == 5.0
+    pool = 20 * 60 - 5.0 - fixed
+    assert sum(60 * m for m in plan.minutes.values()) == pytest.approx(pool)
+    for k in ("refine", "refgs", "ted_finetune"):
+        step = 0.2 * B.STEP_COST[k]
+        assert plan.steps[k] * step == pytest.approx(60 * plan.minutes[k], abs=step)
+    adv = B.gs_step_seconds(plan, "ted_adversarial", None)  # the discriminator's measured cost in it
+    assert plan.steps["ted_adversarial"] * adv == pytest.approx(60 * plan.minutes["ted_adversarial"], abs=adv)
+    crowded = _plan(tmp_path / "b", 20, views={k: 4 * n for k, n in _VIEWS.items()})
+    assert all(crowded.steps[k] < plan.steps[k] for k in plan.steps)
+    plain = _plan(tmp_path / "c", 20, shares=None)  # a run without the split: no refine share
+    assert "refine" not in plain.steps and plain.steps["refgs"] > plan.steps["refgs"]
+
+
+def test_steps_are_monotone_in_budget_and_machine_speed(tmp_path):
+    prev = None
+    for budget in (10, 15, 20, 30, 60, 120):
+        plan = _plan(tmp_path / f"b{budget}", budget)
+        if prev is not None:
+            assert all(plan.steps[k] >= prev.steps[k] for k in plan.steps), budget
+        prev = plan
+    fast, slow = (
+        _plan(tmp_path / "fast", 30, spp=0.1, prior=0.5),
+        _plan(tmp_path / "slow", 30, spp=0.3, prior=1.5),
+    )
+    assert all(fast.steps[k] > slow.steps[k] for k in fast.steps)
+
+
+def test_a_budget_too_small_is_refused_with_the_minimum_that_fits(tmp_path):
+    """Before any stage: one line naming the minimum budget on this machine; nothing written. The
+    minimum itself fits, and a slower machine needs more."""
+    with pytest.raises(
+        B.BudgetTooSmall, match=r"--budget 3 minutes cannot fit .* at least ([0-9.]+) minutes"
+    ) as exc:
+        _plan(tmp_path / "small", 3)
+    least = exc.value.minimum
+    assert isinstance(exc.value, ValueError) and 3 < least < 30 and "\n" not in str(exc.value)
+    assert not (tmp_path / "small" / B.PLAN_FILE).exists()
+    plan = _plan(tmp_path / "least", least)  # the minimum fits: every GS stage gets its fewest useful steps
+    from coin_cl.pipeline.stage_costs import MIN_STEPS
+
+    assert all(plan.steps[k] >= MIN_STEPS[k] - 1 for k in plan.steps)
+    with pytest.raises(B.BudgetTooSmall) as slower:
+        _plan(tmp_path / "slow", 3, spp=0.4, prior=1.8)
+    assert slower.value.minimum > least
+
+
+def test_a_resumed_run_reuses_its_plan_without_probing(tmp_path):
+    plan = _plan(tmp_path, 20)
+
+    def never():
+        raise AssertionError("probed again")
+
+    again = B.plan_run(tmp_path, {"budget_minutes": 20, "spp": 0.2, "prior": 0.9}, 20, _NONE, None, never,
+                       never, never, shares=_REFINED, views=_VIEWS)  # fmt: skip
+    assert again == plan and B.read_plan(tmp_path / B.PLAN_FILE) == plan

@@ -122,3 +122,23 @@ def test_an_empty_out_is_refused(tmp_path, capsys):
         main(["run", str(tmp_path), "--out", ""])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert e.value.code == 2 and "argument --out: '' is not a folder name" in err
+
+
+def test_a_budget_that_cannot_fit_is_one_line_with_the_minimum_before_any_stage(
+    tmp_path, capsys, monkeypatch
+):
+    """The probes measure the machine (faked here: a slow one), the plan finds the budget too small,
+    and the CLI says so in one line naming the minimum; no stage folder and no plan are written."""
+    from coin_cl.pipeline import coin_plan
+    from coin_cl.scene import write_synthetic
+
+    monkeypatch.setattr(coin_plan, "probe_seconds_per_step", lambda *a, **k: 2.0)
+    monkeypatch.setattr(coin_plan, "prior_probe", lambda *a: lambda: 3.0)
+    monkeypatch.setattr(coin_plan, "disc_probe", lambda *a: lambda: 0.5)
+    room = write_synthetic(tmp_path / "room", n_views=6, width=48, height=32, seed=0)
+    out = tmp_path / "out"
+    assert main(["run", str(room), "--out", str(out), "--budget", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    m = re.search(r"--budget 2 minutes cannot fit .* needs at least ([0-9.]+) minutes", err)
+    assert m is not None and float(m.group(1)) > 2, err
+    assert not (out / "plan.json").exists() and not any(out.glob("[0-9]_*"))

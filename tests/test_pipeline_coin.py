@@ -444,15 +444,17 @@ def test_same_settings_give_bit_identical_outputs(room, first_run, tmp_path):
 
 def test_ted_key_leaves_the_run_inputs_as_they_were(room, tmp_path):
     """TE-D's stage key (computed once Ref-GS has run) is the re-planned schedule of
-    `budget.ted_schedule`: computed twice it is the same, and it changes nothing: the run's inputs
-    (frozen) and plan hold what they held, and no file is written."""
+    `schedule.ted_schedule`: computed twice it is the same, and it changes nothing: the run's inputs
+    (frozen) and plan hold what they held, and no file is written. Ref-GS's key likewise holds its
+    count re-planned from what the stages before it recorded."""
     import copy
     import dataclasses
     import json
 
-    from coin_cl.pipeline.budget import Plan, replan_ted
+    from coin_cl.pipeline.budget import Plan
     from coin_cl.pipeline.coin import coin_stages
     from coin_cl.pipeline.run_inputs import RunInputs
+    from coin_cl.pipeline.schedule import stage_schedule, ted_schedule
 
     scene = load_scene(room)
     # the dilation resolved, as `_run` gives it; TE-D's counts left to the plan
@@ -464,15 +466,20 @@ def test_ted_key_leaves_the_run_inputs_as_they_were(room, tmp_path):
                     refgs_cfg=cfg.refgs_settings(scene.train_idx[0]))  # fmt: skip
     (tmp_path / "2_refgs").mkdir()
     result = {"steps": 12, "train_minutes": 2.0}  # Ref-GS overran its minute: TE-D gets fewer steps
-    man = {"key": "k", "settings": {}, "outputs": {}, "result": result, "seconds": 1.0}
+    man = {"key": "k", "settings": {}, "outputs": {}, "result": result, "seconds": 120.0}
     (tmp_path / "2_refgs" / "manifest.json").write_text(json.dumps(man))
     files = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     kept = copy.deepcopy(run)
     ted = next(s for s in coin_stages(run) if s.name == "4_ted")
     first, second = ted.settings(), ted.settings()
-    want = replan_ted(plan, 12, 120.0, cfg.budget_minutes)
+    want = ted_schedule(tmp_path, plan, cfg.budget_minutes).steps
     assert first == second and first["iters"] == [want["ted_finetune"], want["ted_adversarial"]]
     assert first["iters"] != [counts["ted_finetune"], counts["ted_adversarial"]]  # not the probe's counts
+    refgs = next(s for s in coin_stages(run) if s.name == "2_refgs")
+    assert (
+        refgs.settings()["iters"]
+        == stage_schedule(tmp_path, plan, "2_refgs", cfg.budget_minutes).steps["refgs"]
+    )
     assert run.plan == kept.plan and run.cfg == kept.cfg and run.ref == kept.ref
     assert all(np.array_equal(a, b) for a, b in zip(run.masks, kept.masks, strict=True))
     assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == files

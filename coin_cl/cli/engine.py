@@ -24,8 +24,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=12, help="turntable frames")
     p.add_argument("--size", type=int, nargs=2, default=(480, 320), metavar=("W", "H"))
     p.add_argument("--budget", type=float, default=DEMO_BUDGET_MINUTES,
-                   help="CoIn's training minutes on the synthetic room (the demo takes about 2.5x this "
-                   "plus 4-5 minutes)")  # fmt: skip
+                   help="CoIn's wall-clock minutes on the synthetic room, every stage included (the demo "
+                   "adds both baselines at CoIn's GS steps)")  # fmt: skip
     p.add_argument("--room-size", type=int, nargs=2, default=(192, 144), metavar=("W", "H"))
     p.add_argument("--room-views", type=int, default=24, help="synthetic room views (1 in 4 for testing)")
     p.add_argument(

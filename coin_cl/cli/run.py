@@ -46,8 +46,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                         "cover it in every view; auto = hull when every training view has a mask, else "
                         "derive")  # fmt: skip
     p.add_argument("--budget", type=values.positive_float, default=30.0,
-                   help="training minutes (scene prior, Ref-GS, TE-D; CLG and eval come on top); a timing "
-                        "probe turns them into steps, recorded in OUT/plan.json (default 30)")  # fmt: skip
+                   help="the run's wall-clock minutes, every stage and eval included; timing probes turn "
+                        "them into steps, recorded in OUT/plan.json; a budget this machine cannot fit is "
+                        "refused with the minimum (default 30; docs/RUN.md, 'The budget')")  # fmt: skip
     p.add_argument("--resolution", type=values.positive_float, default=None,
                    help="image scale (0.5 = half); default: picked from the image size (at most "
                         "160k pixels a view, logged)")  # fmt: skip

@@ -1,29 +1,42 @@
-"""The run's plan: working resolution and step counts from the minute budget (issue 20).
+"""The run's plan: working resolution and step counts from the minute budget.
 
-CoIn's published schedule (10k Ref-GS steps, 10k + 10k TE-D, paper supp. A) is far beyond 2 CPU
-cores, so a run is planned from `--budget` minutes on the machine at hand:
+`--budget B` is the run's wall-clock minutes, every stage included. CoIn's published schedule (10k
+Ref-GS steps, 10k + 10k TE-D, paper supp. A) is far beyond 2 CPU cores, so a run is planned from
+`B` on the machine at hand:
 
 1. Working resolution (`working_resolution`): the image scale 1/n (n an integer) that brings a
-   view to at most `MAX_WORK_PIXELS` pixels. Measured on the shared SPIn-NeRF scene at budget 30
-   (issue 20, docs/RESULTS.md): at 1008x567 the budget buys ~280 Ref-GS steps and the result loses
-   to the naive baseline; at 504x284 (143k px) it buys ~700 and wins. `--resolution` overrides.
-2. Step counts (`plan_steps`): a timing probe trains a plain Scaffold-GS on the scene's captured
-   views at the working resolution for `PROBE_STEPS` steps (~10-30 s), which turns the budget's
-   shares (`BUDGET_SHARES`) into steps with the measured cost of each GS stage relative to the
-   probe's step (`STEP_COST`). The plan is written to `OUT/plan.json` and reused by every rerun of
-   the same settings (so a rerun is the same run, and a killed run resumes to the same schedule);
-   `--iters` / `CoInConfig.iters_*` replace the probe with fixed counts.
-3. A safety cap: each GS stage also stops at `CAP_FACTOR` x its planned minutes (logged), so a
+   view to at most `MAX_WORK_PIXELS` pixels (measured on the shared SPIn-NeRF scene at budget 30,
+   docs/RESULTS.md: at 1008x567 the budget buys ~280 Ref-GS steps and the result loses to the naive
+   baseline; at 504x284 it buys ~700 and wins). `--resolution` overrides.
+2. Probes: a plain Scaffold-GS trained on the scene's views for `PROBE_STEPS` steps, a few steps of
+   the scene prior and of TE-D's discriminator measure this machine (~10-30 s; their own wall time
+   is part of the budget and recorded).
+3. The split (`plan_run`): from the budget's seconds come off, in this order, the probes, the
+   fixed stages' estimates (`coin_cl.pipeline.stage_costs`: 0_scene, stage 1 and CLG per masked
+   view, eval per view, scaled by the scene prior's measured rate) and the scene prior's training
+   (`BUDGET_SHARES["prior"]` of the budget as seconds, never below the step count of
+   `PRIOR_MIN_SECONDS`). What is left, the GS pool, is split between the GS stages by their weights
+   (`BUDGET_SHARES`; 0_refine's fit gets `REFINE_SHARE` when the run refines its masks) and turned
+   into steps with the measured cost of each stage relative to the probe's step (`STEP_COST`).
+   A budget whose pool cannot give every GS stage `stage_costs.MIN_STEPS` is refused before any
+   stage runs (`BudgetTooSmall`, a ValueError naming the minimum budget that fits here).
+4. The re-plan (`coin_cl.pipeline.schedule`): when a GS stage is reached, its count is planned
+   again from what is left: the budget minus the probes, minus the seconds the finished stages'
+   manifests record, minus the estimates of the fixed stages still to come; shared with the GS
+   stages after it by their weights. TE-D's steps are costed from Ref-GS's measured rate
+   (`ted_step_seconds`). Every figure is a pure function of plan.json and the manifests already
+   written, so a killed run resumes to the same schedule, and a stage's key changes only when its
+   counts do.
+5. A safety cap: each GS stage also stops at `CAP_FACTOR` x its planned seconds (logged), so a
    machine much slower than its probe (another job starting) cannot run far over the budget.
 
-TE-D's adversarial step is a fine-tune step plus its discriminator's cost, which a third probe
-measures (~1 s; `ted.probe_discriminator_seconds`): that cost does not shrink with the images as a
-GS step does, so a fixed ratio measured at 504x284 underplanned it 2.2x at 192x144.
+`--iters` / `CoInConfig.iters_*` replace the plan's counts with fixed ones (their estimated seconds
+still come off the pool of the others). The plan is written to `OUT/plan.json` and reused by every
+rerun of the same settings.
 
-The scene prior (CLG's denoiser) takes its share as seconds of training, never below
-`PRIOR_MIN_SECONDS` (measured: below it, its fills are noise); its own probe (a few optimizer steps
-of the prior, ~4 s) turns the seconds into steps on this machine, never fewer than the minimum's
-steps at the rate it was measured at.
+TE-D's adversarial step is a fine-tune step plus its discriminator's cost, which its probe
+measures (`ted.probe_discriminator_seconds`): that cost does not shrink with the images as a
+GS step does, so a fixed ratio measured at 504x284 underplanned it 2.2x at 192x144.
 """
 
 from __future__ import annotations
@@ -32,13 +45,15 @@ import json
 import logging
 import math
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from coin_cl.atomic import write_text
-from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
+from coin_cl.pipeline import stage_costs as costs
+from coin_cl.schema import PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
 
 if TYPE_CHECKING:
@@ -50,9 +65,15 @@ log = logging.getLogger(__name__)
 # A view is brought to at most this many pixels by default (504x284 = 143k is the measured winner;
 # see the module docstring). The scale is 1/n so that pixel grids stay aligned with the capture's.
 MAX_WORK_PIXELS = 160_000
-# Shares of the budget: the scene prior's training, Ref-GS, TE-D fine-tune, TE-D adversarial
-# (CLG is counted in sampling steps, not minutes, and eval is extra).
+# "prior": the scene prior's share of the whole budget (as seconds of training); the rest: the
+# weights by which the GS stages split the GS pool (what the budget leaves after the probes, the
+# fixed stages and the prior; module doc).
 BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversarial": 0.3}
+# 0_refine's weight beside BUDGET_SHARES' GS weights, when the run refines its masks: its fit (a
+# plain 3DGS on the captures) measured 2.5-5.5 min at budget 10 beside Ref-GS's 3.5 planned.
+REFINE_SHARE = 0.15
+# The GS stages a plan may hold, in the order they run.
+GS_KEYS = ("refine", "refgs", "ted_finetune", "ted_adversarial")
 # Mean seconds per step of each GS stage over a whole run, relative to the probe's plain Scaffold-GS
 # step at the start of training (Ref-GS adds its terms and the model grows by densification; TE-D's
 # adversarial phase renders patches for the discriminator). Ref-GS measured on SPIn-NeRF at 504x284
@@ -61,10 +82,13 @@ BUDGET_SHARES = {"prior": 0.15, "refgs": 0.35, "ted_finetune": 0.2, "ted_adversa
 # primitives, anchor attention on), 0.513 s/step on average over the 1535 steps its cap allowed of
 # the 1668 planned at 1.6x: 2.2x the probe over a whole run. TE-D follows from it by
 # TED_PER_REFGS_STEP and is planned again from Ref-GS's measured rate.
-STEP_COST = {"refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
+# 0_refine's fit (plain 3DGS, `RefineConfig.model`) at budget 10: 731 steps in 154 s on cup_plain
+# (probe 0.13 s/step: 1.6x), up to 5.5 min on a 71-view orbit capture (about 3.5x); 2.5 is taken,
+# and the re-plan after it gives the later GS stages what it did not use (or takes what it overran).
+STEP_COST = {"refine": 2.5, "refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
 # A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
 # Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md, issue 12). TE-D's
-# counts are planned again from Ref-GS's measured rate once it has run (`replan_ted`).
+# counts are planned again from Ref-GS's measured rate once it has run (`schedule.stage_schedule`).
 TED_PER_REFGS_STEP = {"ted_finetune": 69 / 84, "ted_adversarial": 69 / 68}
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
 PROBE_WARMUP = 3
@@ -88,8 +112,10 @@ def working_resolution(width: int, height: int, max_pixels: int = MAX_WORK_PIXEL
 
 @dataclass(frozen=True)
 class Plan:
-    """What each stage is given. steps: {"refgs", "ted_finetune", "ted_adversarial"} -> steps;
-    minutes: the planned minutes of each (None where counts were given explicitly); prior_seconds:
+    """What each stage is given, as planned before any stage ran (each GS stage is planned again
+    when reached: `schedule.stage_schedule`). steps: {"refgs", "ted_finetune", "ted_adversarial", and
+    "refine" (0_refine's fit) in a run that refines its masks} -> steps; minutes: the planned
+    minutes of each (None where counts were given explicitly); prior_seconds:
     the scene prior's training; probe_seconds_per_step: the probe's figure (None: no probe);
     source: "probe" or "explicit"; key: the settings the plan was made for (a rerun with the same
     key reuses it); prior_steps: the scene prior's step count, from `prior_seconds` at the rate its
@@ -108,8 +134,15 @@ class Plan:
     prior_seconds_per_step: float | None = None
     disc_seconds_per_step: float | None = None
     # The budget's shares this plan split (None: BUDGET_SHARES): a run without TE-D's adversarial
-    # phase gives its share to the fine-tune phase (`coin_plan.plan_for`).
+    # phase gives its share to the fine-tune phase, a run that refines its masks adds "refine"
+    # (`coin_plan.plan_for`).
     shares: dict[str, float] | None = None
+    # {stage: estimated seconds} of the fixed stages ("0_scene", "1_inpaint", "3_clg", "eval",
+    # "prior": the scene prior's training; `stage_costs.fixed_costs`); None: none estimated.
+    fixed_seconds: dict[str, float] | None = None
+    # The probes' own wall time, measured when the plan was made (a plan taking another run's rates
+    # takes its figure too); None: no probe ran.
+    probe_wall_seconds: float | None = None
 
     def cap_seconds(self, stage: str) -> float:
         """The safety cap of a GS stage (0: none, for explicit step counts)."""
@@ -141,9 +174,11 @@ def read_plan(path: Path) -> Plan:
     doc = parse(path, PLAN, fix)
     plan = Plan(**doc)
     explicit = plan.key.get("explicit")
-    for i, k in enumerate(("refgs", "ted_finetune", "ted_adversarial")):
-        n, minutes = plan.steps[k], plan.minutes[k]
-        given = explicit[i] if isinstance(explicit, list) and len(explicit) == 4 else None
+    for i, k in enumerate(GS_KEYS):
+        if k not in plan.steps:  # "refine": only in a plan of a run that refines its masks
+            continue
+        n, minutes = plan.steps[k], plan.minutes.get(k)
+        given = explicit[i - 1] if isinstance(explicit, list) and len(explicit) == 4 and i else None
         if minutes is None:  # an explicit count
             if given is not None and n != given:
                 raise SchemaError(f"{path}: steps.{k} is {n} but key.explicit gives {given}; {fix}")
@@ -171,23 +206,32 @@ def read_plan(path: Path) -> Plan:
 
 
 def steps_from_rate(
-    budget_minutes: float, seconds_per_step: float, shares: dict[str, float] | None = None
+    pool_minutes: float, seconds_per_step: float, shares: dict[str, float] | None = None
 ) -> tuple[dict[str, int], dict[str, float]]:
-    """({stage: steps}, {stage: minutes}) for a budget at a probe rate: each GS stage gets its share
-    of the budget (`shares`, default BUDGET_SHARES) divided by its cost. Monotone: more budget or a
-    faster machine never gives fewer steps. At least 1 Ref-GS step; TE-D may get 0 (then it passes
-    Ref-GS through, logged)."""
+    """({stage: steps}, {stage: minutes}) of the GS stages for a GS pool of `pool_minutes` at a probe
+    rate: each stage gets the pool's part its weight in `shares` gives (default BUDGET_SHARES;
+    "refine" only where `shares` has it) divided by its cost. Monotone: more minutes or a faster
+    machine never give fewer steps. At least 1 Ref-GS step; TE-D may get 0 (then it passes Ref-GS
+    through, logged)."""
     if not math.isfinite(seconds_per_step) or seconds_per_step <= 0:
         raise ValueError(f"probe seconds per step must be a positive number, got {seconds_per_step}")
-    if not math.isfinite(budget_minutes) or budget_minutes <= 0:
-        raise ValueError(f"budget must be a positive number of minutes, got {budget_minutes}")
-    shares = shares or BUDGET_SHARES
-    steps, minutes = {}, {}
-    for k in ("refgs", "ted_finetune", "ted_adversarial"):
-        minutes[k] = shares[k] * budget_minutes
-        steps[k] = stage_steps(k, minutes[k], seconds_per_step)
-    steps["refgs"] = max(1, steps["refgs"])
+    if not math.isfinite(pool_minutes) or pool_minutes <= 0:
+        raise ValueError(f"budget must be a positive number of minutes, got {pool_minutes}")
+    weights = gs_weights(shares)
+    floors = costs.min_floors(weights, {k: seconds_per_step * STEP_COST[k] for k in weights})
+    split = costs.split_seconds(60.0 * pool_minutes, weights, floors)
+    minutes = {k: split[k] / 60.0 for k in weights}
+    steps = {k: stage_steps(k, minutes[k], seconds_per_step) for k in weights}
+    if "refgs" in steps:
+        steps["refgs"] = max(1, steps["refgs"])
     return steps, minutes
+
+
+def gs_weights(shares: dict[str, float] | None) -> dict[str, float]:
+    """{GS stage: weight} of `shares` (default BUDGET_SHARES), in GS_KEYS order; "refine" only where
+    `shares` names it."""
+    shares = shares or BUDGET_SHARES
+    return {k: float(shares[k]) for k in GS_KEYS if k in shares}
 
 
 def stage_steps(stage: str, minutes: float, seconds_per_step: float) -> int:
@@ -254,6 +298,14 @@ def probe_seconds_per_step(
         return mean_step_seconds(step, PROBE_STEPS, PROBE_WARMUP)
 
 
+class BudgetTooSmall(ValueError):
+    """A budget that cannot fit the run on this machine; `minimum`: the smallest that fits (minutes)."""
+
+    def __init__(self, message: str, minimum: float):
+        super().__init__(message)
+        self.minimum = minimum
+
+
 def plan_run(
     out: Path,
     key: dict[str, Any],
@@ -264,6 +316,8 @@ def plan_run(
     prior_probe: Callable[[], float] | None = None,
     disc_probe: Callable[[], float] | None = None,
     shares: dict[str, float] | None = None,
+    views: dict[str, int] | None = None,
+    probe_wall_seconds: float | None = None,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
@@ -272,7 +326,13 @@ def plan_run(
     prior_probe: () -> seconds per scene-prior step on this machine, called when the GS probe runs
     (the prior's seconds become `prior_steps`); None where no prior is trained or its steps are fixed.
     disc_probe: () -> seconds TE-D's discriminator adds to an adversarial step, called likewise
-    unless the adversarial count is explicit."""
+    unless the adversarial count is explicit.
+    views: {fixed stage: the views it works on} (`stage_costs.fixed_costs`; None: no fixed stage
+    is estimated, the GS pool is the budget less the prior's share).
+    probe_wall_seconds: the probes' wall time to count instead of the time measured here (a plan
+    that takes another's rates takes its figure too, so the same budget gives the same counts).
+    Raises `BudgetTooSmall` (nothing written) when the GS pool left cannot give every budgeted GS
+    stage `stage_costs.MIN_STEPS`."""
     path = Path(out) / PLAN_FILE
     have = read_plan(path) if path.exists() else None
     if have is not None and have.key == json.loads(json.dumps(key, default=str)):
@@ -282,22 +342,21 @@ def plan_run(
         plan = replace(have, steps=steps)
         log.info("plan reused from %s: %s", path, plan.describe())
         return plan
-    spp = None
+    secs = explicit_prior_seconds if explicit_prior_seconds is not None else prior_seconds(budget_minutes)
     if all(explicit.get(k) is not None for k in ("refgs", "ted_finetune", "ted_adversarial")):
         steps = {k: int(explicit[k]) for k in ("refgs", "ted_finetune", "ted_adversarial")}
-        minutes: dict[str, float | None] = dict.fromkeys(steps)
-        source = "explicit"
-    else:
-        log.info("timing probe: %d Scaffold-GS steps on this machine to turn %.0f minutes into steps",
-                 PROBE_STEPS + PROBE_WARMUP, budget_minutes)  # fmt: skip
-        spp = probe()
-        auto, auto_min = steps_from_rate(budget_minutes, spp, shares)
-        steps = {k: int(explicit[k]) if explicit.get(k) is not None else auto[k] for k in auto}
-        minutes = {k: None if explicit.get(k) is not None else auto_min[k] for k in auto}
-        source = "probe"
-    secs = explicit_prior_seconds if explicit_prior_seconds is not None else prior_seconds(budget_minutes)
+        saved = json.loads(json.dumps(key, default=str))
+        plan = Plan(steps, dict.fromkeys(steps), secs, None, "explicit", saved,
+                    shares=None if shares is None else dict(shares))  # fmt: skip
+        write_text(path, json.dumps(asdict(plan), indent=2, sort_keys=True))
+        log.info("plan (explicit): %s; written to %s", plan.describe(), path)
+        return plan
+    log.info("timing probe: %d Scaffold-GS steps on this machine to turn %.0f minutes into steps",
+             PROBE_STEPS + PROBE_WARMUP, budget_minutes)  # fmt: skip
+    t0 = time.perf_counter()
+    spp = float(probe())
     prior_spp = prior_steps = None
-    if source == "probe" and prior_probe is not None:
+    if prior_probe is not None:
         from coin_cl.diffusion.scene_prior import steps_for_seconds
 
         prior_spp = float(prior_probe())
@@ -307,55 +366,93 @@ def plan_run(
             # measured at): a slower machine spends longer on it rather than train a noisier prior.
             prior_steps = max(prior_steps, steps_for_seconds(PRIOR_MIN_SECONDS))
     disc = None
-    if source == "probe" and disc_probe is not None and explicit.get("ted_adversarial") is None:
+    if disc_probe is not None and explicit.get("ted_adversarial") is None:
         disc = float(disc_probe())
         if not math.isfinite(disc) or disc < 0:
             raise ValueError(f"discriminator seconds per step must be a non-negative number, got {disc}")
+    wall = time.perf_counter() - t0 if probe_wall_seconds is None else float(probe_wall_seconds)
+    draft = Plan({}, {}, secs, spp, "probe", {}, prior_steps, prior_spp, disc, shares)
+    fixed = (costs.fixed_costs(views, costs.machine_factor(prior_spp), prior_steps, prior_spp)
+             if views is not None else {"prior": secs})  # fmt: skip
+    given = {k: int(n) for k, n in explicit.items() if n is not None and k in gs_weights(shares)}
+    given_s = sum(n * gs_step_seconds(draft, k, None) for k, n in given.items())
+    pool = 60.0 * budget_minutes - wall - sum(fixed.values()) - given_s
+    free = {k: w for k, w in gs_weights(shares).items() if k not in given}
+    need = costs.minimum_pool(free, {k: gs_step_seconds(draft, k, None) for k in free})
+    if pool < need or pool <= 0:
+        raise too_small(budget_minutes, wall + given_s, fixed, need, draft, explicit_prior_seconds, free)
+    per_step = {k: gs_step_seconds(draft, k, None) for k in free}
+    split = costs.split_seconds(pool, free, costs.min_floors(free, per_step))
+    auto = {k: int(split[k] / per_step[k]) for k in free}
+    if "refgs" in auto:
+        auto["refgs"] = max(1, auto["refgs"])
+    steps = {k: given.get(k, auto.get(k, 0)) for k in gs_weights(shares)}
+    minutes: dict[str, float | None] = {k: None if k in given else split[k] / 60.0 for k in steps}
     plan = Plan(
         steps=steps,
         minutes=minutes,
         prior_seconds=secs,
         probe_seconds_per_step=spp,
-        source=source,
+        source="probe",
         key=json.loads(json.dumps(key, default=str)),
         prior_steps=prior_steps,
         prior_seconds_per_step=prior_spp,
         disc_seconds_per_step=disc,
         shares=None if shares is None else dict(shares),
+        fixed_seconds=fixed,
+        probe_wall_seconds=wall,
     )
     write_text(path, json.dumps(asdict(plan), indent=2, sort_keys=True))
-    log.info("plan (%s%s%s%s): %s; written to %s", source,
-             "" if spp is None else f", probe {spp:.3f} s/step",
+    log.info("plan (probe %.3f s/step%s%s; probes %.0f s, fixed stages ~%.1f min: %s): %s; written to %s",
+             spp,
              "" if prior_spp is None else f", scene prior {prior_spp:.2f} s/step",
-             "" if disc is None else f", discriminator {disc:.3f} s/step",
-             plan.describe(), path)  # fmt: skip
+             "" if disc is None else f", discriminator {disc:.3f} s/step", wall, sum(fixed.values()) / 60,
+             ", ".join(f"{k} {v:.0f} s" for k, v in fixed.items()), plan.describe(), path)  # fmt: skip
     return plan
 
 
-def replan_ted(
-    plan: Plan, refgs_steps: int, refgs_train_seconds: float, budget_minutes: float
-) -> dict[str, int]:
-    """TE-D's step counts once Ref-GS has run, from its measured seconds per step: TE-D gets its
-    share of the budget plus what Ref-GS left unspent of its own (minus its overrun), split by the
-    shares, each phase at its measured cost relative to a Ref-GS step (`TED_PER_REFGS_STEP`).
-    Explicit counts in `plan` are kept. Deterministic in its inputs, which 2_refgs's manifest holds,
-    so a rerun gets the same counts (`run_steps` reads them back from a run folder)."""
-    out = {k: plan.steps[k] for k in ("ted_finetune", "ted_adversarial")}
-    free = [k for k in out if plan.minutes.get(k) is not None]
-    if not free or refgs_steps < 1 or not (refgs_train_seconds > 0):
-        return out
-    spp = refgs_train_seconds / refgs_steps
-    planned_refgs = (
-        60.0 * BUDGET_SHARES["refgs"] * budget_minutes if plan.minutes.get("refgs") is not None else 0.0
-    )
-    spare = planned_refgs - refgs_train_seconds if planned_refgs else 0.0
-    shares = plan.shares or BUDGET_SHARES
-    pool = sum(60.0 * shares[k] * budget_minutes for k in free) + spare
-    total_share = sum(shares[k] for k in free)
-    for k in free:
-        seconds = max(0.0, pool * shares[k] / total_share) if total_share > 0 else 0.0
-        out[k] = int(seconds / ted_step_seconds(plan, k, spp))
-    return out
+def too_small(
+    budget_minutes: float,
+    fixed_gs: float,
+    fixed: dict[str, float],
+    need: float,
+    plan: Plan,
+    explicit_prior_seconds: float | None,
+    free: dict[str, float],
+) -> BudgetTooSmall:
+    """The refusal of a budget that cannot fit: one line with the minimum budget that does
+    (`stage_costs.minimum_budget`) and what it is made of. fixed_gs: the probes' and the explicit
+    counts' seconds; fixed: the fixed stages' estimates; need: the GS pool MIN_STEPS take."""
+    # The prior's cost in a budget B: its floor, or its share of B at PRIOR_STEP_COST per probed step.
+    floor, share = fixed.get("prior", 0.0), 0.0
+    if explicit_prior_seconds is None and plan.prior_seconds_per_step is not None:
+        from coin_cl.diffusion.scene_prior import steps_for_seconds
+
+        floor = steps_for_seconds(PRIOR_MIN_SECONDS) * plan.prior_seconds_per_step * costs.PRIOR_STEP_COST
+        share = BUDGET_SHARES["prior"] * costs.PRIOR_STEP_COST
+    elif explicit_prior_seconds is None and "prior" in fixed:  # no prior probe: its nominal seconds
+        floor, share = PRIOR_MIN_SECONDS, BUDGET_SHARES["prior"]
+    others = fixed_gs + sum(v for k, v in fixed.items() if k != "prior")
+    least = math.ceil(10 * costs.minimum_budget(others, floor, share, need)) / 10
+    mins = ", ".join(f"{k} {costs.MIN_STEPS[k]}" for k in free if costs.MIN_STEPS.get(k))
+    return BudgetTooSmall(
+        f"--budget {budget_minutes:g} minutes cannot fit this run on this machine: it needs at least "
+        f"{least:g} minutes (probes and fixed stages ~{others / 60:.1f} min, "
+        f"scene prior ~{floor / 60:.1f} min, "
+        f"the fewest useful GS steps ({mins}) ~{need / 60:.1f} min); give --budget {least:g} or more, "
+        "or fixed step counts with --iters", least)  # fmt: skip
+
+
+def gs_step_seconds(plan: Plan, stage: str, refgs_seconds_per_step: float | None) -> float:
+    """Seconds one step of GS stage `stage` takes: TE-D's from Ref-GS's measured rate where it ran
+    (`ted_step_seconds`), else from the probe's rate at the stage's STEP_COST (an adversarial step
+    with the discriminator's measured cost where probed)."""
+    if stage in ("ted_finetune", "ted_adversarial"):
+        rate = refgs_seconds_per_step
+        if rate is None:
+            rate = plan.probe_seconds_per_step * STEP_COST["refgs"]
+        return ted_step_seconds(plan, stage, rate)
+    return plan.probe_seconds_per_step * STEP_COST[stage]
 
 
 def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> float:
@@ -369,80 +466,3 @@ def ted_step_seconds(plan: Plan, phase: str, refgs_seconds_per_step: float) -> f
     if plan.disc_seconds_per_step is not None:
         return finetune + plan.disc_seconds_per_step
     return refgs_seconds_per_step * TED_PER_REFGS_STEP[phase]
-
-
-def refgs_rate(out: Path) -> tuple[int, float]:
-    """(steps, training seconds) that Ref-GS recorded in OUT/2_refgs/manifest.json; (0, 0.0) when it
-    has not run."""
-    from coin_cl.pipeline.runner import read_manifest
-
-    man = read_manifest(Path(out) / "2_refgs")
-    if man is None:
-        return 0, 0.0
-    res = man["result"]
-    steps, minutes = res.get("steps", 0), res.get("train_minutes", 0.0)
-    if not (isinstance(steps, int) and 0 <= steps <= MAX_STEPS and isinstance(minutes, int | float)
-            and math.isfinite(minutes) and minutes >= 0):  # fmt: skip
-        path = Path(out) / "2_refgs" / "manifest.json"
-        raise SchemaError(f"{path}: result.steps {steps!r} / result.train_minutes {minutes!r} are not a "
-                          f"step count and minutes; {run_folder_fix(path, 'Ref-GS runs again')}")  # fmt: skip
-    return int(steps), 60.0 * float(minutes)
-
-
-def run_steps(out: Path) -> dict[str, int]:
-    """The step counts a run folder trains: its plan.json's, TE-D's as re-planned from Ref-GS's
-    measured rate (`ted_schedule`, as during the run)."""
-    path = Path(out) / PLAN_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: not a CoIn run folder (coin-cl run writes it)")
-    plan = read_plan(path)
-    return {**plan.steps, **ted_schedule(out, plan, plan.key["budget_minutes"]).steps}
-
-
-def trained_steps(out: Path) -> dict[str, int]:
-    """The GS steps a finished run folder really trained: Ref-GS's and TE-D's phases as their
-    manifests recorded them (a phase stopped at its time cap trained fewer than `run_steps` says),
-    `run_steps`' count for a stage that recorded none (not run yet, or skipped: 0 then)."""
-    out = Path(out)
-    got = dict(run_steps(out))
-
-    from coin_cl.pipeline.runner import read_manifest
-
-    def result(stage: str) -> dict | None:
-        man = read_manifest(out / stage)
-        return None if man is None else man["result"]
-
-    refgs, ted = result("2_refgs"), result("4_ted")
-    if refgs is not None and "steps" in refgs:
-        got["refgs"] = int(refgs["steps"])
-    for phase in ("finetune", "adversarial"):
-        if ted is not None and isinstance(ted.get(phase), dict) and "step" in ted[phase]:
-            got[f"ted_{phase}"] = int(ted[phase]["step"])
-    return got
-
-
-@dataclass(frozen=True)
-class TedSchedule:
-    """TE-D's schedule once Ref-GS has run. steps: {"ted_finetune", "ted_adversarial"} -> steps;
-    caps: the same keys -> seconds a phase may take (`CAP_FACTOR` x its planned time; only the
-    phases planned from the budget, and only once Ref-GS recorded a rate); refgs_seconds_per_step:
-    Ref-GS's measured rate the counts were planned from (None: not run, the plan's counts stand)."""
-
-    steps: dict[str, int]
-    caps: dict[str, float]
-    refgs_seconds_per_step: float | None
-
-
-def ted_schedule(out: Path, plan: Plan, budget_minutes: float) -> TedSchedule:
-    """TE-D's schedule in run folder `out`: its counts planned again from the Ref-GS rate that
-    OUT/2_refgs/manifest.json records (`replan_ted`) and the phases' time caps; explicit counts
-    are kept. A pure function of the plan and that manifest (it writes and logs nothing), so TE-D's
-    stage key and the stage itself get the same numbers, and a rerun too."""
-    n, seconds = refgs_rate(out)
-    steps = replan_ted(plan, n, seconds, budget_minutes)
-    if not n:
-        return TedSchedule(steps, {}, None)
-    spp = seconds / n
-    caps = {k: CAP_FACTOR * steps[k] * ted_step_seconds(plan, k, spp)
-            for k in steps if plan.minutes.get(k) is not None}  # fmt: skip
-    return TedSchedule(steps, caps, spp)

@@ -15,10 +15,12 @@ prior's source), timings and figures. The ablations of the paper's Table 4 are s
 leave those stages out (the next stage then reads the one before), and `RefGSConfig` switches
 adaptive weights, attention and the depth loss one by one.
 
-Budget: the paper's iteration counts (10k Ref-GS, 200 CLG steps, 10k + 10k TE-D) are far beyond
-2 CPU cores; `coin_cl.pipeline.budget` picks the working resolution from the image size and turns
-`budget_minutes` into step counts with a timing probe on the machine at hand, recorded in
-`out/plan.json` so that a rerun (or a resumed run) uses the same counts.
+Budget: `budget_minutes` is the run's wall-clock minutes, every stage included. The paper's
+iteration counts (10k Ref-GS, 200 CLG steps, 10k + 10k TE-D) are far beyond 2 CPU cores;
+`coin_cl.pipeline.budget` picks the working resolution from the image size, subtracts the fixed
+stages' estimated cost and turns the rest into GS step counts with timing probes on the machine at
+hand, recorded in `out/plan.json`; each GS stage is planned again when it is reached from the
+seconds the stages before it recorded, so a rerun (or a resumed run) uses the same counts.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, ted_schedule, working_resolution
+from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_resolution
 from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
@@ -41,6 +43,7 @@ from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
 from coin_cl.pipeline.run_inputs import RunInputs
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
+from coin_cl.pipeline.schedule import stage_schedule
 from coin_cl.pipeline.stages import (
     carves,
     load_model,
@@ -169,7 +172,9 @@ def inpaint(
         reference: the reference view: an index, or a view name (with or without extension); a
             name that exists wins over an index; default: chosen by rule.
         prompt: text for insertion (needs Stable Diffusion 2 weights: `config.sd_path`).
-        budget: minutes of training to aim at (default `config.budget_minutes`).
+        budget: the run's wall-clock minutes, every stage included (default
+            `config.budget_minutes`); one this machine cannot fit raises
+            `budget.BudgetTooSmall` (a ValueError naming the minimum) before any stage runs.
         config: everything else (`CoInConfig`). device: the OpenCL device (Runtime or name).
         edited_ref: the reference view edited in a 2D tool (a path, or (H, W, 3) uint8 / float in
             [0, 1]) at the captured or the run's resolution. Without masks of the object in the
@@ -364,8 +369,9 @@ def final_stage(cfg: CoInConfig) -> str:
 def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
     """The stage graph of a CoIn run: each stage's function, the stages it reads and its key's
     settings (everything its output depends on besides what it reads). Building it computes
-    nothing and writes nothing; TE-D's settings are a function the runner calls once Ref-GS has
-    run (its counts are planned from Ref-GS's measured rate: `budget.ted_schedule`)."""
+    nothing and writes nothing; the GS stages' settings are functions the runner calls when it
+    reaches them (their counts are planned again from what the stages before them recorded:
+    `schedule.stage_schedule`)."""
     cfg, plan, ref, edited = run.cfg, run.plan, run.ref, run.edited
     cam = run.scene.cameras[run.scene.train_idx[0]]
     base = {"seed": cfg.seed, "resolution": cfg.resolution, "mask": cfg.mask_kind, "dilate": cfg.mask_dilate}
@@ -379,29 +385,46 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
     observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}
     ring = vote_ring(cam.width, cam.height, cfg.mask_dilate)  # 0 with the default dilation
 
+    # The GS stages' counts are planned again when each is reached, from the seconds the stages
+    # before it recorded (`schedule.stage_schedule`): their settings are functions the runner calls then.
+    def steps(stage: str) -> dict[str, int]:
+        return stage_schedule(run.out, plan, stage, cfg.budget_minutes).steps
+
     def ted_key() -> dict[str, Any]:
-        steps = ted_schedule(run.out, plan, cfg.budget_minutes).steps
-        return {"cfg": jsonable(cfg.ted), "iters": [steps["ted_finetune"], steps["ted_adversarial"]],
+        it = steps("4_ted")
+        return {"cfg": jsonable(cfg.ted), "iters": [it["ted_finetune"], it["ted_adversarial"]],
                 "seed": cfg.seed, **observed_key}  # fmt: skip
+
+    def refine_key() -> dict[str, Any]:
+        # keyed by the fit's effective steps: a baseline that trains longer (the naive row at CoIn's
+        # budget) but fixes the fit at CoIn's count reuses CoIn's split. Without a count of its own in
+        # the plan (explicit counts), the fit takes Ref-GS's.
+        n = (
+            cfg.refine.iters
+            if cfg.refine.iters is not None
+            else steps("0_refine").get("refine", plan.steps["refgs"])
+        )
+        return {
+            "cfg": jsonable(replace(cfg.refine, iters=None)),
+            "iters": n,
+            **({"vote_ring": ring} if ring else {}),
+        }
+
+    def refgs_key() -> dict[str, Any]:
+        return {"cfg": jsonable(run.refgs_cfg), "ref": ref, "iters": steps("2_refgs")["refgs"],
+                "seed": cfg.seed,
+                "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
+                "plain": "refgs" in cfg.skip, **observed_key}  # fmt: skip
 
     stages: list[Stage[RunInputs]] = [
         Stage("0_scene", stage_scene, settings=base),
-        # keyed by the fit's effective steps: a baseline that trains longer (the naive row at CoIn's
-        # budget) but fixes the fit at CoIn's Ref-GS count reuses CoIn's split
-        *([Stage("0_refine", stage_refine, ["0_scene"],
-                 {"cfg": jsonable(replace(cfg.refine, iters=None)),
-                  "iters": plan.steps["refgs"] if cfg.refine.iters is None else cfg.refine.iters,
-                  **({"vote_ring": ring} if ring else {})})]
-          if refined else []),
+        *([Stage("0_refine", stage_refine, ["0_scene"], refine_key)] if refined else []),
         Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
               {**inpaint_key(cfg.inpaint2d), "prior_seconds": plan.prior_seconds, "seed": cfg.seed,
                # the measured step count (plans made before it have none: their key is unchanged)
                **({"prior_steps": plan.prior_steps} if plan.prior_steps is not None else {}),
                "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
-        Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"],
-              {"cfg": jsonable(run.refgs_cfg), "ref": ref, "iters": plan.steps["refgs"], "seed": cfg.seed,
-               "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
-               "plain": "refgs" in cfg.skip, **observed_key}),
+        Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"], refgs_key),
         Stage("3_clg", stage_clg_adapter, ["0_scene", *r, "1_inpaint", "2_refgs"],
               {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt,

@@ -14,6 +14,7 @@ from coin_cl.pipeline.budget import (
     BUDGET_SHARES,
     PLAN_FILE,
     PRIOR_MIN_SECONDS,
+    REFINE_SHARE,
     Plan,
     plan_run,
     probe_seconds_per_step,
@@ -36,7 +37,7 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
     cam = scene.cameras[train[0]]
     explicit = explicit_steps(cfg)
     skip_adv = adversarial_skip(scene, cfg) if explicit["ted_adversarial"] is None else None
-    shares, skipped = None, {}
+    shares, skipped = dict(BUDGET_SHARES), {}
     if skip_adv:
         log.info("TE-D's adversarial phase skipped: %s (an explicit count runs it: --iters, "
                  "CoInConfig.iters_ted_adversarial)", skip_adv)  # fmt: skip
@@ -45,16 +46,37 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
         # its minutes go to the fine-tune phase, which trains on CLG's images (measured on a real
         # capture: 2.5x the fine-tune steps, masked VGG distance -18%, PSNR +1.2 dB; docs/RESULTS.md)
         both = BUDGET_SHARES["ted_finetune"] + BUDGET_SHARES["ted_adversarial"]
-        shares = {**BUDGET_SHARES, "ted_adversarial": 0.0, "ted_finetune": both}
+        shares = {**shares, "ted_adversarial": 0.0, "ted_finetune": both}
+    if "ted" in cfg.skip:  # no TE-D: the GS pool is Ref-GS's (and the split's)
+        shares = {**shares, "ted_finetune": 0.0, "ted_adversarial": 0.0}
+    if cfg.inpaint_region == "refined":
+        shares["refine"] = REFINE_SHARE  # 0_refine's fit, unless its count is given (RefineConfig.iters)
     key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
-           "explicit": [*explicit.values(), cfg.prior_seconds], **skipped}  # fmt: skip
+           "explicit": [*explicit.values(), cfg.prior_seconds], **skipped,
+           # the budget holds every stage (stage_costs): which stages the run has decide its split
+           "clock": {"region": cfg.inpaint_region, "skip": sorted(cfg.skip)}}  # fmt: skip
     probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
               prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
+    wall = None
     if cfg.rates_from is not None:
         key["rates_from"] = str(cfg.rates_from)  # only when set: plans made before keep their key
         probes = inherited_rates(Path(cfg.rates_from), *probes)
-    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes, shares=shares)
+        wall = read_plan(Path(cfg.rates_from) / PLAN_FILE).probe_wall_seconds
+    if shares == BUDGET_SHARES:
+        shares = None  # the default split: plans made before keep their file
+    return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes, shares=shares,
+                    views=fixed_views(scene, cfg, train), probe_wall_seconds=wall)  # fmt: skip
+
+
+def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:
+    """{fixed stage: the views it works on} for `stage_costs.fixed_costs`: 0_scene and eval every
+    view, stage 1 and CLG the masked training views (CLG absent when skipped)."""
+    masked = sum(bool(scene.masks[i].any()) for i in train)
+    views = {"0_scene": len(scene), "1_inpaint": masked, "3_clg": masked, "eval": len(scene)}
+    if "clg" in cfg.skip:
+        del views["3_clg"]
+    return views
 
 
 def adversarial_skip(scene: Scene, cfg: CoInConfig) -> str | None:

@@ -61,8 +61,8 @@ class CoInConfig:
     ref: int | str | None = None
     # Text for insertion (needs SD2 weights, `sd_path`). "" (default): removal.
     prompt: str = ""
-    # Total training time to aim at, minutes (> 0); the budget plan turns it into step counts,
-    # recorded in OUT/plan.json. Default 30: a run that finishes in about half an hour on 2 cores.
+    # The run's wall-clock minutes (> 0), every stage included; the budget plan subtracts the fixed
+    # stages' cost and turns the rest into step counts (`pipeline.budget`), recorded in OUT/plan.json.
     budget_minutes: float = 30.0
     # Image scale (0.5 = half size, > 0). None (default): `budget.working_resolution` picks it from
     # the image size (logged).

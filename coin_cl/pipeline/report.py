@@ -52,9 +52,11 @@ def run_report(res: CoInResult) -> str:
         from dataclasses import asdict
 
         from coin_cl.pipeline.budget import read_plan
+        from coin_cl.pipeline.schedule import run_steps
 
         plan = asdict(read_plan(plan_path))
-        given = ", ".join(f"{k} {n}" for k, n in plan["steps"].items())
+        # the counts as each GS stage was re-planned when reached (plan.json holds the probe's)
+        given = ", ".join(f"{k} {n}" for k, n in run_steps(out).items())
         probe = plan.get("probe_seconds_per_step")
         prior = "" if plan.get("prior_steps") is None else f", {plan['prior_steps']} steps"
         probe = "" if probe is None else f", probe {probe:.3f} s/step"

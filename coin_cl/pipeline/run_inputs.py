@@ -25,7 +25,7 @@ class RunInputs:
     """The run's inputs (frozen: a stage reads them, never replaces one). The arrays and the scene
     are shared with the caller, not copied: stages copy what they change (`dataclasses.replace`)."""
 
-    # The run folder (TE-D's schedule reads the Ref-GS rate recorded under it: `budget.ted_schedule`).
+    # The run folder (TE-D's schedule reads the Ref-GS rate recorded under it: `schedule.ted_schedule`).
     out: Path
     # The scene at the working resolution, its masks as given (before `masks` below derives from them).
     scene: Scene

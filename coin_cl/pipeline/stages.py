@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from coin_cl.pipeline.budget import CAP_FACTOR, ted_schedule
+from coin_cl.pipeline.budget import CAP_FACTOR
 from coin_cl.pipeline.inpaint2d import planned_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.models import resolve_sd2_mode, sd2_denoiser, sd2_on_cpu
 from coin_cl.pipeline.runner import StageContext, jsonable
+from coin_cl.pipeline.schedule import stage_schedule, ted_schedule
 
 if TYPE_CHECKING:
     from coin_cl.diffusion.sampling import Denoiser
@@ -181,10 +182,12 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
     full = [targets.get(i, scene.images[i]) for i in range(len(scene))]
     from coin_cl.pipeline.insert import read_lift
 
-    plan = ctx.run.plan
-    m = plan.minutes.get("refgs")
-    ctx.note(f"Ref-GS: {plan.steps['refgs']} steps" + ("" if m is None else f", ~{m:.1f} min planned"
-             f" (stopped at {plan.cap_seconds('refgs') / 60:.1f} min if slower)"))  # fmt: skip
+    # The count the stage's key holds, planned again from what the stages before recorded.
+    sched = stage_schedule(ctx.run.out, ctx.run.plan, "2_refgs", cfg.budget_minutes)
+    iters, cap = int(ctx.settings["iters"]), sched.caps.get("refgs", 0.0)
+    ctx.note(f"Ref-GS: {iters} steps" + ("" if not cap else f", ~{cap / CAP_FACTOR / 60:.1f} min planned"
+             f" (stopped at {cap / 60:.1f} min if slower; the probe's plan: "
+             f"{ctx.run.plan.steps['refgs']})"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
     # The object's volume is the input masks', also when refined masks narrow what is inpainted (the
     # carve here, the pruning vote and the background depth in run_refgs's object_masks).
@@ -204,8 +207,8 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
         rcfg = replace(rcfg, bg_depth=False)  # insertion: the masks hold the new object, not the background
     elif rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
-    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=ctx.run.plan.steps["refgs"],
-                     max_seconds=plan.cap_seconds("refgs"), device=cfg.device, seed=cfg.seed,
+    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
+                     max_seconds=cap, device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
                      object_masks=ctx.run.masks if "0_refine" in ctx.inputs else None,
@@ -296,16 +299,18 @@ def stage_ted(ctx: StageContext[RunInputs]) -> dict:
             v.exclude = torch.as_tensor(excluded[i])
     model = load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)
     model.device = cfg.device
-    # The schedule the stage's key holds: the same pure function of the plan and 2_refgs's manifest.
+    # The schedule the stage's key holds: the same pure function of the plan and the manifests.
     sched = ted_schedule(ctx.run.out, ctx.run.plan, cfg.budget_minutes)
     it = sched.steps
     ctx.note("TE-D: " + ", ".join(
         f"{k} {it[k]} steps" + ("" if k not in sched.caps
                                 else f" (~{sched.caps[k] / 60 / CAP_FACTOR:.1f} min)")
         for k in ("ted_finetune", "ted_adversarial")))  # fmt: skip
+    rate = sched.refgs_seconds_per_step
     for k in sched.caps:
-        ctx.note(f"TE-D {k}: {it[k]} steps planned from Ref-GS's {sched.refgs_seconds_per_step:.3f} s/step "
-                 f"(the probe's plan: {ctx.run.plan.steps[k]})")  # fmt: skip
+        ctx.note(f"TE-D {k}: {it[k]} steps planned from what the budget has left"
+                 + ("" if rate is None else f" at Ref-GS's measured {rate:.3f} s/step")
+                 + f" (the probe's plan: {ctx.run.plan.steps[k]})")  # fmt: skip
     # The plan's counts (explicit ones included, `coin_plan.explicit_steps`) and the run's seed where
     # TEDConfig leaves them to the run (None); the user's config is not changed.
     seed = cfg.seed if cfg.ted.seed is None else cfg.ted.seed

@@ -1,0 +1,137 @@
+"""What the stages of a CoIn run cost in seconds, so that `--budget` holds all of them.
+
+Two kinds of stage share a run's minutes (`coin_cl.pipeline.budget` applies the rule):
+
+- *fixed* stages do a set amount of work per view (0_scene writes the views, 1_inpaint fills them,
+  3_clg guides them, eval renders them; the scene prior trains a set step count). Their seconds are
+  estimated before the run (`fixed_costs`) and subtracted from the budget;
+- *GS* stages (0_refine's fit, Ref-GS, TE-D's two phases) train for a step count, which is chosen
+  to fill what is left (`split_seconds`): each its fewest useful steps (MIN_STEPS) first, the rest
+  by the stages' weights.
+
+The per-view figures below were measured on the project's 2-core machine (AMD EPYC, Zen 3) on real
+captures at budget 10 and are scaled to the machine at hand by the scene prior's probe (`machine_factor`:
+these stages are torch-bound, as the prior is). They are estimates only: after every stage the
+budget re-plans the GS stages still to come from the seconds the finished stages' manifests
+record, so a fixed stage that runs over its estimate costs the later GS stages, not the budget.
+"""
+
+from __future__ import annotations
+
+import math
+
+# {stage: (seconds, seconds per view)} on the reference machine, without the scene prior's training.
+# Measured at budget 10 on the cup_plain virtual-object scene (65 views of 400x300, 56 masked
+# training views; scene prior probe 1.31 s/step, so these are its figures / 1.46): 0_scene 2.4 s,
+# stage 1 (exemplar fills) 91 s, CLG's sampling 48 s of its 144 s (the rest the prior's 133 steps and
+# the features), eval 34 s; a 71-view orbit capture's stage 1 took 45 s, its CLG 2.4-4.4 min.
+FIXED_COSTS = {
+    "0_scene": (1.0, 0.02),
+    "1_inpaint": (5.0, 1.0),
+    "3_clg": (10.0, 0.8),
+    "eval": (10.0, 0.2),
+}
+# The scene prior's seconds per step on the reference machine (133 steps in 120 s, the rate
+# `diffusion.scene_prior.STEPS_PER_SECOND` was measured at): the fixed stages' figures are scaled by
+# the measured prior rate over this one.
+REFERENCE_PRIOR_SECONDS_PER_STEP = 120 / 133
+# A scene prior step in a run costs this many probe steps. Measured 1.7 on SPIn-NeRF at budget 30
+# with background load (probe 0.81 s/step, the run 1.4) and about 0.55 on cup_plain at budget 10
+# (probe 1.31 s/step; its 133 steps and CLG's features took ~96 s): the probe's 2 timed steps are
+# noisy; 1.0 is taken, and the re-plan after CLG gives TE-D what the estimate over-counted.
+PRIOR_STEP_COST = 1.0
+# The machine factor is kept within these bounds: a probe disturbed by a burst of load must not
+# make a run plan for a machine 100x slower.
+FACTOR_RANGE = (0.25, 8.0)
+# The fewest steps that still make a GS stage worth its fixed costs (below them a fit is a blur):
+# a budget that cannot give every budgeted stage these is refused with the minimum that can.
+MIN_STEPS = {"refine": 100, "refgs": 100, "ted_finetune": 30, "ted_adversarial": 0}
+# The order in which the stages run and spend the budget (`coin_cl.pipeline.config.STAGES`), with
+# the GS stages by the plan's names.
+STAGE_ORDER = ("0_scene", "0_refine", "1_inpaint", "2_refgs", "3_clg", "4_ted", "eval")
+GS_STAGES = {"refine": "0_refine", "refgs": "2_refgs", "ted_finetune": "4_ted", "ted_adversarial": "4_ted"}
+
+
+def machine_factor(prior_seconds_per_step: float | None) -> float:
+    """How much slower than the reference machine this one runs the fixed stages: the scene
+    prior's measured seconds per step over `REFERENCE_PRIOR_SECONDS_PER_STEP`, within FACTOR_RANGE;
+    1.0 where the prior was not probed (SD2 runs, explicit counts)."""
+    if prior_seconds_per_step is None:
+        return 1.0
+    if not math.isfinite(prior_seconds_per_step) or prior_seconds_per_step <= 0:
+        raise ValueError(
+            f"scene prior seconds per step must be a positive number, got {prior_seconds_per_step}"
+        )
+    lo, hi = FACTOR_RANGE
+    return min(hi, max(lo, prior_seconds_per_step / REFERENCE_PRIOR_SECONDS_PER_STEP))
+
+
+def fixed_costs(
+    views: dict[str, int],
+    factor: float,
+    prior_steps: int | None = None,
+    prior_seconds_per_step: float | None = None,
+) -> dict[str, float]:
+    """{stage: estimated seconds} of the fixed stages. views: {stage: the views it works on} for the
+    stages the run has (0_scene and eval: every view; 1_inpaint and 3_clg: the masked training
+    views; a stage left out is absent); factor: `machine_factor`. "prior": the scene prior's
+    training, `prior_steps` at its measured rate x PRIOR_STEP_COST (absent without a probed prior).
+
+    >>> fixed_costs({"0_scene": 10, "eval": 10}, 2.0)
+    {'0_scene': 5.0, 'eval': 26.0}
+    """
+    out = {}
+    for stage, n in views.items():
+        base, per_view = FIXED_COSTS[stage]
+        out[stage] = factor * (base + per_view * max(0, int(n)))
+    if prior_steps is not None and prior_seconds_per_step is not None:
+        out["prior"] = prior_steps * prior_seconds_per_step * PRIOR_STEP_COST
+    return out
+
+
+def split_seconds(
+    pool: float, shares: dict[str, float], floors: dict[str, float] | None = None
+) -> dict[str, float]:
+    """{stage: seconds} of the GS stages from a pool of `pool` seconds: each stage with a share
+    first gets its floor (`floors`, e.g. MIN_STEPS at its rate; none by default), the rest is split by
+    the `shares` (relative weights; a stage with share 0 gets 0). A pool under the floors' sum
+    scales them down; a negative one (the stages before overran) gives 0.
+
+    >>> split_seconds(100.0, {"a": 1.0, "b": 3.0}, {"a": 20.0, "b": 0.0})
+    {'a': 40.0, 'b': 60.0}
+    """
+    floors = {k: (floors or {}).get(k, 0.0) if s > 0 else 0.0 for k, s in shares.items()}
+    need = sum(floors.values())
+    pool = max(0.0, pool)
+    if pool < need:
+        return {k: f * pool / need for k, f in floors.items()}
+    total = sum(shares.values())
+    rest = pool - need
+    return {k: floors[k] + (rest * s / total if total > 0 else 0.0) for k, s in shares.items()}
+
+
+def min_floors(shares: dict[str, float], step_seconds: dict[str, float]) -> dict[str, float]:
+    """{stage: seconds of its MIN_STEPS at `step_seconds`} for the stages with a share."""
+    return {k: MIN_STEPS.get(k, 0) * step_seconds[k] for k, s in shares.items() if s > 0}
+
+
+def minimum_pool(shares: dict[str, float], step_seconds: dict[str, float]) -> float:
+    """The fewest seconds of GS training that give every stage with a share its MIN_STEPS at
+    `step_seconds` ({stage: seconds per step})."""
+    return sum(min_floors(shares, step_seconds).values())
+
+
+def minimum_budget(
+    fixed_seconds: float, prior_floor_seconds: float, prior_share: float, pool: float
+) -> float:
+    """The smallest budget in minutes that fits: `fixed_seconds` (the fixed stages and the probes,
+    the prior's training left out), the prior's training (`prior_floor_seconds` at least, else
+    `prior_share` of the budget) and a GS pool of `pool` seconds (`minimum_pool`).
+
+    >>> round(minimum_budget(60.0, 120.0, 0.15, 120.0), 6)
+    5.0
+    """
+    at_floor = (fixed_seconds + prior_floor_seconds + pool) / 60.0
+    if prior_share * at_floor * 60.0 <= prior_floor_seconds or prior_share >= 1:
+        return at_floor
+    return (fixed_seconds + pool) / (60.0 * (1.0 - prior_share))
