@@ -288,7 +288,8 @@ class ScaffoldStrategy(Strategy):
     offsets, `ScaffoldModel.n_primitives`) stay at most `neural_gaussian_cap(gaussians_per_pixel,
     train_pixels)` (and anchors at most `max_anchors`). When more new anchors qualify than the cap
     leaves room for, those whose offsets had the steepest screen gradients grow; the first time
-    the cap holds growth back the log says so once, with the count and its reason.
+    the cap holds growth back the log says so once, with the count and its reason. The cap bounds
+    growth only: a model built above it (dense SfM points) keeps its anchors and does not grow.
 
     Statistics: opacity_accum [A], anchor_denom [A], offset_grad_accum [A*k], offset_denom [A*k]
     (k offsets per anchor).
@@ -306,11 +307,13 @@ class ScaffoldStrategy(Strategy):
     update_hierarchy_factor: int = 4
     max_anchors: int = 1_000_000  # growth stops here (memory guard)
     # Neural Gaussians (anchors x k offsets) per training pixel (the pixels of all training views
-    # together) that growth may reach; <= 0: no such cap. A late step's cost follows the model's
-    # size, so this also bounds how much slower late steps get than early ones. Chosen by
-    # measurement of held-out quality against size and late-step time (docs/BENCHMARKS.md,
-    # "Growth cap"; benchmarks/growth_cap.py).
-    gaussians_per_pixel: float = 0.0
+    # together) that growth may reach; <= 0: no such cap. A late step's cost grows with the model,
+    # so this also bounds how much slower late steps get. 0.02: on a real capture's Ref-GS (56
+    # views, 6.7 M pixels, 53 k neural Gaussians from SfM) it held the test views' PSNR of no cap
+    # (within 0.15 dB) at 600 steps, where 0.01 lost 0.6 dB, and stops the growth that took
+    # longer runs to 0.03-0.04 per pixel (docs/BENCHMARKS.md, "Growth cap"). A model built above
+    # it (SPIn-NeRF scene 1 starts at 0.12 per pixel) does not grow.
+    gaussians_per_pixel: float = 0.02
 
     _stats = ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom")
 
