@@ -210,6 +210,17 @@ def test_anchor_growth_under_the_cap_keeps_the_steepest_cell():
     assert m.p["anchors"].data[-1].tolist() == [4.0, -6.0, 2.0]
 
 
+def test_a_model_built_above_its_cap_does_not_grow_and_says_so(caplog):
+    st = _grower(gaussians_per_pixel=1.0)
+    m = _two_cell_model(st)
+    st.train_pixels = 100  # cap 10 anchors; the model has 20
+    with caplog.at_level(logging.INFO, logger="coin_cl.gs.strategy"):
+        ev = st.adjust_anchors(m)
+    assert ev == {"grown": 0, "pruned": 2, "held_back": 2}
+    msg = " ".join(r.getMessage() for r in caplog.records)
+    assert "cap 100 = 1 per training pixel x 100 pixels" in msg and "starts above the cap" in msg
+
+
 @pytest.mark.parametrize("cap", [0.0, 0.2])
 def test_scaffold_run_never_exceeds_its_cap_and_says_why(cap, caplog):
     # Aggressive growth (every offset qualifies, every 4 steps) on a tiny scene: without a cap the

@@ -462,9 +462,11 @@ class ScaffoldStrategy(Strategy):
             total += n_new
         if held_back and not self._cap_logged:
             self._cap_logged = True
+            above = model.n_anchors > limit["anchors"]
             log.info("anchor growth held at %d anchors (%d neural Gaussians): %s; %d new anchors "
-                     "not grown (the steepest-gradient ones grow first, and again as pruning frees "
-                     "room)", model.n_anchors, model.n_primitives, limit["reason"], held_back)  # fmt: skip
+                     "not grown (%s)", model.n_anchors, model.n_primitives, limit["reason"], held_back,
+                     "the model starts above the cap, so it does not grow" if above else
+                     "the steepest-gradient ones grow first, and again as pruning frees room")  # fmt: skip
         self.held_back = held_back  # for `adjust_anchors`' events
         return total
 
