@@ -1,3 +1,4 @@
+import logging
 import math
 
 import numpy as np
@@ -7,7 +8,9 @@ import torch
 from coin_cl.gs.base import RenderOutput, inverse_sigmoid
 from coin_cl.gs.gaussians import GaussianModel
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel
-from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy
+from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy, neural_gaussian_cap
+from coin_cl.gs.synthetic import tiny_scene
+from coin_cl.gs.trainer import TrainConfig, Trainer
 
 
 def _model(n: int = 10) -> GaussianModel:
@@ -118,10 +121,11 @@ def test_strategy_state_roundtrip_and_sanity():
     assert base.step_post_backward(sm, 0, _fake_render(m, torch.zeros(10, 2), torch.ones(10))) == {}
 
 
-def test_anchor_growing_and_pruning_counts():
+def _two_cell_model(st: ScaffoldStrategy) -> ScaffoldModel:
+    """20 anchors on a line whose offset slot 0 points into one of two empty cells, (3, 7, 0)
+    (anchors 0-9, gradient 1e-3) and (4, -6, 2) (anchors 10-19, gradient 2e-3), with statistics
+    that make both grow and anchors 18 and 19 be pruned; `st` initialised on it."""
     cfg = ScaffoldConfig(voxel_size=1.0)
-    st = ScaffoldStrategy(update_depth=1, update_init_factor=1, update_interval=100,
-                          success_threshold=0.8, grad_threshold=2e-4, min_opacity=0.005)  # fmt: skip
     pts = np.stack([np.arange(20.0), np.zeros(20), np.zeros(20)], 1)
     m = ScaffoldModel(pts, None, 1.0, cfg, seed=0)
     st.initialize(m, seed=0)
@@ -143,12 +147,25 @@ def test_anchor_growing_and_pruning_counts():
     denom[:, 3] = 10.0
     grad = torch.full((a, k), 1e-5)
     grad[:, [0, 1, 3]] = 1e-3
+    grad[10:, 0] = 2e-3  # group 2's cell is the steeper one
     st.offset_denom, st.offset_grad_accum = denom.reshape(-1), (grad * denom).reshape(-1)
     st.anchor_denom = torch.full((a,), 100.0)
     st.opacity_accum = torch.full((a,), 50.0)
     st.opacity_accum[[18, 19]] = 0.1  # mean 0.001 < min_opacity: pruned
+    return m
+
+
+def _grower(**kw) -> ScaffoldStrategy:
+    return ScaffoldStrategy(update_depth=1, update_init_factor=1, update_interval=100,
+                            success_threshold=0.8, grad_threshold=2e-4, min_opacity=0.005, **kw)  # fmt: skip
+
+
+def test_anchor_growing_and_pruning_counts():
+    st = _grower()
+    m = _two_cell_model(st)
+    k = 10
     ev = st.adjust_anchors(m)
-    assert ev == {"grown": 2, "pruned": 2}
+    assert ev == {"grown": 2, "pruned": 2, "held_back": 0}
     assert m.n_anchors == 20
     new = m.p["anchors"].data[-2:]
     assert {tuple(r) for r in new.tolist()} == {(3.0, 7.0, 0.0), (4.0, -6.0, 2.0)}
@@ -163,6 +180,76 @@ def test_anchor_growing_and_pruning_counts():
     # The statistics that were used are reset; the rarely-seen slot keeps accumulating.
     assert float(st.offset_denom.view(20, k)[:18, 0].sum()) == 0.0
     assert float(st.offset_denom.view(20, k)[:18, 3].sum()) == 18 * 10.0
+
+
+def test_neural_gaussian_cap_is_per_pixel_times_pixels():
+    assert neural_gaussian_cap(0.25, 1000) == 250
+    assert neural_gaussian_cap(0.1, 4_866_624) == 486_662  # floor
+    assert neural_gaussian_cap(0.0, 1000) == 0 and neural_gaussian_cap(0.5, 0) == 0  # no cap
+    st = ScaffoldStrategy(gaussians_per_pixel=0.25)
+    m = ScaffoldModel(np.eye(3), None, 1.0, ScaffoldConfig(voxel_size=0.5))
+    st.initialize(m, train_pixels=1234)
+    lim = st.size_limit(m)
+    # 0.25 x 1234 = 308.5 -> 308 neural Gaussians; whole anchors of 10 offsets: 30.
+    assert lim == {"anchors": 30, "neural_gaussians": 300,
+                   "reason": "cap 308 = 0.25 per training pixel x 1234 pixels"}  # fmt: skip
+    st.initialize(m)  # pixels unknown: only the memory guard
+    assert st.size_limit(m)["anchors"] == st.max_anchors
+    st.max_anchors = 7  # the smaller of the two wins
+    st.initialize(m, train_pixels=1234)
+    assert st.size_limit(m)["anchors"] == 7 and "max_anchors" in st.size_limit(m)["reason"]
+
+
+def test_anchor_growth_under_the_cap_keeps_the_steepest_cell():
+    # Room for one new anchor (20 anchors, cap 21 x 10): the steeper cell grows, the other waits.
+    st = _grower(gaussians_per_pixel=1.0)
+    m = _two_cell_model(st)
+    st.train_pixels = 210
+    ev = st.adjust_anchors(m)
+    assert ev == {"grown": 1, "pruned": 2, "held_back": 1}
+    assert m.p["anchors"].data[-1].tolist() == [4.0, -6.0, 2.0]
+
+
+def test_a_model_built_above_its_cap_does_not_grow_and_says_so(caplog):
+    st = _grower(gaussians_per_pixel=1.0)
+    m = _two_cell_model(st)
+    st.train_pixels = 100  # cap 10 anchors; the model has 20
+    with caplog.at_level(logging.INFO, logger="coin_cl.gs.strategy"):
+        ev = st.adjust_anchors(m)
+    assert ev == {"grown": 0, "pruned": 2, "held_back": 2}
+    msg = " ".join(r.getMessage() for r in caplog.records)
+    assert "cap 100 = 1 per training pixel x 100 pixels" in msg and "starts above the cap" in msg
+
+
+@pytest.mark.parametrize("cap", [0.0, 0.2])
+def test_scaffold_run_never_exceeds_its_cap_and_says_why(cap, caplog):
+    # Aggressive growth (every offset qualifies, every 4 steps) on a tiny scene: without a cap the
+    # model grows past 0.2 per pixel; with it, it never does, and the log says why, once.
+    sc = tiny_scene(n=30, width=24, height=16, n_views=6, backend="torch")
+    m = ScaffoldModel(sc.noisy_points(), None, 3.5, ScaffoldConfig(voxel_size=0.1), seed=0)
+    st = ScaffoldStrategy(start_stat=1, update_from=4, update_interval=4, update_until=60,
+                          grad_threshold=0.0, success_threshold=0.1, update_init_factor=1,
+                          update_depth=1, gaussians_per_pixel=cap)  # fmt: skip
+    sizes = []
+    cfg = TrainConfig(model="scaffold", iters=40, backend="torch", progress=False, export_ply=False,
+                      ckpt_every=0)  # fmt: skip
+    tr = Trainer(m, sc.views, [], cfg, None, callback=lambda t, s: sizes.append(t.model.n_primitives),
+                 strategy=st)  # fmt: skip
+    assert tr.train_pixels == 6 * 24 * 16
+    with caplog.at_level(logging.INFO, logger="coin_cl.gs.strategy"):
+        tr.train()
+    sizes.append(tr.model.n_primitives)
+    limit = 0.2 * 6 * 24 * 16  # 460.8 -> 46 anchors x 10 offsets
+    held = [r for r in caplog.records if "anchor growth held" in r.getMessage()]
+    assert sizes[0] == 300
+    if cap == 0:
+        assert max(sizes) > limit and not held  # what the cap is there to stop
+        return
+    assert max(sizes) == 460 and all(n <= limit for n in sizes)
+    assert len(held) == 1
+    assert "cap 460 = 0.2 per training pixel x 2304 pixels" in held[0].getMessage()
+    assert tr.log["strategy"]["size_limit"]["neural_gaussians"] == 460
+    assert any(e["held_back"] for e in tr.log["refine"])
 
 
 def test_growth_stops_exactly_at_the_cap_and_keeps_the_steepest():

@@ -34,7 +34,9 @@ def _model_cfg(kind):
     if kind == "3dgs":
         strategy = DefaultStrategy(refine_start=5, refine_every=8, reset_every=24)
         return GaussianConfig(sh_degree_interval=10), strategy
-    return None, ScaffoldStrategy(start_stat=2, update_from=8, update_interval=8, update_until=40)
+    # No size cap: these tiny views (1920 pixels) would hold the model at its initial size.
+    return None, ScaffoldStrategy(start_stat=2, update_from=8, update_interval=8, update_until=40,
+                                  gaussians_per_pixel=0.0)  # fmt: skip
 
 
 def _trainer(scene, kind, out, iters, callback=None, backend=EXACT, **kw):

@@ -100,6 +100,19 @@ def test_stage_writes_every_output(room, tmp_path):
     assert log["refgs"]["terms"]["ref_depth"]["n_applied"] > 0
 
 
+def test_growth_cap_reaches_the_strategy(room, tmp_path):
+    # The cap Ref-GS grows under: per pixel of its training views, as log.json records it.
+    syn, scene, targets = room
+    cfg = _cfg(feature_attention=False, depth_loss=False)
+    res = run_refgs(scene, targets, tmp_path / "c", cfg, budget_minutes=None, iters=12, seed=0,
+                    gaussians_per_pixel=0.5)  # fmt: skip
+    st = json.loads(Path(res["log"]).read_text())["strategy"]
+    pixels = len(scene.train_idx) * W * H
+    assert st["gaussians_per_pixel"] == 0.5 and st["train_pixels"] == pixels
+    assert st["size_limit"]["neural_gaussians"] == int(0.5 * pixels) // 10 * 10
+    assert st["size_limit"]["reason"] == f"cap {int(0.5 * pixels)} = 0.5 per training pixel x {pixels} pixels"
+
+
 def _final_state(out: Path) -> dict:
     return load_checkpoint(out / "gs" / "ckpt.pt")
 

@@ -22,6 +22,7 @@ checkpoint. Steps are counted from 0; the schedules are in completed iterations 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,8 @@ if TYPE_CHECKING:
     from coin_cl.gs.gaussians import GaussianModel
     from coin_cl.gs.scaffold import ScaffoldModel
 
+log = logging.getLogger(__name__)
+
 _KEY_BITS = 21  # grid-coordinate hashing: each axis must fit in +-2^20 cells (scaffold.GRID_HALF_CELLS)
 
 
@@ -51,12 +54,20 @@ class Strategy:
     def check_sanity(self, model: Model) -> None:
         """Raise if `model` lacks the parameters this strategy edits."""
 
-    def initialize(self, model: Model, seed: int = 0) -> None:
+    def initialize(self, model: Model, seed: int = 0, train_pixels: int = 0) -> None:
         """Bind to `model`: check it, allocate statistics sized to its rows, seed the generator
-        that draws split positions / growth candidates."""
+        that draws split positions / growth candidates. `train_pixels`: the pixels of all training
+        views together (the trainer passes them), for a size cap tied to what the images can show
+        (`ScaffoldStrategy.gaussians_per_pixel`); 0: unknown, no such cap."""
         self.check_sanity(model)
+        self.train_pixels = int(train_pixels)
         self.gen = torch.Generator().manual_seed(seed)
+        self._cap_logged = False  # the cap's log line is said once per run
         self._reset_stats(model)
+
+    def size_limit(self, model: Model) -> dict[str, Any]:
+        """The most primitives growth may reach and why ({} when growth is unbounded)."""
+        return {}
 
     def _reset_stats(self, model: Model) -> None:
         pass
@@ -244,6 +255,15 @@ class DefaultStrategy(Strategy):
         model.optimizer.set_rows("opacities", model.optimizer.params["opacities"].data.clamp_max(cap))
 
 
+def neural_gaussian_cap(gaussians_per_pixel: float, train_pixels: int) -> int:
+    """The most neural Gaussians a model may grow to: floor(gaussians_per_pixel x train_pixels),
+    `train_pixels` the pixels of all training views together (sum of width x height); 0 when
+    either is <= 0 (no cap)."""
+    if gaussians_per_pixel <= 0 or train_pixels <= 0:
+        return 0
+    return int(gaussians_per_pixel * train_pixels)
+
+
 def _grid_keys(coords: Tensor) -> Tensor:
     """[N, 3] int grid coordinates -> [N] int64 unique keys."""
     half = 1 << (_KEY_BITS - 1)
@@ -264,6 +284,13 @@ class ScaffoldStrategy(Strategy):
     `update_depth` levels) where offsets had large gradients, and anchors whose Gaussians stayed
     nearly transparent are pruned (`adjust_anchor`).
 
+    Growth is capped by what the images can show: the model's neural Gaussians (anchors x k
+    offsets, `ScaffoldModel.n_primitives`) stay at most `neural_gaussian_cap(gaussians_per_pixel,
+    train_pixels)` (and anchors at most `max_anchors`). When more new anchors qualify than the cap
+    leaves room for, those whose offsets had the steepest screen gradients grow; the first time
+    the cap holds growth back the log says so once, with the count and its reason. The cap bounds
+    growth only: a model built above it (dense SfM points) keeps its anchors and does not grow.
+
     Statistics: opacity_accum [A], anchor_denom [A], offset_grad_accum [A*k], offset_denom [A*k]
     (k offsets per anchor).
     """
@@ -279,6 +306,15 @@ class ScaffoldStrategy(Strategy):
     update_init_factor: int = 16
     update_hierarchy_factor: int = 4
     max_anchors: int = 1_000_000  # growth stops here (memory guard)
+    # Neural Gaussians (anchors x k offsets) per training pixel (the pixels of all training views
+    # together) that growth may reach; <= 0: no such cap. A late step's cost grows with the model,
+    # so this also bounds how much slower late steps get. 0.02: on a real capture's Ref-GS (56
+    # views, 6.7 M pixels, 53 k neural Gaussians from SfM) it held the test views' PSNR of no cap
+    # (within 0.15 dB) at 600 steps, where 0.01 lost 0.6 dB, and stops the growth that took
+    # longer runs to 0.03-0.04 per pixel (docs/BENCHMARKS.md, "Growth cap"). A model built above
+    # it does not grow: SPIn-NeRF scene 1 starts at 0.11 per pixel, and its Ref-GS scored 0.5 dB
+    # higher without growth than with it.
+    gaussians_per_pixel: float = 0.02
 
     _stats = ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom")
 
@@ -294,13 +330,25 @@ class ScaffoldStrategy(Strategy):
         self.offset_grad_accum = torch.zeros(a * k)
         self.offset_denom = torch.zeros(a * k)
 
+    def size_limit(self, model: Model) -> dict[str, Any]:
+        """{'anchors': the most anchors growth may reach, 'neural_gaussians': that x k,
+        'reason': why (the per-pixel cap, or `max_anchors`)}."""
+        k = model.cfg.n_offsets
+        cap = neural_gaussian_cap(self.gaussians_per_pixel, getattr(self, "train_pixels", 0))
+        if cap and cap // k < self.max_anchors:
+            reason = (f"cap {cap} = {self.gaussians_per_pixel:g} per training pixel x "
+                      f"{self.train_pixels} pixels")  # fmt: skip
+            return {"anchors": cap // k, "neural_gaussians": cap // k * k, "reason": reason}
+        reason = f"max_anchors {self.max_anchors} (memory guard)"
+        return {"anchors": self.max_anchors, "neural_gaussians": self.max_anchors * k, "reason": reason}
+
     def step_post_backward(self, model: Model, step: int, out: RenderOutput) -> dict[str, int]:
         s = step + 1
         if self.start_stat < s < self.update_until:
             self.update_stats(model, out)
         if s > self.update_from and s % self.update_interval == 0 and s < self.update_until:
             return self.adjust_anchors(model)
-        return {"grown": 0, "pruned": 0}
+        return {"grown": 0, "pruned": 0, "held_back": 0}
 
     def update_stats(self, model: ScaffoldModel, out: RenderOutput) -> None:
         """Scaffold-GS `training_statis` for one render."""
@@ -320,7 +368,8 @@ class ScaffoldStrategy(Strategy):
 
     def adjust_anchors(self, model: ScaffoldModel) -> dict[str, int]:
         """Grow anchors from high-gradient offsets, then prune transparent anchors (Scaffold-GS
-        `adjust_anchor`). Returns {'grown': n, 'pruned': n}."""
+        `adjust_anchor`). Returns {'grown': n, 'pruned': n, 'held_back': n}, the last the new
+        anchors the size cap kept from growing."""
         k = model.cfg.n_offsets
         grads = self.offset_grad_accum / self.offset_denom
         grads = torch.nan_to_num(grads, nan=0.0)
@@ -347,15 +396,14 @@ class ScaffoldStrategy(Strategy):
             kk = keep.repeat_interleave(k)
             self.offset_denom = self.offset_denom[kk]
             self.offset_grad_accum = self.offset_grad_accum[kk]
-        return {"grown": grown, "pruned": n_prune}
+        return {"grown": grown, "pruned": n_prune, "held_back": self.held_back}
 
     def _grow(self, model: ScaffoldModel, grads: Tensor, offset_mask: Tensor) -> int:
         k, feat_dim = model.cfg.n_offsets, model.cfg.feat_dim
         init_len = model.n_anchors * k
-        total = 0
+        limit = self.size_limit(model)
+        total = held_back = 0
         for i in range(self.update_depth):
-            if model.n_anchors >= self.max_anchors:
-                break
             thr = self.grad_threshold * ((self.update_hierarchy_factor // 2) ** i)
             cand = (grads >= thr) & offset_mask
             cand &= torch.rand(cand.shape, generator=self.gen) > 0.5 ** (i + 1)
@@ -376,6 +424,21 @@ class ScaffoldStrategy(Strategy):
             new_keep = ~occupied
             if not bool(new_keep.any()):
                 continue
+            room = max(0, limit["anchors"] - model.n_anchors)
+            n_want = int(new_keep.sum())
+            if n_want > room:
+                # Over the cap: the new cells whose offsets had the steepest screen gradients grow
+                # (the fit is worst there), kept in key order so the result is deterministic.
+                g_sel = torch.cat([grads, grads.new_zeros(inc)])[cand]
+                cell_g = torch.full((uniq.shape[0],), -torch.inf).scatter_reduce(
+                    0, inv, g_sel.to(torch.float32), reduce="amax", include_self=False
+                )
+                best = torch.topk(torch.where(new_keep, cell_g, -torch.inf), room).indices
+                new_keep = torch.zeros_like(new_keep)
+                new_keep[best] = True
+                held_back += n_want - room
+                if room == 0:
+                    continue
             # Recover the integer cell of each unique key from one of its members.
             first = torch.full((uniq.shape[0],), sel_keys.shape[0], dtype=torch.long)
             first.scatter_reduce_(0, inv, torch.arange(sel_keys.shape[0]), reduce="amin")
@@ -386,8 +449,6 @@ class ScaffoldStrategy(Strategy):
             feat = feat.scatter_reduce(
                 0, inv[:, None].expand(-1, feat_dim), feat_rep, reduce="amax", include_self=False
             )[new_keep]
-            budget = self.max_anchors - model.n_anchors
-            new_anchor, feat = new_anchor[:budget], feat[:budget]
             n_new = new_anchor.shape[0]
             model.optimizer.append_rows(
                 {
@@ -400,6 +461,14 @@ class ScaffoldStrategy(Strategy):
             self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(n_new)])
             self.anchor_denom = torch.cat([self.anchor_denom, torch.zeros(n_new)])
             total += n_new
+        if held_back and not self._cap_logged:
+            self._cap_logged = True
+            above = model.n_anchors > limit["anchors"]
+            log.info("anchor growth held at %d anchors (%d neural Gaussians): %s; %d new anchors "
+                     "not grown (%s)", model.n_anchors, model.n_primitives, limit["reason"], held_back,
+                     "the model starts above the cap, so it does not grow" if above else
+                     "the steepest-gradient ones grow first, and again as pruning frees room")  # fmt: skip
+        self.held_back = held_back  # for `adjust_anchors`' events
         return total
 
 

@@ -179,7 +179,9 @@ class Trainer:
         self.step = 0
         self.train_seconds = 0.0
         self.strategy = strategy if strategy is not None else default_strategy(model.kind)
-        self.strategy.initialize(model, seed=cfg.seed)
+        # What the images can show: the strategy's size cap is per training pixel.
+        self.train_pixels = sum(v.camera.width * v.camera.height for v in self.train_views)
+        self.strategy.initialize(model, seed=cfg.seed, train_pixels=self.train_pixels)
         self.terms = list(terms) if terms is not None else default_terms(model.kind, cfg.loss)
         names = [t.name for t in self.terms]
         if not names:
@@ -190,7 +192,9 @@ class Trainer:
         self.sampler = sampler if sampler is not None else ShuffledEpochs(len(self.train_views), cfg.seed + 1)
         self.log: dict[str, Any] = {"config": asdict(cfg), "train": [], "eval": [], "refine": []}
         # What else shaped the run, for the record (the loop's own settings are in "config").
-        self.log["strategy"] = {"kind": type(self.strategy).__name__, **self.strategy.config()}
+        self.log["strategy"] = {"kind": type(self.strategy).__name__, **self.strategy.config(),
+                                "train_pixels": self.train_pixels,
+                                "size_limit": self.strategy.size_limit(model)}  # fmt: skip
         self.log["terms"] = {t.name: t.weight for t in self.terms}
         self._evals_done: set[float] = set()
         self._acc: dict[str, float] = {}  # loss sums of the current log interval
@@ -257,7 +261,7 @@ class Trainer:
         # Checkpoints from before the strategy / sampler split kept these in the model and trainer.
         legacy_cfg = {**msd.get("cfg", {}), **msd.get("cfg", {}).get("densify", {})}
         sst = state.get("strategy") or {"config": legacy_cfg, "stats": msd["stats"], "gen": msd["gen"]}
-        self.strategy.initialize(self.model, seed=self.cfg.seed)
+        self.strategy.initialize(self.model, seed=self.cfg.seed, train_pixels=self.train_pixels)
         self.strategy.load_state_dict(sst)
         saved = state.get("terms", {})
         for term in self.terms:

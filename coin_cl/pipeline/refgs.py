@@ -168,6 +168,7 @@ def run_refgs(
     known_depth: np.ndarray | None = None,
     object_masks: Sequence[np.ndarray] | None = None,
     exclude: Sequence[np.ndarray | None] | None = None,
+    gaussians_per_pixel: float | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
 
@@ -195,6 +196,8 @@ def run_refgs(
         exclude: [H, W] bool or None per scene view, pixels left out of the photometric loss (the
             observed part of a refined mask with `CoInConfig.observed` "captures": other views'
             captures teach it, as in masked reconstruction); default none.
+        gaussians_per_pixel: the anchor-growth cap in neural Gaussians per training pixel
+            (`ScaffoldStrategy.gaussians_per_pixel`; 0: none); None: the strategy's default.
     Returns:
         JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
     """
@@ -293,8 +296,10 @@ def run_refgs(
     tcfg = TrainConfig(model="scaffold", iters=n_iters, backend=backend, seed=seed, ckpt_every=ckpt_every,
                        max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else max_seconds,
                        progress=True, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
-    tr = Trainer(model, views, [], tcfg, out / "gs", callback, strategy=scaled_strategy("scaffold", n_iters),
-                 terms=terms)  # fmt: skip
+    strategy = scaled_strategy("scaffold", n_iters)
+    if gaussians_per_pixel is not None:
+        strategy = replace(strategy, gaussians_per_pixel=float(gaussians_per_pixel))
+    tr = Trainer(model, views, [], tcfg, out / "gs", callback, strategy=strategy, terms=terms)
     resumed = tr.ckpt_path is not None and tr.ckpt_path.is_file()
     if resumed:
         tr.load_checkpoint()
