@@ -28,8 +28,10 @@ def test_train_then_render_all_view_kinds(scene_dir, tmp_path):
     assert rc == 0
     log = json.loads((out / "log.json").read_text())
     assert log["eval"][-1]["step"] == 20 and np.isfinite(log["eval"][-1]["psnr"])
-    # The run's densification is the published schedule compressed to its length.
-    assert log["strategy"] == {"kind": "DefaultStrategy", **asdict(scaled_strategy("3dgs", 20))}
+    # The run's densification is the published schedule compressed to its length, beside what the
+    # size cap reads: the training pixels (7 training views of 32x24) and the limit (none for 3DGS).
+    cap = {"train_pixels": 7 * 32 * 24, "size_limit": {}}
+    assert log["strategy"] == {"kind": "DefaultStrategy", **asdict(scaled_strategy("3dgs", 20)), **cap}
     assert log["terms"] == {"photometric": 1.0}
     cams = json.loads((out / "cameras.json").read_text())
     assert len(cams["train"]) == 7 and len(cams["test"]) == 1  # every 8th view held out
