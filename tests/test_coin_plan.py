@@ -135,3 +135,20 @@ def test_a_comparison_row_plans_with_the_rates_of_the_run_it_is_compared_to(tmp_
     assert CP.plan_for(_Scene(), tmp_path / "row2", cfg, [0, 1]).disc_seconds_per_step == 0.5
     with pytest.raises(FileNotFoundError, match="nowhere.*plan.json"):
         CP.plan_for(_Scene(), tmp_path / "row3", CoInConfig(rates_from=str(tmp_path / "nowhere")), [0, 1])
+
+
+def test_a_baseline_with_its_counts_given_plans_nothing_and_refuses_nothing(tmp_path, monkeypatch):
+    """The naive baseline (TE-D and CLG skipped, Ref-GS's and the split's counts given) trains what it
+    is given whatever the budget: no probe, no refusal, TE-D's phases 0 and no share for the split."""
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.refine_masks import RefineConfig
+
+    def no_probe(*a, **k):
+        raise AssertionError("a plan with every count given must not probe")
+
+    monkeypatch.setattr(CP, "probe_seconds_per_step", no_probe)
+    cfg = CoInConfig(budget_minutes=0.5, skip=("refgs", "clg", "ted"), iters_refgs=400,
+                     inpaint_region="refined", refine=RefineConfig(iters=300))  # fmt: skip
+    plan = CP.plan_for(_OwnCapture(), tmp_path / "naive", cfg, [0, 1])
+    assert plan.source == "explicit" and "refine" not in plan.steps
+    assert plan.steps == {"refgs": 400, "ted_finetune": 0, "ted_adversarial": 0}

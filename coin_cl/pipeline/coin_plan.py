@@ -47,10 +47,11 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
         # capture: 2.5x the fine-tune steps, masked VGG distance -18%, PSNR +1.2 dB; docs/RESULTS.md)
         both = BUDGET_SHARES["ted_finetune"] + BUDGET_SHARES["ted_adversarial"]
         shares = {**shares, "ted_adversarial": 0.0, "ted_finetune": both}
-    if "ted" in cfg.skip:  # no TE-D: the GS pool is Ref-GS's (and the split's)
+    if "ted" in cfg.skip:  # no TE-D: 0 steps given, the GS pool is Ref-GS's (and the split's)
         shares = {**shares, "ted_finetune": 0.0, "ted_adversarial": 0.0}
-    if cfg.inpaint_region == "refined":
-        shares["refine"] = REFINE_SHARE  # 0_refine's fit, unless its count is given (RefineConfig.iters)
+        explicit["ted_finetune"] = explicit["ted_adversarial"] = 0
+    if cfg.inpaint_region == "refined" and cfg.refine.iters is None:
+        shares["refine"] = REFINE_SHARE  # 0_refine's fit; a given count (RefineConfig.iters) is not planned
     key = {"budget_minutes": cfg.budget_minutes, "resolution": cfg.resolution, "device": cfg.device,
            "size": [cam.width, cam.height], "train_views": len(train), "seed": cfg.seed,
            "explicit": [*explicit.values(), cfg.prior_seconds], **skipped,
