@@ -374,7 +374,7 @@ class ScaffoldStrategy(Strategy):
         grads = self.offset_grad_accum / self.offset_denom
         grads = torch.nan_to_num(grads, nan=0.0)
         offset_mask = self.offset_denom > self.update_interval * self.success_threshold * 0.5
-        grown = self._grow(model, grads, offset_mask)
+        grown, held_back = self._grow(model, grads, offset_mask)
         # Reset statistics of the offsets that were considered; pad for the new anchors.
         self.offset_denom[offset_mask] = 0
         self.offset_grad_accum[offset_mask] = 0
@@ -396,9 +396,10 @@ class ScaffoldStrategy(Strategy):
             kk = keep.repeat_interleave(k)
             self.offset_denom = self.offset_denom[kk]
             self.offset_grad_accum = self.offset_grad_accum[kk]
-        return {"grown": grown, "pruned": n_prune, "held_back": self.held_back}
+        return {"grown": grown, "pruned": n_prune, "held_back": held_back}
 
-    def _grow(self, model: ScaffoldModel, grads: Tensor, offset_mask: Tensor) -> int:
+    def _grow(self, model: ScaffoldModel, grads: Tensor, offset_mask: Tensor) -> tuple[int, int]:
+        """Grow new anchors; returns (anchors grown, new anchors the size cap held back)."""
         k, feat_dim = model.cfg.n_offsets, model.cfg.feat_dim
         init_len = model.n_anchors * k
         limit = self.size_limit(model)
@@ -468,8 +469,7 @@ class ScaffoldStrategy(Strategy):
                      "not grown (%s)", model.n_anchors, model.n_primitives, limit["reason"], held_back,
                      "the model starts above the cap, so it does not grow" if above else
                      "the steepest-gradient ones grow first, and again as pruning frees room")  # fmt: skip
-        self.held_back = held_back  # for `adjust_anchors`' events
-        return total
+        return total, held_back
 
 
 STRATEGIES: dict[str, type[Strategy]] = {"3dgs": DefaultStrategy, "scaffold": ScaffoldStrategy}
