@@ -8,7 +8,9 @@
 Per point (a run folder OUT/<scene>/b<B>): the wall minutes of the whole command (probes, every stage,
 eval; what `--budget` promises to hold), m-PSNR, m-VGG-PD (the perceptual distance in the mask's
 bounding box), bbox GMSD (`coin_cl.evaluation`) and the ghost figure (`ghost.py`, through `real.py`'s
-`ghost_figures`; one reference GS per scene, cached). A budget the machine cannot fit is a point
+`ghost_figures`; one reference GS per scene, cached), and m-PSNR and m-VGG-PD once more on the test
+views rendered at the capture's own size (RUN/eval/capture: a small working resolution pays for its
+blur there). A budget the machine cannot fit is a point
 "refused" with the minimum the run named (not kept: a rerun probes again). Writes
 OUT/budget_curve.md (the table), OUT/budget_curve.png (m-PSNR and m-VGG-PD against wall minutes,
 one line per scene, drawn with OpenCV) and, last, one JSON line.
@@ -56,7 +58,11 @@ def run_point(scene: Path, run: Path, budget: float, args) -> dict:
     is kept in RUN/point.json."""
     done = run / POINT
     if done.is_file():
-        return json.loads(done.read_text())
+        point = json.loads(done.read_text())
+        if "refused" not in point and "capture_m_psnr" not in point:  # a point from before the figure
+            point.update(at_capture(scene, run))
+            write_text(done, json.dumps(point, indent=1))
+        return point
     resumed = (run / "plan.json").is_file()
     cmd = ["run", str(scene), "--out", str(run), "--budget", f"{budget:g}"]
     cmd += [] if args.iters is None else ["--iters", str(args.iters)]
@@ -87,8 +93,30 @@ def run_point(scene: Path, run: Path, budget: float, args) -> dict:
         return point
     if not args.no_ghost:
         point["ghost"] = ghost_figures({"run": run}, run, run.parent, args.ghost_iters)["run"]
+    point.update(at_capture(scene, run))
     write_text(done, json.dumps(point, indent=1))
     return point
+
+
+def at_capture(scene: Path, run: Path) -> dict:
+    """{"capture_m_psnr", "capture_m_vgg_pd"}: the run's final model scored on the test views at the
+    capture's own resolution (RUN/eval/capture, written by the eval stage; scored here for a run folder
+    made before it was: `eval_stage.score_at_capture`); {} when the run worked at the capture's size."""
+    doc = run / "eval" / "capture" / "metrics.json"
+    if not doc.is_file():
+        from coin_cl.gs.model_kinds import model_from_state
+        from coin_cl.gs.trainer import CKPT_NAME
+        from coin_cl.pipeline.eval_stage import capture_views, score_at_capture
+        from coin_cl.pipeline.stages import load_model
+        from coin_cl.scene import load_scene
+
+        if json.loads((run / "plan.json").read_text())["key"]["resolution"] == 1.0:
+            return {}
+        final = json.loads((run / "eval" / "manifest.json").read_text())["result"]["final_stage"]
+        model = load_model(run / final, CKPT_NAME, model_from_state)
+        score_at_capture(model, capture_views(load_scene(scene)), doc.parent)
+    mean = json.loads(doc.read_text())["mean"]
+    return {"capture_m_psnr": mean["m_psnr"], "capture_m_vgg_pd": mean["m_vgg_pd"]}
 
 
 def cell(v, digits: int = 2) -> str:
@@ -100,22 +128,21 @@ def cell(v, digits: int = 2) -> str:
 
 
 def markdown(curves: dict[str, list[dict]], header: str) -> str:
-    cols = "| scene | budget | wall min | wall / budget | m-PSNR | m-VGG-PD | bbox GMSD | ghost |"
-    lines = [header, "", cols,
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    cols = ("| scene | budget | wall min | wall / budget | m-PSNR | m-VGG-PD | bbox GMSD | ghost "
+            "| m-PSNR at capture size | m-VGG-PD at capture size |")  # fmt: skip
+    lines = [header, "", cols, "|---" * 10 + "|"]
     for scene, points in curves.items():
         for p in points:
             b = p["budget"]
             if "refused" in p:
-                lines.append(
-                    f"| {scene} | {b:g} | refused: needs {p['minimum']:g} min here | - | - | - | - | - |"
-                )
+                lines.append(f"| {scene} | {b:g} | refused: needs {p['minimum']:g} min here |" + " - |" * 7)
                 continue
             wall = f"{p['wall_minutes']:.1f}" + (" (resumed)" if p.get("resumed") else "")
             ratio = p["wall_minutes"] / b
             lines.append(f"| {scene} | {b:g} | {wall} | {ratio:.2f} | {cell(p.get('m_psnr'))} "
                          f"| {cell(p.get('m_vgg_pd'), 3)} | {cell(p.get('bbox_gmsd'), 3)} "
-                         f"| {cell(p.get('ghost'), 3)} |")  # fmt: skip
+                         f"| {cell(p.get('ghost'), 3)} | {cell(p.get('capture_m_psnr'))} "
+                         f"| {cell(p.get('capture_m_vgg_pd'), 3)} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -189,7 +216,7 @@ def summary(curves: dict[str, list[dict]]) -> dict:
                 res[f"{tag}_refused_minimum"] = p["minimum"]
                 continue
             res[f"{tag}_wall_minutes"] = round(p["wall_minutes"], 2)
-            for k in (*KEYS, "ghost"):
+            for k in (*KEYS, "ghost", "capture_m_psnr", "capture_m_vgg_pd"):
                 v = p.get(k)
                 res[f"{tag}_{k}"] = v if isinstance(v, float) else None
     return res

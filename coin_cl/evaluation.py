@@ -87,6 +87,32 @@ def fmt_metric(v) -> str:
     return f"{v:.4f}"
 
 
+def score_views(views: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], out_dir: Path) -> dict:
+    """Score predictions held in memory: views maps a view name to (pred, gt, mask), (H, W, 3) float
+    images in [0, 1] and an (H, W) bool mask of one size per view. Writes out_dir/metrics.json (the
+    document of `evaluate_folder` without grids, ghost or FID) and returns it."""
+    from coin_cl import metrics as M
+    from coin_cl.nets import lpips_from_env, vgg16_h5_from_env
+    from coin_cl.scene.io import write_text
+
+    lpips, _ = lpips_from_env()
+    vgg, vgg_reason = vgg16_h5_from_env()
+    per_view: dict[str, dict] = {}
+    for name, (pred, gt, m) in views.items():
+        if pred.shape != gt.shape or gt.shape[:2] != np.shape(m):
+            raise ValueError(f"view {name}: prediction {pred.shape}, truth {gt.shape} and mask "
+                             f"{np.shape(m)} differ in size")  # fmt: skip
+        per_view[name] = M.evaluate_view(pred, gt, np.asarray(m, bool), lpips, vgg)
+    doc = {
+        "n_views": len(per_view),
+        "mean": M.aggregate(list(per_view.values())),
+        "per_view": per_view,
+        "vgg_pd": "available" if vgg is not None else vgg_reason,
+    }
+    write_text(Path(out_dir) / "metrics.json", json.dumps(M.jsonable(doc), indent=1))
+    return doc
+
+
 def evaluate_folder(
     pred_dir: Path,
     scene_dir: Path,

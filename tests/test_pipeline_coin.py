@@ -159,6 +159,34 @@ def test_same_scene_under_another_spelling_or_resolution_is_accepted(room, first
     assert res.stages["0_scene"]["status"] == "ran"
 
 
+def test_a_smaller_working_size_is_scored_at_the_capture_size_too(room, tmp_path):
+    """At half resolution the eval stage renders the test views at the photos' own size as well and
+    scores them there (eval/capture): the working-size figure does not see the blur, that one does."""
+    from coin_cl.scene.io import read_image
+
+    res = inpaint(room, tmp_path / "half", config=replace(TINY, resolution=0.5, skip=("clg", "ted")))
+    full = load_scene(room)
+    ev = res.stages["eval"]["result"]
+    assert np.isfinite(ev["metrics_capture"]["m_psnr"]) and np.isfinite(ev["metrics"]["m_psnr"])
+    for i in full.test_idx:
+        stem = Path(full.cameras[i].name).stem
+        assert (
+            read_image(tmp_path / "half" / "eval" / "capture" / "renders" / f"{stem}.png").shape
+            == full.images[i].shape
+        )
+        assert (
+            read_image(tmp_path / "half" / "eval" / "renders" / f"{stem}.png").shape[0]
+            == full.images[i].shape[0] // 2
+        )
+    # at the capture's own size nothing else is scored
+    assert (
+        "metrics_capture"
+        not in inpaint(room, tmp_path / "one", config=replace(TINY, skip=("clg", "ted"))).stages["eval"][
+            "result"
+        ]
+    )
+
+
 def test_default_resolution_is_picked_from_the_image_size(room, tmp_path, caplog):
     with caplog.at_level("INFO", logger="coin_cl.pipeline.coin"):
         inpaint(room, tmp_path / "auto", config=replace(TINY, skip=("clg", "ted")))

@@ -37,7 +37,7 @@ import numpy as np
 from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_resolution
 from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
-from coin_cl.pipeline.eval_stage import stage_eval
+from coin_cl.pipeline.eval_stage import CaptureViews, capture_views, stage_eval
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
@@ -243,7 +243,9 @@ def inpaint(
             "(coin_cl.pipeline.budget; --resolution overrides)", cfg.resolution, cam0.width, cam0.height,
             round(cam0.width * cfg.resolution), round(cam0.height * cfg.resolution), MAX_WORK_PIXELS,
         )  # fmt: skip
+    capture = None
     if cfg.resolution != 1.0:
+        capture = capture_views(scene)
         scene = scene.resized(cfg.resolution)
     if not any(scene.masks[i].any() for i in scene.train_idx) and edited_ref is None and not cfg.edited_ref:
         raise ValueError(
@@ -268,7 +270,7 @@ def inpaint(
     # before it can touch the first's files.
     with folder_lock(out):
         check_output_folder(out, captured)
-        return _run(scene, out, cfg, force, edited)
+        return _run(scene, out, cfg, force, edited, capture)
 
 
 def check_points(scene: Scene) -> None:
@@ -309,7 +311,12 @@ def _choose_region(scene: Scene, masks: list[np.ndarray], cfg: CoInConfig) -> st
 
 
 def _run(
-    scene: Scene, out: Path, cfg: CoInConfig, force: tuple[str, ...], edited: np.ndarray | None = None
+    scene: Scene,
+    out: Path,
+    cfg: CoInConfig,
+    force: tuple[str, ...],
+    edited: np.ndarray | None = None,
+    capture: CaptureViews | None = None,
 ) -> CoInResult:
     from coin_cl.pipeline.reference import choose_reference
 
@@ -338,7 +345,7 @@ def _run(
     # would choose again from the masks it is given (refined masks, insertion footprints), or ignore
     # --ref, and P_k would then come from another view than CLG's camera k.
     run = RunInputs(out=out, scene=scene, masks=masks, ref=ref, cfg=cfg, plan=plan,
-                    refgs_cfg=cfg.refgs_settings(ref), edited=edited)  # fmt: skip
+                    refgs_cfg=cfg.refgs_settings(ref), edited=edited, capture=capture)  # fmt: skip
     log.info(
         "CoIn: %d training views at %dx%d (%d with a mask), reference view %d (%s), %s masks; %s",
         len(train), cam.width, cam.height, sum(masks[i].any() for i in train), ref, scene.cameras[ref].name,

@@ -1,17 +1,73 @@
 """The eval stage (paper 5): renders of the test and training views, the orbit GIF, the final PLY,
 and the metrics against ground truth where the scene has object-absent test views
-(`coin_cl.evaluation`)."""
+(`coin_cl.evaluation`).
+
+A run trains at a working resolution below the capture's (`coin_cl.pipeline.budget`); its metrics are
+scored there (eval/metrics) and, where the working size is smaller, once more on the test views
+rendered at the capture's own size against the captured photos (eval/capture): a small working
+size pays for its blur in the second figure.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from coin_cl.pipeline.runner import StageContext, jsonable
 from coin_cl.pipeline.stages import load_model
 
 if TYPE_CHECKING:
     from coin_cl.pipeline.run_inputs import RunInputs
+    from coin_cl.scene import Scene
+    from coin_cl.scene.types import Camera
+
+# The folder under the eval stage that holds the capture-size renders and their metrics.
+CAPTURE_DIR = "capture"
+
+
+@dataclass(frozen=True)
+class CaptureViews:
+    """The object-absent test views with a mask at the capture's own resolution, kept from the scene
+    before it is resized to the working resolution: {scene view index: camera / (H, W, 3) float32
+    image in [0, 1] / (H, W) bool mask}."""
+
+    cameras: dict[int, Camera]
+    images: dict[int, np.ndarray]
+    masks: dict[int, np.ndarray]
+
+
+def capture_views(scene: Scene) -> CaptureViews | None:
+    """`CaptureViews` of `scene` at its loaded resolution; None when no test view has a mask."""
+    idx = [i for i in scene.test_idx if np.asarray(scene.masks[i]).any()]
+    if not idx:
+        return None
+    return CaptureViews({i: scene.cameras[i] for i in idx}, {i: scene.images[i] for i in idx},
+                        {i: np.asarray(scene.masks[i], bool) for i in idx})  # fmt: skip
+
+
+def score_at_capture(model, views: CaptureViews, out: Path) -> dict:
+    """Render `model` at each of `views`' cameras (the capture's size), write out/renders/<stem>.png
+    and score them against the photos (`coin_cl.evaluation.score_views`: out/metrics.json). Returns
+    the metrics document."""
+    import torch
+
+    from coin_cl.evaluation import score_views
+    from coin_cl.scene.io import read_image, to_uint8, write_png
+
+    rdir = Path(out) / "renders"
+    rdir.mkdir(parents=True, exist_ok=True)
+    scored = {}
+    for i, cam in views.cameras.items():
+        with torch.no_grad():
+            r = model.render(cam, 10**9)
+        path = rdir / f"{Path(cam.name).stem}.png"
+        write_png(path, to_uint8(r.image.clamp(0, 1).numpy()))
+        # scored as written (8 bits), as the working-resolution renders are
+        scored[cam.name] = (read_image(path), views.images[i], views.masks[i])
+    return score_views(scored, out)
 
 
 def stage_eval(ctx: StageContext[RunInputs]) -> dict:
@@ -61,6 +117,13 @@ def stage_eval(ctx: StageContext[RunInputs]) -> dict:
         result["metrics"] = doc["mean"]
         if doc["vgg_pd"] != "available":  # the run's log says why the VGG-PD columns are n/a
             ctx.note(doc["vgg_pd"])
+        if ctx.run.capture is not None:
+            cdoc = score_at_capture(model, ctx.run.capture, ctx.out / CAPTURE_DIR)
+            result["metrics_capture"] = cdoc["mean"]
+            m = cdoc["mean"]
+            ctx.note(f"at the capture's resolution: m-PSNR {m['m_psnr']:.2f}, m-VGG-PD "
+                     f"{m['m_vgg_pd'] if m['m_vgg_pd'] is None else round(m['m_vgg_pd'], 3)} "
+                     f"({ctx.out / CAPTURE_DIR})")  # fmt: skip
     else:
         ctx.note("no ground-truth test views with masks: metrics skipped")
     return jsonable(result)

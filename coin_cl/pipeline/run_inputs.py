@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from coin_cl.gs.refgs import RefGSConfig
     from coin_cl.pipeline.budget import Plan
     from coin_cl.pipeline.config import CoInConfig
+    from coin_cl.pipeline.eval_stage import CaptureViews
     from coin_cl.scene import Scene
 
 
@@ -42,3 +43,6 @@ class RunInputs:
     # An insertion's edited reference view, (H, W, 3) float32 in [0, 1] at the working size
     # (`insert.load_edited`); None for a removal.
     edited: np.ndarray | None = None
+    # The object-absent test views at the capture's resolution, where the working resolution is
+    # smaller (the eval stage scores them too); None otherwise.
+    capture: CaptureViews | None = None
