@@ -18,7 +18,9 @@ class _Cam:
 class _Scene:
     cameras = [_Cam()] * 4
     masks = [np.ones((48, 64), bool)] * 4
-    priors = {"rgb": {0: "the dataset's inpaint of view 0"}}  # stage 1 takes a learned inpainter's fills
+    # stage 1 takes a learned inpainter's fills (of a view the tests leave out of training, so that
+    # stage 1's estimate is the same as with the embedded inpainter)
+    priors = {"rgb": {3: "the dataset's inpaint of view 3"}}
 
     def __len__(self):
         return 4
@@ -152,3 +154,16 @@ def test_a_baseline_with_its_counts_given_plans_nothing_and_refuses_nothing(tmp_
     plan = CP.plan_for(_OwnCapture(), tmp_path / "naive", cfg, [0, 1])
     assert plan.source == "explicit" and "refine" not in plan.steps
     assert plan.steps == {"refgs": 400, "ted_finetune": 0, "ted_adversarial": 0}
+
+
+def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
+    """The dataset's own fills are read, not computed: only the masked training views without one
+    count towards stage 1's estimate; the embedded inpainter fills every masked view; CLG guides every
+    masked view either way, and is absent when skipped."""
+    from coin_cl.pipeline.coin import CoInConfig
+
+    cfg = CoInConfig()
+    views = CP.fixed_views(_Scene(), cfg, [0, 1, 2, 3])
+    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}
+    assert CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2])["1_inpaint"] == 3
+    assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(skip=("clg",)), [0, 1])

@@ -72,9 +72,15 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
 
 def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:
     """{fixed stage: the views it works on} for `stage_costs.fixed_costs`: 0_scene and eval every
-    view, stage 1 and CLG the masked training views (CLG absent when skipped)."""
-    masked = sum(bool(scene.masks[i].any()) for i in train)
-    views = {"0_scene": len(scene), "1_inpaint": masked, "3_clg": masked, "eval": len(scene)}
+    view, CLG the masked training views (absent when skipped), stage 1 the masked training views it
+    fills by computation (with the dataset's own fills only those without one: the rest are read)."""
+    from coin_cl.pipeline.inpaint2d import fill_source
+
+    masked = [i for i in train if scene.masks[i].any()]
+    filled = masked
+    if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "dataset":
+        filled = [i for i in masked if i not in scene.priors.get("rgb", {})]
+    views = {"0_scene": len(scene), "1_inpaint": len(filled), "3_clg": len(masked), "eval": len(scene)}
     if "clg" in cfg.skip:
         del views["3_clg"]
     return views
