@@ -177,6 +177,23 @@ def _run_folder(run: Path) -> tuple[Path, dict]:
     return cands[-1], cams
 
 
+def capture_scale(out_dir: Path) -> float:
+    """The scale that brings the cameras of a `coin-cl run` folder (or of one of its stages) back to
+    its photos' size: 1 / the working resolution its plan.json records."""
+    from coin_cl.pipeline.budget import PLAN_FILE, read_plan
+
+    out_dir = Path(out_dir)
+    run = next((p for p in (out_dir, *out_dir.parents[:2]) if (p / "run.json").is_file()), None)
+    if run is None or not (run / PLAN_FILE).is_file():
+        raise ValueError(f"{out_dir} is not a coin-cl run folder (no run.json and plan.json): the "
+                         "capture's size is a run's; give --scale a number instead")  # fmt: skip
+    res = read_plan(run / PLAN_FILE).key.get("resolution")
+    if isinstance(res, bool) or not isinstance(res, int | float) or not (math.isfinite(res) and 0 < res <= 1):
+        raise ValueError(f"{run / PLAN_FILE}: key.resolution is {res!r}, not a scale in (0, 1]; delete "
+                         "the file and run coin-cl run again, or give --scale a number")  # fmt: skip
+    return 1.0 / float(res)
+
+
 def render_checkpoint(
     out_dir: Path,
     views: str = "test",
@@ -184,12 +201,15 @@ def render_checkpoint(
     backend: str = "opencl",
     device=None,
     dest: Path | None = None,
+    scale: float | str = 1.0,
 ) -> tuple[int, Path]:
     """Render the model trained into `out_dir` (its checkpoint and cameras.json, or a `coin-cl run`
     folder: its final stage's model and its scene's cameras): `views` is "test",
     "train" or "orbit" (`frames` cameras from `orbit_cameras`). Writes an image and a depth map per
     view under `dest/<views>/` (and `dest/orbit.gif` for the orbit; `dest` defaults to
-    `out_dir/renders`); returns the number of views and the path written (the folder, or the GIF)."""
+    `out_dir/renders`); returns the number of views and the path written (the folder, or the GIF).
+    scale: the image size over the cameras' (a run's cameras are at its working resolution);
+    "capture": a run's photos' own size (1 / the resolution its plan.json records)."""
     from coin_cl.checkpoint import load_checkpoint, malformed
     from coin_cl.gs.model_kinds import model_from_state
     from coin_cl.gs.trainer import CAMERAS_NAME, CKPT_NAME, cameras_from_json
@@ -224,14 +244,22 @@ def render_checkpoint(
             f"{out_dir} has no {views} cameras: nothing to render; "
             f"choose --views {'train' if views == 'test' else 'test'} or orbit"
         )
+    factor = capture_scale(out_dir) if scale == "capture" else float(scale)
+    if not (math.isfinite(factor) and factor > 0):
+        raise ValueError(f"scale {scale!r} is not a positive number; give one > 0, or 'capture'")
+
+    def sized(kind: str) -> list:
+        return [c.resized(max(1, round(c.width * factor)), max(1, round(c.height * factor)))
+                for c in cameras_from_json(cams[kind])]  # fmt: skip
+
     root = out_dir / "renders" if dest is None else Path(dest)
     dest = root / views
     if views == "orbit":
         gif = root / "orbit.gif"
-        train = cameras_from_json(cams["train"])
+        train = sized("train")
         orbit = orbit_gif(model, train, gif, frames, step, backend, dest, depth=True)
         return len(orbit), gif
-    cameras = cameras_from_json(cams[views])
+    cameras = sized(views)
     # named as the views (`<stem>.png`), so that `coin-cl eval DEST --scene SCENE` reads them
     names = [Path(c.name).stem if c.name else f"{i:03d}" for i, c in enumerate(cameras)]
     render_views(lambda c: model.render(c, step, backend=backend, return_depth=True),

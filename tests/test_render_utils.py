@@ -137,3 +137,41 @@ def test_render_checkpoint_names_views_as_eval_reads_them_and_finds_a_stages_tes
     assert n == 1 and sorted(p.name for p in dest.iterdir()) == ["cap_1.png", "cap_1_depth.png"]
     n, dest = render_checkpoint(stage, views="train", backend="torch", dest=tmp_path / "out")
     assert n == 3 and {p.name for p in dest.iterdir()} >= {"cap_0.png", "cap_2.png"}
+
+
+def test_render_checkpoint_scales_the_cameras_and_finds_a_runs_capture_size(tmp_path, monkeypatch):
+    """--scale 2 renders at twice the cameras' size; "capture" takes a run's photos' size from the
+    working resolution its plan records (0.5 -> x2); a folder that is no run, or a plan with a bad
+    resolution, is one clear error."""
+    import json
+
+    import coin_cl.checkpoint
+    import coin_cl.gs.model_kinds
+    import coin_cl.render_utils as R
+
+    cams = _captured(2)
+    stage = tmp_path / "run" / "2_refgs" / "gs"
+    stage.mkdir(parents=True)
+    (stage / "ckpt.pt").write_bytes(b"")
+    (stage / "cameras.json").write_text(json.dumps({"train": [], "test": [c.to_json() for c in cams]}))
+    monkeypatch.setattr(
+        coin_cl.checkpoint, "load_checkpoint", lambda *a: {"model": {}, "trainer": {"step": 1}}
+    )
+    monkeypatch.setattr(coin_cl.gs.model_kinds, "model_from_state", lambda s: _FlatModel())
+    _, dest = render_checkpoint(stage, backend="torch", dest=tmp_path / "x2", scale=2.0)
+    assert iio.imread(dest / "cap_0.png").shape[:2] == (2 * H, 2 * W)
+    with pytest.raises(ValueError, match="not a coin-cl run folder"):
+        render_checkpoint(stage, backend="torch", dest=tmp_path / "c", scale="capture")
+    run = tmp_path / "run"
+    (run / "run.json").write_text("{}")
+    plan = {"steps": {"refgs": 1, "ted_finetune": 0, "ted_adversarial": 0},
+            "minutes": {"refgs": None, "ted_finetune": None, "ted_adversarial": None},
+            "prior_seconds": 0.0, "probe_seconds_per_step": None, "source": "explicit",
+            "key": {"resolution": 0.5, "explicit": [1, 0, 0, None]}}  # fmt: skip
+    (run / "plan.json").write_text(json.dumps(plan))
+    assert R.capture_scale(stage) == 2.0
+    _, dest = render_checkpoint(stage, backend="torch", dest=tmp_path / "cap", scale="capture")
+    assert iio.imread(dest / "cap_1.png").shape[:2] == (2 * H, 2 * W)
+    (run / "plan.json").write_text(json.dumps({**plan, "key": {**plan["key"], "resolution": 0}}))
+    with pytest.raises(ValueError, match="key.resolution is 0"):
+        R.capture_scale(run)

@@ -57,6 +57,9 @@ def add_commands(subparsers) -> None:
     )
     r.add_argument("--views", choices=("test", "train", "orbit"), default="test")
     r.add_argument("--frames", type=int, default=48, help="orbit frames")
+    r.add_argument("--scale", type=values.scale_or_capture, default=1.0,
+                   help="image size over the cameras' (a run folder's are at its working resolution); "
+                   "'capture': a run's photos' own size")  # fmt: skip
     r.add_argument("--backend", choices=("opencl", "torch"), default="opencl")
     r.add_argument("--device", default=None, help="OpenCL device name substring (default: coin-cl doctor's)")
     r.set_defaults(func=cmd_render)
@@ -139,7 +142,9 @@ def cmd_render(args: argparse.Namespace) -> int:
             )
         folder, dest = src, src / "renders"
     with output_folder(folder, command):
-        n, where = render_checkpoint(src, args.views, args.frames, args.backend, args.device, dest)
+        n, where = render_checkpoint(
+            src, args.views, args.frames, args.backend, args.device, dest, args.scale
+        )
     if args.views == "orbit":
         print(f"wrote {n} frames and {where}")
     else:

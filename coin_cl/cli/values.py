@@ -18,6 +18,11 @@ def folder(text: str) -> Path:
     return Path(text)
 
 
+def scale_or_capture(text: str) -> float | str:
+    """A finite number > 0, or "capture"."""
+    return "capture" if text == "capture" else positive_float(text)
+
+
 def positive_float(text: str) -> float:
     """A finite number > 0."""
     try:
