@@ -178,6 +178,9 @@ def test_a_smaller_working_size_is_scored_at_the_capture_size_too(room, tmp_path
             read_image(tmp_path / "half" / "eval" / "renders" / f"{stem}.png").shape[0]
             == full.images[i].shape[0] // 2
         )
+    from coin_cl.pipeline.report import run_report
+
+    assert "photos' own size (eval/capture)" in run_report(res)
     # at the capture's own size nothing else is scored
     assert (
         "metrics_capture"

@@ -65,6 +65,10 @@ def run_report(res: CoInResult) -> str:
     if res.metrics:
         lines += ["", "Metrics, mean over the ground-truth test views (object absent):"]
         lines += metric_table(res.metrics)
+        at_capture = res.stages.get("eval", {}).get("result", {}).get("metrics_capture")
+        if isinstance(at_capture, dict):
+            lines += ["", "The same views rendered at the photos' own size (eval/capture):"]
+            lines += metric_table(at_capture)
     lines += ["", "Open next:"]
     ev = out / "eval"
     for what, path in (
@@ -72,6 +76,7 @@ def run_report(res: CoInResult) -> str:
         ("metrics", ev / "metrics" / "metrics.md"),
         ("render | truth grids", ev / "metrics" / "grids"),
         ("renders", ev / "renders"),
+        ("renders, photos' size", ev / "capture" / "renders"),
         ("orbit", ev / "orbit.gif"),
         ("Gaussians (PLY)", ev / "point_cloud.ply"),
         ("run log", out / "log.json"),
