@@ -1,7 +1,7 @@
-"""Benchmark: removal geometry (issue 21): the background depth term and carving, with the ghost figure.
+"""Benchmark of the removal geometry: the background depth term and carving, with the ghost figure.
 
 Rows share stages 0 and 1 and train Ref-GS only (no CLG, no TE-D, input masks), so they differ only by
-the geometry switches: `no_bg_depth` (RefGSConfig(bg_depth=False), no carve: the code before issue 21),
+the geometry switches: `no_bg_depth` (RefGSConfig(bg_depth=False), no carve: neither geometry term),
 `bg_depth` (the default: every view's mask held to its background depth D_bg), `carve` (the default plus
 `CoInConfig.carve`), `bg_depth_fill` (D_bg by the 2D fill alone, RefGSConfig(bg_depth_planes=False)).
 First a table of D_bg itself against the reference depth in the test views' masks, with and without the

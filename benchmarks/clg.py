@@ -1,4 +1,4 @@
-"""Benchmark: CLG (stage 3_clg, paper 4.3) on a finished pipeline run's own inputs (issue 22 item 2).
+"""Benchmark: CLG (stage 3_clg, paper 4.3) on a finished pipeline run's own inputs.
 
 Reads a run folder of `coin-cl run` / `benchmarks/coin.py` (its 0_scene/scene, 1_inpaint/images: the
 initial inpaints I^_n, 2_refgs: renders, depths, alphas, reference_points.ply, and the scene prior's
@@ -6,7 +6,7 @@ cache from its 1_inpaint or 3_clg folder, copied into each row's folder so nothi
 `stage_clg` once per row into OUT/<row>/3_clg with the run's seed and plan, the guard on (a view whose
 guided image is worse keeps its input, as in a pipeline run). Rows (`CLGConfig` variants):
     paper         sampled from noise at the working size, pasted over the mask (detail "none",
-                  strength 1: the behaviour before issue 22)
+                  strength 1: the paper's CLG as written)
     detail        from noise, + the reference's band above half the working size warped through P_k
                   where supported, the initial inpaint's elsewhere (`pipeline.clg_detail`)
     input_sdedit  the sampler starts from I^_n's crop noised half way (strength 0.5), + I^_n's band

@@ -1,11 +1,11 @@
-"""Benchmark: CoIn end to end (issue 12) beside the naive baseline and the paper's ablations, on the
+"""Benchmark: CoIn end to end beside the naive baseline and the paper's ablations, on the
 shared SPIn-NeRF scene at half of images_4, scored on the object-absent ground-truth test views.
 
 Rows (each a `coin_cl.inpaint` run folder under --out; a row starts from the `coin` row's stage
 folders, and the stage runner keeps exactly those whose settings and inputs match, so rows share
 work without any row-specific bookkeeping):
     default      exactly what a user's first command does: `coin-cl run DATA --out DIR`, no other flag
-                 (working resolution, timing probe and plan chosen by coin-cl; issue 20)
+                 (working resolution, timing probe and plan chosen by coin-cl)
     default_baseline  the naive baseline at the default row's resolution and budget: as many
                  Scaffold-GS steps as the default row trained (Ref-GS + TE-D; `demo.baseline_config`)
     coin         the full pipeline, seg masks, the dataset's LaMa inpaints as initial 2D results
@@ -20,13 +20,13 @@ work without any row-specific bookkeeping):
     bbox         the full pipeline, bounding-box masks (initial inpaints from the scene prior: the
                  LaMa inpaints were made for the segmentation)
 Every figure: PSNR, SSIM, m-PSNR, m-SSIM, the high-frequency ratio in the mask (1 is right, below 1
-is blur) and GMSD on the mask's bounding box (`coin_cl.evaluation`), the ghost figure (issue 21: the
+is blur) and GMSD on the mask's bounding box (`coin_cl.evaluation`), the ghost figure (the
 share of the test masks rendered more than 10 % in front of a GS fitted to the object-absent test
 views; `benchmarks/ghost.py`), and minutes per stage.
 
 The embedded defaults replace the paper's models (no weights can be downloaded here): the scene
 prior stands in for Stable Diffusion 2 (rows seg_prior, bbox), analytic features for DINO (CLG).
-`--refs N` adds reference-robustness rows (issue 13): `ref_<view>`, the coin row with N - 1 other
+`--refs N` adds reference-robustness rows: `ref_<view>`, the coin row with N - 1 other
 training views as the reference (random, `--seed`), reported as mean and standard deviation with
 the coin row.
 
@@ -37,7 +37,7 @@ for rows already run under --out without running anything.
 Ends with one JSON line (baseline_mpsnr, coin_mpsnr, ..., floors). Usage:
     python benchmarks/coin.py [--budget 30] [--rows coin,baseline,...] [--resolution 0.5] [--refs 3]
 
-`--only insertion` runs issue 13's rows instead, on synthetic rooms with exact ground truth
+`--only insertion` runs the insertion rows instead, on synthetic rooms with exact ground truth
 (insertion from an edited view, refined masks, scribbles, `--refs N` reference robustness; see
 benchmarks/coin_insertion.py); none of the rows above run then:
     python benchmarks/coin.py --only insertion [--size 96x72] [--views 16] [--iters 300] [--refs 3]
@@ -253,7 +253,7 @@ def main() -> int:
     ap.add_argument("--rows", default=",".join(ROWS))
     ap.add_argument("--resolution", type=float, default=0.5)
     ap.add_argument("--out", type=Path, default=None, help="default benchmarks/out/coin (or coin_insertion)")
-    ap.add_argument("--only", choices=["insertion"], help="run issue 13's synthetic rows instead of these")
+    ap.add_argument("--only", choices=["insertion"], help="run the synthetic insertion rows instead of these")
     ap.add_argument("--steps-from", type=Path, default=None, metavar="RUN",
                     help="the full-pipeline rows take RUN's plan.json (its resolution, step counts after "
                          "TE-D's re-plan, scene prior seconds) instead of a timing probe: the same "

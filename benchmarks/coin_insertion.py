@@ -1,4 +1,4 @@
-"""`benchmarks/coin.py --only insertion` (issue 13): insertion from one edited view, 3D-first refined
+"""`benchmarks/coin.py --only insertion`: insertion from one edited view, 3D-first refined
 masks, scribble masks and the choice of reference, on synthetic rooms generated here (exact ground
 truth, no weights, no dataset). It does not run the SPIn-NeRF rows of coin.py.
 
@@ -69,7 +69,7 @@ RED = 0.25
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The flags of this path, as a group of coin.py's parser."""
-    g = ap.add_argument_group("--only insertion (synthetic rooms, issue 13)")
+    g = ap.add_argument_group("--only insertion (synthetic rooms)")
     g.add_argument("--size", default="96x72", help="WxH of the synthetic views")
     g.add_argument("--views", type=int, default=16, help="views per scene (one in four a test view)")
     g.add_argument("--iters", type=int, default=300, help="Ref-GS steps")

@@ -1,4 +1,4 @@
-"""The ghost figure of a removal (issue 21): the share of mask pixels in the object-absent test views
+"""The ghost figure of a removal: the share of mask pixels in the object-absent test views
 whose rendered depth lies more than 10 % in front of a reference depth (`metrics.ghost_fraction`).
 
 Reference depth: the truth on synthetic scenes; on SPIn-NeRF a Scaffold-GS fitted to the 5

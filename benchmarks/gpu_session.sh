@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU part of issue 24 in steps (docs/GPU.md says when to run each):
+# The checks on a GPU machine, in steps (docs/GPU.md says when to run each):
 #   bash benchmarks/gpu_session.sh prepare   # HERE, on the development machine: wheels and data
 #   bash benchmarks/gpu_session.sh check     # on the GPU machine: driver, ICD, OpenCL devices, limits
 #   bash benchmarks/gpu_session.sh suite     # ... the kernel test suite through NVIDIA's OpenCL

@@ -1,4 +1,4 @@
-"""Benchmark: the Ref-GS stage (issue 11) and its ablations on the shared SPIn-NeRF scene.
+"""Benchmark: the Ref-GS stage (CoIn paper 4.2) and its ablations on the shared SPIn-NeRF scene.
 
 Every row trains Scaffold-GS on the dataset's per-view LaMa inpaints (RGB_inpainted/) of the
 training views at half of images_4, with the same minute budget (`--minutes`, per row):

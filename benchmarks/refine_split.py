@@ -1,4 +1,4 @@
-"""Stage 0_refine's observed / unseen split (issue 21) against the ray-cast truth, by removal vote
+"""Stage 0_refine's observed / unseen split against the ray-cast truth, by removal vote
 (`RefineConfig.min_fraction`) and split rule, on the demo room or the 360-degree room.
 
 For each vote, G^rmv is pruned from one object-present fit (591 steps, the demo's Ref-GS count;

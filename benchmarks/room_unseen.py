@@ -1,4 +1,4 @@
-"""Where the rooms' m-PSNR is decided (issue 21): the test masks of a synthetic room cut into pixel
+"""Where the rooms' m-PSNR is decided: the test masks of a synthetic room cut into pixel
 classes by the exact visibility from the training views (`rooms.observed_from`) and by the split a
 CoIn run found (its stage 0_refine's `unseen/`), each run's PSNR and share of the squared error on
 each class, beside reference fills of the exactly unseen pixels (black, the mean colour of a ring

@@ -1,4 +1,4 @@
-"""A crop grid of one test view of a synthetic room for the removal-geometry results (issue 21):
+"""A crop grid of one test view of a synthetic room for the removal-geometry results:
 row 1: the split of its mask (green observed by the training views, red the unseen core; from the
 first run's stage 0_refine), then each run's render, then the truth; row 2: each run's rendered
 depth where its eval wrote one (`eval/depths/`), then the exact depth (one TURBO scale, near =

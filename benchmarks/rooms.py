@@ -1,4 +1,4 @@
-"""Removal geometry on the synthetic rooms (issue 21): CoIn's default (inpaint region "auto": the
+"""Removal geometry on the synthetic rooms: CoIn's default (inpaint region "auto": the
 observed / unseen split of stage 0_refine), CoIn with the input masks, the naive baseline (plain
 Scaffold-GS on CoIn's stage-1 inpaints) and masked reconstruction (3DGS on the captured views with
 the object's pixels left out of the loss), both at CoIn's budget (as many steps as CoIn's Ref-GS and
@@ -170,7 +170,7 @@ def run_scene(name: str, out: Path, args) -> dict:
     refine = {
         k: v for k, v in (("min_fraction", args.refine_vote), ("grow_px", args.refine_grow)) if v is not None
     }
-    cfg = replace(cfg, refine=replace(cfg.refine, **refine))  # the split of the coin row (issue 21)
+    cfg = replace(cfg, refine=replace(cfg.refine, **refine))  # the coin row's observed / unseen split
     if args.iters:  # explicit steps: the same schedule on a loaded machine as on a quiet one
         cfg = replace(cfg, iters_refgs=args.iters[0], iters_ted_finetune=args.iters[1],
                       iters_ted_adversarial=args.iters[2])  # fmt: skip

@@ -1,4 +1,4 @@
-"""SSIM benchmark (issue 14): the fused OpenCL op (kernels/ssim.cl) against torch's convolutions,
+"""SSIM benchmark: the fused OpenCL op (kernels/ssim.cl) against torch's convolutions,
 run time next to error against the float64 twin, at several image sizes and windows.
 
     python benchmarks/ssim.py [--runs 15]

@@ -1,4 +1,4 @@
-"""Benchmark (issue 14): how many (tile, splat) pairs an exact ellipse-against-tile test would save
+"""Benchmark: how many (tile, splat) pairs an exact ellipse-against-tile test would save
 over binning's opacity-aware box, on the splats of a trained model's views.
 
 Binning sends each splat to the 16x16 tiles of its box (the bounding box of the ellipse outside which

@@ -10,7 +10,7 @@ Ends with one JSON line: recon_psnr, recon_minutes, baseline_psnr, baseline_mpsn
 model (+ more). Usage:
     python benchmarks/train.py [--minutes 20] [--baseline-minutes 10] [--models scaffold,3dgs]
 
-Training throughput (issue 14) instead: `--throughput` (or `--profile`, the same runs) trains each
+Training throughput instead: `--throughput` (or `--profile`, the same runs) trains each
 model with the unfused path (`TrainConfig(fused=False)`) and the fused one, from the same
 initialisation on the same view sequence, `--steps` steps each; prints the median time per step of
 every part (anchor decode, project, bin, rasterize, loss, backward, optimiser, densification,
@@ -172,7 +172,7 @@ def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: s
     ops_raster = importlib.import_module("coin_cl.engine.ops.rasterize")
     tr_idx, te_idx = split_indices(scene, 8)
     # A 3000-step schedule, so densification is active as in a real run.
-    # A checkout from before issue 14 has no `fused` switch: its one path is the old one.
+    # A checkout older than the fused path has no `fused` switch: its one path is the unfused one.
     path = {"fused": fused} if "fused" in TrainConfig.__dataclass_fields__ else {}
     cfg = TrainConfig(model=kind, iters=3000, backend=backend, ckpt_every=0, progress=False,
                       export_ply=False, **path)  # fmt: skip

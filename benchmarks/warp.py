@@ -1,4 +1,4 @@
-"""Feature-warp benchmark (the op part of issue 10): run time, error against the float64 twin,
+"""Feature-warp benchmark: run time, error against the float64 twin,
 bytes crossing host/device, and error against run time of the footprint / depth-tolerance knobs.
 
     python benchmarks/warp.py [--runs 3] [--quick]

@@ -460,7 +460,7 @@ def jsonable(v):
 
 
 def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, tol: float = 0.1) -> float:
-    """The ghost figure of a removal (issue 21): the share of `mask` [H, W] bool pixels whose
+    """The ghost figure of a removal: the share of `mask` [H, W] bool pixels whose
     rendered `depth` [H, W] (camera z) lies more than `tol` of the `reference` depth in front of
     it: something still stands where the object was. Pixels without a finite positive reference are
     left out; NaN when none is left (an empty mask)."""

@@ -1,4 +1,4 @@
-"""The carve volume (coin_cl.gs.carve, issue 21): it holds the removed object, not the background
+"""The carve volume (coin_cl.gs.carve): it holds the removed object, not the background
 behind it; a Scaffold-GS with it never draws a Gaussian there; it survives checkpoints."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""`coin-cl run` as a user meets it (issue 20): the reference by name, progress from every stage."""
+"""`coin-cl run` as a user meets it: the reference by name, progress from every stage."""
 
 import re
 

@@ -35,7 +35,7 @@ def gmsd(ref: np.ndarray, img: np.ndarray) -> float:
 
 
 def hf_energy_ratio(img: np.ndarray, truth: np.ndarray, m: np.ndarray) -> float:
-    """Gradient energy in the hole, fill over truth (issue 9's high-frequency ratio)."""
+    """Gradient energy in the hole, fill over truth (`metrics.hf_ratio` at power 2)."""
     return metrics.hf_ratio(img, truth, m, power=2)
 
 

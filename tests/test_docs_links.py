@@ -82,8 +82,8 @@ def test_anchor_follows_github_rule():
     assert anchor("SPIn-NeRF: the default command beside the naive baseline") == (
         "spin-nerf-the-default-command-beside-the-naive-baseline"
     )
-    assert anchor("Faults: kills, bad input, one run per folder (issue 25)") == (
-        "faults-kills-bad-input-one-run-per-folder-issue-25"
+    assert anchor("Background depth D_bg: error against run time (`benchmarks/carve.py --dbg-only`)") == (
+        "background-depth-d_bg-error-against-run-time-benchmarkscarvepy---dbg-only"
     )
 
 

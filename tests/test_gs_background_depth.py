@@ -1,4 +1,4 @@
-"""The background depth (coin_cl.gs.background_depth, issue 21): D_bg continues the surroundings into
+"""The background depth (coin_cl.gs.background_depth): D_bg continues the surroundings into
 the mask; the term penalises depth outside a band around it (both sides, with their weights), leaves
 unusable pixels out with a zero gradient; on the synthetic room with exact geometry a removal
 trained with it leaves no ghost where one trained without it does."""

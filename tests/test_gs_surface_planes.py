@@ -1,4 +1,4 @@
-"""The planar continuation of a mask's surroundings (coin_cl.gs.surface_planes, issue 21): a plane
+"""The planar continuation of a mask's surroundings (coin_cl.gs.surface_planes): a plane
 with a hole is continued exactly through it; a plane's support ends where its points end (a band of
 a crossing wall does not extend it); degenerate input gives no patch, never a crash or a NaN; and on
 the synthetic room D_bg with planes no longer puts the table top behind the object at the floor's

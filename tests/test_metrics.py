@@ -182,7 +182,7 @@ def test_mask_texture_is_the_hf_ratio_terms():
     assert M.hf_ratio(pred, gt, mask) == pytest.approx(M.mask_texture(pred, mask) / M.mask_texture(gt, mask))
 
 
-# ---- SWD and the colour check (issue 22) ----
+# ---- SWD and the colour check ----
 
 
 def _texture(H=96, W=96, seed=0):

@@ -136,7 +136,7 @@ def test_bad_inputs(room, tmp_path):
 
 
 def test_guidance_lowers_energy_and_residual(room, tmp_path):
-    """The issue's end-to-end check: same seed, guided (c = 1) against unguided (c = 0), the sampler
+    """End to end: same seed, guided (c = 1) against unguided (c = 0), the sampler
     alone (from noise, the sample pasted: what guidance itself does, without the detail band)."""
     views = [i for i in room["train"] if i != room["k"]]
     torch.manual_seed(0)
@@ -274,11 +274,11 @@ class _SmoothPosterior:
 
 
 def test_clg_keeps_texture_and_moves_toward_the_reference(tmp_path):
-    """Issue 22: on a room whose holes are ~2.8x the 64 px working size (as the shared scene's at
+    """On a room whose holes are ~2.8x the 64 px working size (as the shared scene's at
     half resolution), with textured initial inpaints (the exemplar inpainter) and a model whose
     samples are smooth, CLG's images keep the input's texture (within 10%) and come closer to the
     reference (residual lifted with the exact depth, `residual_to_reference`); pasting the
-    upsampled sample (detail "none", the behaviour before) loses most of the texture."""
+    upsampled sample (detail "none", as the paper pastes it) loses most of the texture."""
     from coin_cl.diffusion.exemplar import exemplar_inpaint
 
     from coin_cl.metrics import mask_texture

@@ -286,7 +286,7 @@ def test_the_object_is_removed_not_reconstructed(room, first_run, tmp_path):
 
 
 def test_coin_lama_path_reruns_stage_1(room, first_run, tmp_path, monkeypatch):
-    """Stage 1's rerun key holds the LaMa file COIN_LAMA_PATH names (issue 22): setting it, or pointing
+    """Stage 1's rerun key holds the LaMa file COIN_LAMA_PATH names: setting it, or pointing
     it at another file, reruns 1_inpaint; the same file again is up to date."""
     import shutil
 
@@ -350,7 +350,7 @@ def test_training_masks_are_dilated_unless_declared_exact(room, first_run, tmp_p
 
 
 def test_removal_holds_every_mask_to_its_background_depth(first_run):
-    """Issue 21: Ref-GS saves D_bg of every training view with a mask and trains with the term;
+    """Ref-GS saves D_bg of every training view with a mask and trains with the term;
     TE-D keeps the term (both say so in their notes)."""
     out, res = first_run
     scene = load_scene(out / "0_scene" / "scene")

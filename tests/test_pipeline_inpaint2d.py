@@ -154,7 +154,7 @@ def test_sd2_estimate_logged_before_sd2_run(scene, tmp_path, caplog):
 
 def test_killed_between_views_resumes_with_every_source_recorded(scene, tmp_path, monkeypatch):
     """sources.json is written view by view (before the view's image), so a run killed after its
-    first view resumes to the same record and images as an uninterrupted one (issue 25)."""
+    first view resumes to the same record and images as an uninterrupted one."""
     import coin_cl.pipeline.inpaint2d as stage
 
     monkeypatch.delenv(LAMA_ENV, raising=False)

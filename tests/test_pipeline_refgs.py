@@ -310,9 +310,9 @@ def _residuals(syn, scene, targets, tmp_path, cfg: RefGSConfig, iters: int = 300
 
 @pytest.mark.slow
 def test_refgs_pulls_views_towards_the_reference(room, tmp_path):
-    """The issue's test: every non-reference view has a different solid colour in its mask, the
+    """Every non-reference view has a different solid colour in its mask, the
     reference a plausible fill (the true background, as a good inpaint would be). The paper's Ref-GS
-    (weights, pruning, reference depth, attention from mid-run; issue 21's background depth term
+    (weights, pruning, reference depth, attention from mid-run; the background depth term
     off) ends closer to the reference's content in the other views' masks than plain training.
     Measured at 300 steps: plain 0.1329, Ref-GS 0.1240; with the background depth term (the default)
     0.1263: holding every mask at its background depth leaves the views' conflicting colours fewer

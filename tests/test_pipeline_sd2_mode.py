@@ -1,4 +1,4 @@
-"""SD2's CPU-practical mode (`sd2_mode="reference_only"`, issue 22) through the pipeline, with the
+"""SD2's CPU-practical mode (`sd2_mode="reference_only"`) through the pipeline, with the
 tiny random SD2-format pipeline of the diffusion tests: only the reference view calls the UNet; the
 other views take the embedded inpainter in stage 1 and, in CLG, the reference warped through P_k
 where it reaches and their embedded fill elsewhere. "auto" chooses it from the estimate (logged)."""

@@ -10,8 +10,8 @@ from coin_cl.scene.io import write_png
 from coin_cl.scene.masks import bbox
 
 # IoU over the non-annotated training views. Measured on this room (12 views, 256x192), mean /
-# worst: mask 0.952 / 0.827, box 0.949 / 0.828, scribble 0.949 / 0.827 (the floors on
-# real data are 0.85 mean, 0.6 worst; here the worst floor is raised to 0.7).
+# worst: mask 0.952 / 0.827, box 0.949 / 0.828, scribble 0.949 / 0.827 (docs/PREPARE.md's floors
+# on real data are 0.85 mean, 0.6 worst; here the worst floor is raised to 0.7).
 FLOOR = {"mask": 0.85, "box": 0.85, "scribble": 0.85}
 WORST = 0.7
 

@@ -43,7 +43,7 @@ def capture(tmp_path_factory):
 
 # the precise split of refine_masks' module doc (off by default: end to end it scored lower)
 VIEW_CHECK = RefineConfig(view_check=0.05, see_through=0.0, grow_px=0)
-# the split before issue 21's removal vote: a majority vote and a one-pixel growth
+# a looser split, for comparison: a majority removal vote and a one-pixel growth
 MAJORITY = RefineConfig(min_fraction=0.5, grow_px=1)
 
 

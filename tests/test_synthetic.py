@@ -151,7 +151,7 @@ def test_make_scene_cli(tmp_path):
 def test_points_only_from_training_views():
     """The "SfM" points are what the training views capture: every point lies on a surface some
     training view sees (its depth there within 1 %). Points taken from the object-absent test views
-    would put the truth behind the object into the initial model (issue 21)."""
+    would put the truth behind the object into the initial model."""
     s = make_synthetic(coverage=90, seed=0, n_views=16, width=96, height=72, n_points=6000)
     seen = np.zeros(len(s.points), bool)
     for j, cam in enumerate(s.cameras):

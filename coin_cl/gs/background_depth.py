@@ -1,4 +1,4 @@
-"""Depth inside the masks continues the surrounding surfaces (issue 21; CoIn paper 4.2's depth loss
+"""Depth inside the masks continues the surrounding surfaces (CoIn paper 4.2's depth loss
 L_D, extended from the reference to every view of a removal).
 
 Each view's mask is trained on that view's inpaint, and a colour says nothing about its distance:

@@ -1,4 +1,4 @@
-"""Carving the removed object's volume (issue 21; CoIn's removal, paper 4.2 and supplement C.2).
+"""Carving the removed object's volume (CoIn's removal, paper 4.2 and supplement C.2).
 
 A 2D-first removal trains the Gaussians of every view on that view's inpaint. Nothing then stops
 them from sitting where the object stood: multi-view training places the inpaints' colours on
@@ -198,7 +198,7 @@ def background_points(vol: CarveVolume, view: int, stride: int = 2) -> np.ndarra
 
 @torch.no_grad()
 def observed_share(vol: CarveVolume, stride: int = 4, tol: float = 0.1) -> tuple[float, list[float]]:
-    """How much of the masks other views see (issue 21's cheap visibility estimate, before any fit).
+    """How much of the masks other views see (a cheap visibility estimate, before any fit).
 
     For each view, points on its background depth D_bg inside its mask (every `stride`-th stored
     pixel) are projected into every other view; a point counts as observed when some other view has

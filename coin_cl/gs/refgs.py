@@ -1,4 +1,4 @@
-"""Ref-GS (CoIn paper 4.2, issue 11): the reference-adaptive coarse stage's switches and the
+"""Ref-GS (CoIn paper 4.2): the reference-adaptive coarse stage's switches and the
 trainer terms they build. One concept per module:
 
 * `coin_cl.gs.targets`: the training targets (inpaint inside the mask, captured outside; 5.1).
@@ -7,7 +7,7 @@ trainer terms they build. One concept per module:
 * `coin_cl.gs.anchor_attention`: in-mask anchors attend to a ring of anchors around the mask.
 * `coin_cl.gs.depth_prior`: the reference's depth loss, its affine fit and its prior D_k.
 * `coin_cl.gs.background_depth`: every view's mask held to the surrounding surfaces' depth
-  (issue 21: no ghost of a removed object).
+  (no ghost of a removed object).
 * `coin_cl.pipeline.reference`: which view is the reference k.
 
 Every piece can be switched off through `RefGSConfig` for the paper's ablations (Table 4: w/o
@@ -76,7 +76,7 @@ class RefGSConfig:
     # Steps of the auxiliary GS trained on the captured images for the depth prior when the dataset
     # ships none (None: max(min(100, iters), iters // 5): a smoke run with a few steps stays quick).
     depth_prior_iters: int | None = None
-    # -- background depth in every view's mask (issue 21; `coin_cl.gs.background_depth`): removal
+    # -- background depth in every view's mask (`coin_cl.gs.background_depth`): removal
     #    only (an insertion's masks hold the new object, not the background)
     bg_depth: bool = True
     lambda_bg_depth: float = 3.0  # weight of the background depth term (>= 0; 0 = off)

@@ -1,4 +1,4 @@
-"""Planar continuation of the surfaces around a mask (issue 21; the depth in the masks that CoIn
+"""Planar continuation of the surfaces around a mask (the depth in the masks that CoIn
 paper 4.2's depth loss L_D asks for, continued from the surroundings in every view).
 
 D_bg (`coin_cl.gs.background_depth`) fills the cells without a background point by 2D inpainting

@@ -87,7 +87,7 @@ GS_KEYS = ("refine", "refgs", "ted_finetune", "ted_adversarial")
 # and the re-plan after it gives the later GS stages what it did not use (or takes what it overran).
 STEP_COST = {"refine": 2.5, "refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
 # A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
-# Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md, issue 12). TE-D's
+# Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md). TE-D's
 # counts are planned again from Ref-GS's measured rate once it has run (`schedule.stage_schedule`).
 TED_PER_REFGS_STEP = {"ted_finetune": 69 / 84, "ted_adversarial": 69 / 68}
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)

@@ -326,7 +326,7 @@ def stage_clg(
     sd2_plan = ctx.inputs["1_inpaint"] / "sd2.json"
     sd2 = parse_optional(sd2_plan, SD2_PLAN, run_folder_fix(sd2_plan, "stage 1 runs again"))
     if cfg.sample and sd2 is not None and sd2["mode"] == "reference_only":
-        # SD2's CPU-practical mode (issue 22): stage 1 ran SD2 on the reference only; no view here calls
+        # SD2's CPU-practical mode: stage 1 ran SD2 on the reference only; no view here calls
         # it: each hole pixel takes the reference warped through P_k where it reaches, and the view's
         # initial (embedded) inpaint elsewhere, which stands in for R_n in `warp_fill`
         cfg = replace(cfg, sample=False, warp_guard=True)

@@ -1,4 +1,4 @@
-"""The detail band of CLG's output (CoIn paper 4.3; issue 22): the guided sample lives at the sampler's
+"""The detail band of CLG's output (CoIn paper 4.3): the guided sample lives at the sampler's
 working size (64 px for the scene prior, 512 for SD2), while the hole's crop is often several times
 larger, so a sample brought back to the crop has no detail above the working resolution, and the
 guard (`coin_cl.pipeline.clg_guard.no_worse`) then keeps the blurrier input in most views.
@@ -17,7 +17,7 @@ where x is the guided sample (the band the energy can steer) and D the detail so
   of high(I^_k), the split made at view n's scale) on the pixels the warp supports, I^_n's elsewhere:
   the guidance pulls the low band toward the reference, and the detail there comes from the same
   reference through the same geometry, so the residual to the reference falls in both bands;
-- "none": up(x) alone (the behaviour before issue 22).
+- "none": up(x) alone (no detail band: the paper's paste of the sample).
 `CLGConfig.detail_split` (default 0.5) sets the split; at 1 it is the working resolution itself,
 where the 64 px sample still carries its own noise-like texture into the output (measured: the
 shared scene's images were then further from the reference than the inputs).

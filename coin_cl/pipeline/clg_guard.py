@@ -1,4 +1,4 @@
-"""CLG's no-worse guard (issue 22 item 6; CoIn paper 4.3 says nothing of it): a stage that rewrites
+"""CLG's no-worse guard (CoIn paper 4.3 says nothing of it): a stage that rewrites
 images must not hand on something worse than it received. Without ground truth, "worse" is measured
 three ways: the consistency residual to the reference (by both geometric routes), the texture
 inside the mask, and the colour distance of the mask to its surroundings. `pick` chooses among a

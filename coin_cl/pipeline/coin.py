@@ -255,7 +255,8 @@ def inpaint(
     check_points(scene)
     from coin_cl.pipeline.memory import check_memory
 
-    log.info("memory: about %.1f GiB needed at most", check_memory(scene).bytes / 2**30)  # issue 25
+    # check_memory refuses a scene that cannot fit, before any stage runs
+    log.info("memory: about %.1f GiB needed at most", check_memory(scene).bytes / 2**30)
     edited = None
     if edited_ref is not None or cfg.edited_ref:
         from coin_cl.pipeline.insert import load_edited

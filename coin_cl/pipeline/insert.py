@@ -1,4 +1,4 @@
-"""Insertion from one edited view (issue 13; paper 1 and 5.3): stage 1's initial images when the user
+"""Insertion from one edited view (paper 1 and 5.3): stage 1's initial images when the user
 gives the reference view already edited in a 2D tool (`--edited-ref IMAGE`), with no weights at all.
 
 The paper inserts with a text prompt: SD2 inpaints every view and CLG pulls them toward the

@@ -20,7 +20,7 @@ def sd2_denoiser(sd_path: str | None) -> SD2Denoiser | None:
     return SD2Denoiser.from_pretrained(sd_path)
 
 
-# SD2's CPU-practical mode (issue 22). Above this estimated wall time for SD2 on every view (stage 1
+# SD2's CPU-practical mode. Above this estimated wall time for SD2 on every view (stage 1
 # unguided + CLG guided, `diffusion.sd2.sd2_run_estimate` from the measured per-step figures), "auto"
 # runs SD2 on the reference view only: on 2 cores one unguided step is ~43 s and one guided ~108 s,
 # so the shared scene's 34 views would take ~70 h; the reference alone ~0.6 h.

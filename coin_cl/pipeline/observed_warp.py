@@ -1,4 +1,4 @@
-"""Observed background from the captures themselves (issue 21; the 3D-first split of the paper's
+"""Observed background from the captures themselves (the 3D-first split of the paper's
 supplement C.2): the colour of a mask pixel that another view sees is that view's captured pixel,
 carried through the object-free geometry, not a render of a GS fitted to the captures.
 

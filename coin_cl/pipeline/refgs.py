@@ -1,4 +1,4 @@
-"""The Ref-GS stage (CoIn paper 4.2, issue 11): the coarse Scaffold-GS scene trained on the
+"""The Ref-GS stage (CoIn paper 4.2): the coarse Scaffold-GS scene trained on the
 per-view inpaints I^_n, leaning toward one reference view k. CLG and TE-D stand on its outputs.
 
 `run_refgs(scene, targets, out_dir, cfg, ...)` writes into `out_dir`:
@@ -90,7 +90,7 @@ def fit_captured(scene: Scene, train_idx: Sequence[int], kind: str, iters: int, 
 def _aux_gs_depth(scene: Scene, train_idx: Sequence[int], k: int, iters: int, seed: int, backend: str,
                   device: DeviceLike, out: Path) -> np.ndarray:  # fmt: skip
     """Depth of the reference view rendered by a short Scaffold-GS trained on the captured
-    (unmasked) images: the last prior in the issue's order. [H, W] float32 camera z."""
+    (unmasked) images: the last prior in `reference_depth_prior`'s order. [H, W] float32 camera z."""
     tr = fit_captured(scene, train_idx, "scaffold", iters, seed, backend, device, out)
     cam = scene.cameras[k]
     with torch.no_grad():
@@ -104,7 +104,7 @@ def _depth_prior(scene: Scene, train_idx: Sequence[int], k: int, iters: int, see
                  device: DeviceLike, gs_depth: np.ndarray | None, out: Path,
                  aux_iters: int | None = None,
                  known_depth: np.ndarray | None = None) -> DepthPrior:  # fmt: skip
-    """D_k in the issue's order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it.
+    """D_k in `reference_depth_prior`'s order, cached in out/depth_prior.npy (+ .json) so a rerun reuses it.
     known_depth: see `run_refgs`; its finite pixels replace the prior's."""
     npy, meta = out / "depth_prior.npy", out / "depth_prior.json"
     if npy.is_file() and meta.is_file():

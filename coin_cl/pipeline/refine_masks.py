@@ -31,7 +31,7 @@ of what the object hides from some other view. Here:
 4. R^rmv_n, the render of G^rmv with its own scales, stands in for the captured pixels in the input
    mask outside M^rmv_n.
 
-Measured (issue 21; demo room: 90-degree arc, 192x144, 18 training views, a 591-step fit,
+Measured (demo room: 90-degree arc, 192x144, 18 training views, a 591-step fit,
 against the ray-cast visibility `coin_cl.scene.synthetic.truly_unseen`). The default rule marks
 20.1 % of the exactly observed mask pixels unseen (unseen core: precision 0.59, recall 0.96): 11.7
 points from the see-through test (the depth carried inward from the mask's border is too shallow

@@ -1,4 +1,4 @@
-"""What a finished CoIn run prints (issue 20): the stages (ran or skipped and why, minutes), the
+"""What a finished CoIn run prints: the stages (ran or skipped and why, minutes), the
 plan each GS stage was given, the metrics as a table when ground truth exists, and the files a
 person opens next."""
 

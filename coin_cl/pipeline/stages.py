@@ -136,7 +136,7 @@ def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
     cam = scene.cameras[train[0]]
     icfg = planned_config(cfg.inpaint2d, ctx.run.plan, cfg.seed, cam.width, cam.height)
     sd2, only, why = sd2_denoiser(cfg.sd_path), None, ""
-    if sd2 is not None:  # SD2 on every view, or on the reference only (CPU-practical mode, issue 22)
+    if sd2 is not None:  # SD2 on every view, or on the reference only (SD2's CPU-practical mode)
         mode, why = sd2_mode_for(cfg, sd2, sum(bool(masks[i].any()) for i in train))
         ctx.note(why)
         only = [ctx.run.ref] if mode == "reference_only" else None

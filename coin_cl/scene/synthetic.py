@@ -421,7 +421,7 @@ def make_synthetic(
         # "SfM" points: what the training views capture (removal: the room with the object;
         # insertion: the room without it). The test views are ground truth the method never sees,
         # so no point comes from them: points on surfaces only a test view sees would hand a
-        # method the truth behind the object (they flattered masked reconstruction, issue 21).
+        # method the truth behind the object (they would flatter masked reconstruction).
         if is_test[j]:
             continue
         key = "absent" if task == "insertion" else "present"
