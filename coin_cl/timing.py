@@ -18,3 +18,22 @@ def mean_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> fl
     for _ in range(steps):
         step()
     return (time.perf_counter() - t0) / steps
+
+
+def late_step_seconds(log: list[dict], share: float = 0.2) -> float | None:
+    """Mean seconds per step over the last `share` of a training run, from a trainer's log entries
+    ({"step", "train_seconds"}, in step order; the trainer writes one every few steps): what a step
+    costs once the model has grown. None with fewer than two entries or a non-increasing record."""
+    pts = [(int(e["step"]), float(e["train_seconds"])) for e in log
+           if isinstance(e, dict) and isinstance(e.get("step"), int)
+           and isinstance(e.get("train_seconds"), int | float)]  # fmt: skip
+    if len(pts) < 2:
+        return None
+    last_step, last_s = pts[-1]
+    start = next((p for p in pts if p[0] >= (1.0 - share) * last_step), pts[-2])
+    if start[0] >= last_step:
+        start = pts[-2]
+    steps, seconds = last_step - start[0], last_s - start[1]
+    if steps <= 0 or not seconds >= 0:
+        return None
+    return seconds / steps

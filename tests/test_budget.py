@@ -126,12 +126,18 @@ def test_adversarial_steps_add_the_discriminators_measured_cost(tmp_path):
     small images (a cheap GS step) that is several fine-tune steps, as the 192x144 room measured."""
     steps, minutes = B.steps_from_rate(3, 0.1)
     ratio = B.Plan(steps, minutes, 120.0, 0.1, "probe", {})
-    measured = B.Plan(steps, minutes, 120.0, 0.1, "probe", {}, disc_seconds_per_step=0.25)
+    measured = B.Plan(steps, minutes, 120.0, 0.1, "probe", {}, disc_seconds_per_step=0.5)
     spp = 0.16  # Ref-GS's measured seconds per step
-    assert B.ted_step_seconds(measured, "ted_adversarial", spp) == pytest.approx(spp * 69 / 84 + 0.25)
-    assert B.ted_step_seconds(ratio, "ted_adversarial", spp) == pytest.approx(spp * 69 / 68)
+    assert B.ted_step_seconds(measured, "ted_adversarial", spp) == pytest.approx(
+        spp * B.TED_PER_REFGS_STEP["ted_finetune"] + 0.5
+    )
+    assert B.ted_step_seconds(ratio, "ted_adversarial", spp) == pytest.approx(
+        spp * B.TED_PER_REFGS_STEP["ted_adversarial"]
+    )
     for plan in (ratio, measured):
-        assert B.ted_step_seconds(plan, "ted_finetune", spp) == pytest.approx(spp * 69 / 84)
+        assert B.ted_step_seconds(plan, "ted_finetune", spp) == pytest.approx(
+            spp * B.TED_PER_REFGS_STEP["ted_finetune"]
+        )
     _stage(tmp_path, "2_refgs", {"steps": 300, "train_minutes": 300 * spp / 60}, 300 * spp)
     a, b = (S.ted_schedule(tmp_path, p, 3).steps for p in (ratio, measured))
     assert a["ted_finetune"] == b["ted_finetune"] and b["ted_adversarial"] < a["ted_adversarial"] / 2

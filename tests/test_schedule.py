@@ -154,3 +154,21 @@ def test_each_gs_stage_is_planned_again_from_what_the_stages_before_recorded(tmp
     ted = sum(sched.steps[k] * B.gs_step_seconds(plan, k, sched.refgs_seconds_per_step) for k in sched.steps)
     ran = sum(json.loads((p / "manifest.json").read_text())["seconds"] for p in out.iterdir() if p.is_dir())
     assert ted + ran + est["eval"] + plan.probe_wall_seconds == pytest.approx(20 * 60, abs=5)
+
+
+def test_ted_is_costed_from_refgs_late_rate_where_recorded(tmp_path):
+    """TE-D trains the model at its final size: its steps are costed from the late Ref-GS rate the
+    manifest records, from the mean where a manifest has none; a planted bad value is one line."""
+    from coin_cl.schema import SchemaError
+
+    assert S.refgs_step_seconds(tmp_path) is None  # Ref-GS not run
+    _stage(tmp_path, "2_refgs", {"steps": 100, "train_minutes": 10 / 60}, 12.0)
+    assert S.refgs_step_seconds(tmp_path) == pytest.approx(0.1)  # the mean: 10 s over 100 steps
+    _stage(tmp_path, "2_refgs", {"steps": 100, "train_minutes": 10 / 60, "late_seconds_per_step": 0.18}, 12.0)
+    assert S.refgs_step_seconds(tmp_path) == 0.18
+    plan = _plan(tmp_path, 10.0)
+    assert S.ted_schedule(tmp_path, plan, 10.0).refgs_seconds_per_step == 0.18
+    for bad in (-1.0, "fast", float("inf")):
+        _stage(tmp_path, "2_refgs", {"steps": 100, "train_minutes": 1.0, "late_seconds_per_step": bad}, 12.0)
+        with pytest.raises(SchemaError, match="late_seconds_per_step"):
+            S.refgs_step_seconds(tmp_path)

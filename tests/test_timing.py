@@ -18,3 +18,21 @@ def test_warm_up_calls_run_untimed_and_the_mean_is_of_the_timed_ones(monkeypatch
     assert len(calls) == 4
     with pytest.raises(ValueError, match="at least one timed step"):
         timing.mean_step_seconds(step, steps=0, warmup=1)
+
+
+def test_late_step_seconds_is_the_rate_over_the_last_fifth():
+    """A run whose steps slow down from 0.1 s to 0.3 s after step 50 of 100 (log entries every 10
+    steps): the last fifth costs 0.3 s a step, the mean would say 0.2."""
+    log, t = [], 0.0
+    for step in range(10, 101, 10):
+        t += 10 * (0.1 if step <= 50 else 0.3)
+        log.append({"step": step, "train_seconds": t})
+    assert timing.late_step_seconds(log) == pytest.approx(0.3)
+    assert timing.late_step_seconds(log[:1]) is None  # one entry: no interval
+    assert (
+        timing.late_step_seconds([{"step": 5, "train_seconds": 1.0}, {"step": 5, "train_seconds": 2.0}])
+        is None
+    )
+    assert timing.late_step_seconds([{"step": "x"}, *log]) == pytest.approx(
+        0.3
+    )  # a malformed entry is skipped

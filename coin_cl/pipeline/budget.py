@@ -80,16 +80,23 @@ GS_KEYS = ("refine", "refgs", "ted_finetune", "ted_adversarial")
 # (Zen 5, quiet machine; the default run of docs/RESULTS.md at 638718a): probe 0.236 s/step; Ref-GS
 # 0.19-0.24 s/step over its first 100 steps (585k primitives), 0.7 s/step from step ~1000 (1.7M
 # primitives, anchor attention on), 0.513 s/step on average over the 1535 steps its cap allowed of
-# the 1668 planned at 1.6x: 2.2x the probe over a whole run. TE-D follows from it by
-# TED_PER_REFGS_STEP and is planned again from Ref-GS's measured rate.
+# the 1668 planned at 1.6x: 2.2x the probe over a whole run; 1.95x on cup_plain at budget 10 (quiet
+# Zen 3: probe 0.076, Ref-GS 0.148 s/step). TE-D's follow from Ref-GS's by TED_PER_REFGS_STEP
+# (below) until Ref-GS has run; then TE-D is planned again from Ref-GS's measured late rate.
 # 0_refine's fit (plain 3DGS, `RefineConfig.model`) at budget 10: 731 steps in 154 s on cup_plain
 # (probe 0.13 s/step: 1.6x), up to 5.5 min on a 71-view orbit capture (about 3.5x); 2.5 is taken,
 # and the re-plan after it gives the later GS stages what it did not use (or takes what it overran).
-STEP_COST = {"refine": 2.5, "refgs": 2.2, "ted_finetune": 2.2 * 69 / 84, "ted_adversarial": 2.2 * 69 / 68}
-# A TE-D step's cost relative to a Ref-GS step, measured in full runs on SPIn-NeRF at 504x284 (69
-# Ref-GS, 84 TE-D fine-tune, 68 TE-D adversarial steps per minute; docs/RESULTS.md). TE-D's
-# counts are planned again from Ref-GS's measured rate once it has run (`schedule.stage_schedule`).
-TED_PER_REFGS_STEP = {"ted_finetune": 69 / 84, "ted_adversarial": 69 / 68}
+STEP_COST = {"refine": 2.5, "refgs": 2.2}
+# A TE-D step's cost relative to a late Ref-GS step (the last fifth of its run: TE-D trains the
+# model at its final size; `schedule.refgs_step_seconds`), measured in full runs on a quiet machine:
+# fine-tune 0.286 / 0.369 s on SPIn-NeRF at 504x284 (a model that did not grow) and 0.141 / 0.179 s
+# on the cup_plain virtual-object scene at 400x300 (grown 2.5x), 0.78 both; the adversarial step
+# (used where the discriminator was not probed) 0.450 / 0.369 on SPIn-NeRF. Against Ref-GS's mean
+# step the fine-tune ratio was 0.80 and 0.95: the mean does not carry over between scenes that grow
+# differently. TE-D's counts are planned again from Ref-GS's measured rate once it has run
+# (`schedule.stage_schedule`).
+TED_PER_REFGS_STEP = {"ted_finetune": 0.78, "ted_adversarial": 1.22}
+STEP_COST.update({k: STEP_COST["refgs"] * r for k, r in TED_PER_REFGS_STEP.items()})
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
 PROBE_WARMUP = 3
 CAP_FACTOR = 1.25

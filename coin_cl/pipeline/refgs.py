@@ -53,6 +53,7 @@ from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
 from coin_cl.scene.io import view_stem, write_npy, write_png, write_text
 from coin_cl.schema import DEPTH_PRIOR, REFGS_STAGE, parse, parse_optional, run_folder_fix
+from coin_cl.timing import late_step_seconds
 
 if TYPE_CHECKING:
     from coin_cl.engine import DeviceLike
@@ -345,6 +346,8 @@ def run_refgs(
         "iters": n_iters,
         "steps": res["step"],
         "train_minutes": res["train_seconds"] / 60,
+        # a step's cost once the model has grown: TE-D's steps are costed from it
+        "late_seconds_per_step": late_step_seconds(tr.log["train"]),
         "wall_minutes_this_call": (time.perf_counter() - t0) / 60,
         "resumed": resumed,
         "n_primitives": res["n"],

@@ -101,8 +101,7 @@ def stage_schedule(out: Path, plan: Plan, stage: str, budget_minutes: float) -> 
     numbers, and a resumed run too."""
     mine = [k for k in plan.steps if costs.GS_STAGES[k] == stage]
     steps = {k: plan.steps[k] for k in mine}
-    n, seconds = refgs_rate(out)
-    rate = seconds / n if n else None
+    rate = refgs_step_seconds(out)
     left, measured = seconds_left(out, plan, stage, budget_minutes)
     at = costs.STAGE_ORDER.index(stage)
     weights = {k: w for k, w in gs_weights(plan.shares).items()
@@ -147,6 +146,27 @@ def refgs_rate(out: Path) -> tuple[int, float]:
         raise SchemaError(f"{path}: result.steps {steps!r} / result.train_minutes {minutes!r} are not a "
                           f"step count and minutes; {run_folder_fix(path, 'Ref-GS runs again')}")  # fmt: skip
     return int(steps), 60.0 * float(minutes)
+
+
+def refgs_step_seconds(out: Path) -> float | None:
+    """The seconds per Ref-GS step TE-D's steps are costed from (`budget.ted_step_seconds`): the
+    late rate Ref-GS's manifest records (`result.late_seconds_per_step`, the last fifth of its run,
+    the model at the size TE-D trains), else its mean over the run (a manifest without it); None
+    when Ref-GS has not run."""
+    from coin_cl.pipeline.runner import read_manifest
+
+    n, seconds = refgs_rate(out)
+    if not n:
+        return None
+    man = read_manifest(Path(out) / "2_refgs")
+    late = None if man is None else man["result"].get("late_seconds_per_step")
+    if late is None:
+        return seconds / n
+    if isinstance(late, bool) or not isinstance(late, int | float) or not (math.isfinite(late) and late > 0):
+        path = Path(out) / "2_refgs" / "manifest.json"
+        raise SchemaError(f"{path}: result.late_seconds_per_step {late!r} is not a positive number of "
+                          f"seconds; {run_folder_fix(path, 'Ref-GS runs again')}")  # fmt: skip
+    return float(late)
 
 
 def run_steps(out: Path) -> dict[str, int]:
