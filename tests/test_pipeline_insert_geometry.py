@@ -15,10 +15,12 @@ from coin_cl.pipeline.insert_geometry import (
     clean_region,
     contact_sheet,
     derive_masks,
+    footprint,
     lift_one_photo,
     lift_reference,
     run_insert_derived,
     splat_depth,
+    visible_footprint,
 )
 from coin_cl.scene import load_scene, write_synthetic
 from coin_cl.scene.io import read_image, write_png
@@ -101,6 +103,36 @@ def test_object_wider_above_its_foot_stands_on_its_foot():
     extent = np.ptp(lift.points @ b)  # along the horizontal view direction
     assert extent <= lift.thickness + 0.45 * lift.width, (extent, lift.thickness, lift.width)
     assert lift.points[:, 2].min() >= -0.01  # nothing under the ground (1e-3 of the depth)
+
+
+def test_scene_points_in_front_of_the_object_hide_it_in_that_view():
+    """A box stood on the ground z = 0 from one photo, seen from the same camera: a sheet of scene
+    points between the camera and the box's left half hides that half (the region keeps the captured
+    scene in front); the same sheet behind the box hides nothing, nor does the ground in front of its
+    foot; with occlusion off the whole projection is the region."""
+    cam = _look_at([0.0, -6.0, 3.0], [0.0, 0.0, 0.6], 120, 90, 110.0)
+    g = np.linspace(-4, 4, 41)
+    ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
+    u0, v0 = cam.project(np.zeros((1, 3)))[0][0]
+    yy, xx = np.mgrid[0:90, 0:120] + 0.5
+    region = (yy >= v0 - 30) & (yy <= v0) & (np.abs(xx - u0) <= 15)
+    edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
+    lift = lift_one_photo(edited, region, cam, ground, "box.png", CFG)
+    whole = footprint(lift.points, cam)
+    x0 = lift.points[:, 0].min()
+    sx, sz = np.meshgrid(np.linspace(x0 - 0.3, 0.0, 25), np.linspace(0.1, 3.0, 60), indexing="ij")
+
+    def sheet(y: float) -> np.ndarray:
+        return np.stack([sx.ravel(), np.full(sx.size, y), sz.ravel()], -1)
+
+    front = visible_footprint(lift, np.concatenate([ground, sheet(-3.0)]), cam, CFG)
+    left, right = whole & (xx < u0 - 3), whole & (xx > u0 + 3)
+    assert front[left].mean() < 0.1 and front[right].mean() > 0.95
+    behind = visible_footprint(lift, np.concatenate([ground, sheet(lift.points[:, 1].max() + 1.0)]), cam, CFG)
+    assert (behind == whole).all()
+    assert (visible_footprint(lift, ground, cam, CFG) == whole).all()
+    off = replace(CFG, occlusion=False)
+    assert (visible_footprint(lift, np.concatenate([ground, sheet(-3.0)]), cam, off) == whole).all()
 
 
 def test_contact_sheet_mixes_portrait_and_landscape_views():

@@ -32,7 +32,9 @@ class InsertConfig:
     transform). thickness: the object's depth as a share of its width. region_margin: px the
     derived regions extend beyond the object's projection (None: 1 % of the view's longer side,
     at least 1). max_points: cap on lifted points
-    (samples along the rays get coarser beyond it)."""
+    (samples along the rays get coarser beyond it). occlusion: the scene's sparse points standing
+    in front of the object hide it in a view (its region there leaves them out, so the captured
+    scene stays in front of it); False: the object is drawn over everything it projects onto."""
 
     edit_tol: float = 2.0 / 255.0
     hull_fraction: float = 0.9
@@ -48,6 +50,7 @@ class InsertConfig:
     thickness: float = 0.65
     region_margin: int | None = None
     max_points: int = 2_000_000
+    occlusion: bool = True
 
     def __post_init__(self) -> None:
         for name, ok, what in (
@@ -60,6 +63,7 @@ class InsertConfig:
                 "an integer >= 2",
             ),
             ("ref_match_tol", self.ref_match_tol > 0, "> 0"),
+            ("occlusion", isinstance(self.occlusion, bool), "True or False"),
             ("regions", self.regions in ("auto", "hull", "derive"), "'auto', 'hull' or 'derive'"),
             ("min_component", 0.0 <= self.min_component <= 1.0, "in [0, 1]"),
             ("surface_tol", 0.0 < self.surface_tol < 1.0, "in (0, 1)"),

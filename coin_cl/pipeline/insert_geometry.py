@@ -85,6 +85,14 @@ RANSAC_ITERS = 256
 SAMPLE_PX = 0.7
 # The derived regions' default margin, as a share of the view's longer side.
 REGION_MARGIN_SHARE = 0.01
+# Occlusion of the object by the scene (`occluded`): a sparse point more than this share of the
+# object's width above the supporting surface may hide it (the surface's own points lie in front of
+# the object's foot in most views and do not); it hides the pixels within this share of the view's
+# longer side around it (at least 2 px; the sparse cloud leaves gaps between its points, which the
+# same disc closes), where it is nearer than the object by more than OCCLUDER_TOL of its depth.
+OCCLUDER_ABOVE = 0.05
+OCCLUDER_RADIUS_SHARE = 0.012
+OCCLUDER_TOL = 0.03
 
 
 class OnePhotoLift(NamedTuple):
@@ -337,6 +345,42 @@ def footprint(points: np.ndarray, cam: Camera) -> np.ndarray:
     return clean_region(closed, 0.0)
 
 
+def occluded(lift: OnePhotoLift, scene_points: np.ndarray, cam: Camera) -> np.ndarray:
+    """Pixels of view `cam` where the scene hides the lifted object: a sparse scene point standing
+    above the supporting surface (OCCLUDER_ABOVE) lies nearer than the object there (OCCLUDER_TOL),
+    each point covering a disc of OCCLUDER_RADIUS_SHARE of the view. (H, W) bool; all False
+    without such points."""
+    pts = np.asarray(scene_points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    n, d = lift.plane[:3], float(lift.plane[3])
+    above = pts[pts @ n - d > OCCLUDER_ABOVE * lift.width]
+    if not len(above):
+        return np.zeros((cam.height, cam.width), bool)
+    r = max(2, round(OCCLUDER_RADIUS_SHARE * max(cam.width, cam.height)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    scene_z = cv2.erode(splat_depth(above, cam), disc)  # the nearest scene point within r px
+    object_z = cv2.erode(splat_depth(lift.points, cam), np.ones((3, 3), np.uint8))  # cracks closed
+    with np.errstate(invalid="ignore"):
+        hid = np.isfinite(object_z) & (scene_z < (1.0 - OCCLUDER_TOL) * object_z)
+    return cv2.morphologyEx(hid.astype(np.uint8), cv2.MORPH_CLOSE, disc).astype(bool)
+
+
+def visible_footprint(
+    lift: OnePhotoLift, scene_points: np.ndarray, cam: Camera, cfg: InsertConfig
+) -> np.ndarray:
+    """F_n: the object's `footprint` in `cam`, less what the scene hides there (`occluded`, when
+    `cfg.occlusion`), without the visible bits under `cfg.min_component` of the whole footprint
+    (gaps of the sparse cloud in an occluder, not the object peeking out). (H, W) bool."""
+    foot = footprint(lift.points, cam)
+    if not (cfg.occlusion and foot.any()):
+        return foot
+    seen = foot & ~occluded(lift, scene_points, cam)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(seen.astype(np.uint8), connectivity=8)
+    keep = np.zeros(n, bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= cfg.min_component * foot.sum()
+    return keep[lab]
+
+
 def grow(mask: np.ndarray, margin: int) -> np.ndarray:
     """`mask` (H, W) bool dilated by `margin` px (a disc)."""
     if margin <= 0 or not mask.any():
@@ -398,7 +442,9 @@ def derive_masks(edited: np.ndarray, scene: Scene, masks: list[np.ndarray], k: i
     out = []
     for i, cam in enumerate(scene.cameras):
         m = margin_px(cfg, cam)
-        out.append(grow(lift.region, m) if i == k else grow(footprint(lift.points, cam), m))
+        out.append(
+            grow(lift.region, m) if i == k else grow(visible_footprint(lift, scene.points, cam, cfg), m)
+        )
     return out
 
 
@@ -430,7 +476,7 @@ def run_insert_derived(scene: Scene, masks: list[np.ndarray], train: list[int], 
         if i == k:
             img, foot = edited, lift.region
         else:
-            foot = footprint(lift.points, cam) & region
+            foot = visible_footprint(lift, scene.points, cam, cfg) & region
             col, wt = reference_in_view(edited, cam, cam_k, lift.points, None, device)
             crack = foot & ~(wt > 0)
             if crack.any():  # a pixel the closing added: the colour of its neighbours
