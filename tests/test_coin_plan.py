@@ -167,3 +167,30 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}
     assert CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2])["1_inpaint"] == 3
     assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(skip=("clg",)), [0, 1])
+
+
+def test_no_time_is_planned_for_a_scene_prior_nothing_trains(tmp_path, monkeypatch, caplog):
+    """CLG skipped and stage 1 filling without the prior (the embedded exemplar inpainter): the prior's
+    steps are still planned (stage 1's key holds them) but its seconds go to the GS stages and the
+    refusal's minimum leaves it out; with the prior as stage 1's inpainter it is charged as before."""
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+
+    monkeypatch.setattr(CP, "probe_seconds_per_step", lambda *a, **k: 0.5)
+    monkeypatch.setattr(CP, "disc_probe", lambda *a: lambda: 0.1)
+    monkeypatch.setattr(CP, "prior_probe", lambda *a: lambda: 0.9)
+    both = CP.plan_for(_OwnCapture(), tmp_path / "a", CoInConfig(budget_minutes=10.0), [0, 1])
+    with caplog.at_level("INFO"):
+        bare = CP.plan_for(
+            _OwnCapture(), tmp_path / "b", CoInConfig(budget_minutes=10.0, skip=("clg",)), [0, 1]
+        )
+    assert "prior" in both.fixed_seconds and "prior" not in bare.fixed_seconds
+    assert bare.prior_steps == both.prior_steps and "not trained here" in caplog.text
+    assert bare.minutes["refgs"] > both.minutes["refgs"]
+    own = CoInConfig(budget_minutes=10.0, skip=("clg",), inpaint2d=Inpaint2DConfig(inpainter="prior"))
+    assert "prior" in CP.plan_for(_OwnCapture(), tmp_path / "c", own, [0, 1]).fixed_seconds
+    with pytest.raises(B.BudgetTooSmall) as tiny_with:
+        CP.plan_for(_OwnCapture(), tmp_path / "d", CoInConfig(budget_minutes=0.5), [0, 1])
+    with pytest.raises(B.BudgetTooSmall) as tiny_without:
+        CP.plan_for(_OwnCapture(), tmp_path / "e", CoInConfig(budget_minutes=0.5, skip=("clg",)), [0, 1])
+    assert tiny_without.value.minimum < tiny_with.value.minimum

@@ -325,6 +325,7 @@ def plan_run(
     shares: dict[str, float] | None = None,
     views: dict[str, int] | None = None,
     probe_wall_seconds: float | None = None,
+    prior_trained: bool = True,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
@@ -338,6 +339,8 @@ def plan_run(
     is estimated, the GS pool is the budget less the prior's share).
     probe_wall_seconds: the probes' wall time to count instead of the time measured here (a plan
     that takes another's rates takes its figure too, so the same budget gives the same counts).
+    prior_trained: False where no stage will train the scene prior (CLG skipped, stage 1 filling
+    without it): its steps are still planned (stage 1's key holds them) but cost no time.
     Raises `BudgetTooSmall` (nothing written) when the GS pool left cannot give every budgeted GS
     stage `stage_costs.MIN_STEPS`."""
     path = Path(out) / PLAN_FILE
@@ -379,8 +382,11 @@ def plan_run(
             raise ValueError(f"discriminator seconds per step must be a non-negative number, got {disc}")
     wall = time.perf_counter() - t0 if probe_wall_seconds is None else float(probe_wall_seconds)
     draft = Plan({}, {}, secs, spp, "probe", {}, prior_steps, prior_spp, disc, shares)
-    fixed = (costs.fixed_costs(views, costs.machine_factor(prior_spp), prior_steps, prior_spp)
-             if views is not None else {"prior": secs})  # fmt: skip
+    trained = (prior_steps, prior_spp) if prior_trained else (None, None)
+    if views is not None:
+        fixed = costs.fixed_costs(views, costs.machine_factor(prior_spp), *trained)
+    else:
+        fixed = {"prior": secs} if prior_trained else {}
     given = {k: int(n) for k, n in explicit.items() if n is not None and k in gs_weights(shares)}
     given_s = sum(n * gs_step_seconds(draft, k, None) for k, n in given.items())
     pool = 60.0 * budget_minutes - wall - sum(fixed.values()) - given_s
@@ -432,12 +438,13 @@ def too_small(
     counts' seconds; fixed: the fixed stages' estimates; need: the GS pool MIN_STEPS take."""
     # The prior's cost in a budget B: its floor, or its share of B at PRIOR_STEP_COST per probed step.
     floor, share = fixed.get("prior", 0.0), 0.0
-    if explicit_prior_seconds is None and plan.prior_seconds_per_step is not None:
+    trained = "prior" in fixed  # else no stage trains it: no floor, no share
+    if trained and explicit_prior_seconds is None and plan.prior_seconds_per_step is not None:
         from coin_cl.diffusion.scene_prior import steps_for_seconds
 
         floor = steps_for_seconds(PRIOR_MIN_SECONDS) * plan.prior_seconds_per_step * costs.PRIOR_STEP_COST
         share = BUDGET_SHARES["prior"] * costs.PRIOR_STEP_COST
-    elif explicit_prior_seconds is None and "prior" in fixed:  # no prior probe: its nominal seconds
+    elif trained and explicit_prior_seconds is None:  # no prior probe: its nominal seconds
         floor, share = PRIOR_MIN_SECONDS, BUDGET_SHARES["prior"]
     others = fixed_gs + sum(v for k, v in fixed.items() if k != "prior")
     least = math.ceil(10 * costs.minimum_budget(others, floor, share, need)) / 10

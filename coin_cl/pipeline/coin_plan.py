@@ -67,7 +67,8 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
     if shares == BUDGET_SHARES:
         shares = None  # the default split: plans made before keep their file
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes, shares=shares,
-                    views=fixed_views(scene, cfg, train), probe_wall_seconds=wall)  # fmt: skip
+                    views=fixed_views(scene, cfg, train), probe_wall_seconds=wall,
+                    prior_trained=prior_trained(scene, cfg))  # fmt: skip
 
 
 def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:
@@ -84,6 +85,21 @@ def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, in
     if "clg" in cfg.skip:
         del views["3_clg"]
     return views
+
+
+def prior_trained(scene: Scene, cfg: CoInConfig) -> bool:
+    """Whether a stage trains the scene prior: CLG guides with it unless skipped, and stage 1 fills
+    with it when its inpainter is the prior. A run with neither plans no time for it (logged)."""
+    from coin_cl.pipeline.inpaint2d import fill_source
+
+    if "clg" not in cfg.skip or cfg.sd_path:
+        return "clg" not in cfg.skip
+    if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "prior" and cfg.inpaint2d.use_prior:
+        return True
+    log.info(
+        "scene prior: not trained here (CLG is skipped and stage 1 fills without it): no time planned for it"
+    )
+    return False
 
 
 def adversarial_skip(scene: Scene, cfg: CoInConfig) -> str | None:
