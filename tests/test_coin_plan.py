@@ -167,6 +167,10 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}
     assert CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2])["1_inpaint"] == 3
     assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(skip=("clg",)), [0, 1])
+    # below the capture's size eval also scores the masked test views there
+    held = type("Held", (_OwnCapture,), {"test_idx": [3]})()
+    assert CP.fixed_views(held, CoInConfig(resolution=0.5), [0, 1])["eval_capture"] == 1
+    assert "eval_capture" not in CP.fixed_views(held, CoInConfig(resolution=1.0), [0, 1])
 
 
 def test_no_time_is_planned_for_a_scene_prior_nothing_trains(tmp_path, monkeypatch, caplog):

@@ -19,6 +19,14 @@ def test_fixed_costs_grow_with_views_and_a_slower_machine():
     assert "3_clg" not in C.fixed_costs({"0_scene": 20, "eval": 20}, 1.0)  # a stage left out costs nothing
 
 
+def test_scoring_at_the_capture_size_is_part_of_evals_estimate():
+    views = {"0_scene": 10, "eval": 10}
+    plain = C.fixed_costs(views, 2.0)
+    more = C.fixed_costs({**views, "eval_capture": 4}, 2.0)
+    assert set(more) == set(plain) and more["0_scene"] == plain["0_scene"]
+    assert more["eval"] == pytest.approx(plain["eval"] + 2.0 * 4 * C.CAPTURE_SECONDS_PER_VIEW)
+
+
 def test_machine_factor_is_the_prior_rate_against_the_reference_within_bounds():
     assert C.machine_factor(None) == 1.0
     assert C.machine_factor(C.REFERENCE_PRIOR_SECONDS_PER_STEP * 2) == pytest.approx(2.0)

@@ -74,7 +74,8 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
 def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:
     """{fixed stage: the views it works on} for `stage_costs.fixed_costs`: 0_scene and eval every
     view, CLG the masked training views (absent when skipped), stage 1 the masked training views it
-    fills by computation (with the dataset's own fills only those without one: the rest are read)."""
+    fills by computation (with the dataset's own fills only those without one: the rest are read);
+    "eval_capture": the masked test views eval also scores at the capture's size (a run below it)."""
     from coin_cl.pipeline.inpaint2d import fill_source
 
     masked = [i for i in train if scene.masks[i].any()]
@@ -82,6 +83,8 @@ def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, in
     if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "dataset":
         filled = [i for i in masked if i not in scene.priors.get("rgb", {})]
     views = {"0_scene": len(scene), "1_inpaint": len(filled), "3_clg": len(masked), "eval": len(scene)}
+    if cfg.resolution not in (None, 1.0):  # eval scores the test views at the capture's size too
+        views["eval_capture"] = sum(bool(scene.masks[i].any()) for i in scene.test_idx)
     if "clg" in cfg.skip:
         del views["3_clg"]
     return views
