@@ -106,9 +106,10 @@ def score_views(views: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], out
                              f"{np.shape(m)} differ in size")  # fmt: skip
         m = np.asarray(m, bool)
         per_view[name] = M.evaluate_view(pred, gt, m, lpips, None)
-        small = vgg is None or min(gt.shape[:2]) < M.VGG_PD_MIN_SIDE
-        per_view[name]["m_vgg_pd"] = None if vgg is None else math.nan if small else M.bbox_vgg_pd(vgg, pred, gt, m)
         del per_view[name]["vgg_pd"]
+        if vgg is not None:  # an image under 32 px a side has none (NaN), as in `evaluate_view`
+            small = min(gt.shape[:2]) < M.VGG_PD_MIN_SIDE
+            per_view[name]["m_vgg_pd"] = math.nan if small else M.bbox_vgg_pd(vgg, pred, gt, m)
     doc = {
         "n_views": len(per_view),
         "mean": M.aggregate(list(per_view.values())),
