@@ -42,11 +42,11 @@ CAPTURE_SECONDS_PER_VIEW = 2.5
 # `diffusion.scene_prior.STEPS_PER_SECOND` was measured at): the fixed stages' figures are scaled by
 # the measured prior rate over this one.
 REFERENCE_PRIOR_SECONDS_PER_STEP = 120 / 133
-# A scene prior step in a run costs this many probe steps. Measured 1.7 on SPIn-NeRF at budget 30
-# with background load (probe 0.81 s/step, the run 1.4) and about 0.55 on cup_plain at budget 10
-# (probe 1.31 s/step; its 133 steps and CLG's features took ~96 s): the probe's 2 timed steps are
-# noisy; 1.0 is taken, and the re-plan after CLG gives TE-D what the estimate over-counted.
-PRIOR_STEP_COST = 1.0
+# A scene prior step in a run costs this many probe steps: on a quiet 2-core AMD EPYC, 0.72-0.90 s a
+# step in four runs (two scenes, budgets 5-20) against probes of 0.65-0.82 (1.23, 1.29, 0.88, 1.07:
+# the probe's 2 timed steps are noisy); 1.15 is taken, and the re-plan after CLG gives TE-D what the
+# estimate over-counted.
+PRIOR_STEP_COST = 1.15
 # The machine factor is kept within these bounds: a probe disturbed by a burst of load must not
 # make a run plan for a machine 100x slower.
 FACTOR_RANGE = (0.25, 8.0)
