@@ -1,6 +1,6 @@
 """Remove an object from your own scene given only bounding boxes.
 
-    python examples/remove_bbox.py path/to/scene --out runs/mine [--ref IMG_0012.jpg] [--budget 30]
+    python examples/remove_bbox.py path/to/scene --out runs/mine [--ref IMG_0012.jpg] [--budget 10]
         [--iters N --prior-seconds S --clg-steps N]   # fixed small counts instead of the budget (smoke runs)
 
 The scene is a COLMAP folder with object masks in masks/<image name> (or any layout `load_scene`
@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None):
     ap.add_argument("scene", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--ref", default=None, help="reference view (name or index); default chosen by rule")
-    ap.add_argument("--budget", type=float, default=30.0)
+    ap.add_argument("--budget", type=float, default=10.0)
     ap.add_argument("--resolution", type=float, default=None, help="default: from the image size")
     ap.add_argument("--iters", type=int, default=None, help="explicit iterations per training stage")
     ap.add_argument("--prior-seconds", type=float, default=None, help="scene prior training (smoke runs)")

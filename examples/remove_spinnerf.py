@@ -1,6 +1,6 @@
 """Remove the box from the shared SPIn-NeRF scene with CoIn and score it against the ground truth.
 
-    python examples/remove_spinnerf.py [--data ../shared/data/spinnerf_scene1] [--budget 30]
+    python examples/remove_spinnerf.py [--data ../shared/data/spinnerf_scene1] [--budget 10]
         [--out runs/spinnerf] [--iters N --prior-seconds S --clg-steps N]   # (smoke runs)
 
 Uses the dataset's LaMa inpaints as the initial 2D results (seg masks), the embedded scene prior for
@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=default_data())
     ap.add_argument("--out", type=Path, default=Path("runs/spinnerf"))
-    ap.add_argument("--budget", type=float, default=30.0, help="training minutes to aim at")
+    ap.add_argument("--budget", type=float, default=10.0, help="training minutes to aim at")
     ap.add_argument("--resolution", type=float, default=None, help="default: from the image size (0.5 here)")
     ap.add_argument("--sd-path", default=None)
     ap.add_argument("--dino-path", default=None)

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None):
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--prompt", default="")
     ap.add_argument("--mask-kind", choices=("seg", "bbox", "scribble"), default="seg")
-    ap.add_argument("--budget", type=float, default=30.0)
+    ap.add_argument("--budget", type=float, default=10.0)
     ap.add_argument("--resolution", type=float, default=None, help="default: from the image size")
     ap.add_argument("--iters", type=int, default=None, help="explicit iterations per training stage")
     ap.add_argument("--sd-steps", type=int, default=None, help="DDIM steps of the 2D inpaints (paper: 50)")

@@ -220,9 +220,9 @@ def test_a_flag_default_that_drifts_is_caught(monkeypatch):
 
     changed = dataclasses.make_dataclass("Changed", [("budget_minutes", float, 45.0)], bases=(CoInConfig,))
     monkeypatch.setattr(sys.modules[__name__], "CoInConfig", changed)
-    with pytest.raises(AssertionError, match="--budget defaults to 30.0, budget_minutes to 45.0"):
+    with pytest.raises(AssertionError, match="--budget defaults to 10.0, budget_minutes to 45.0"):
         test_every_run_flag_has_its_config_fields_default()
-    assert config.CoInConfig().budget_minutes == 30.0
+    assert config.CoInConfig().budget_minutes == 10.0
 
 
 @pytest.mark.parametrize(

@@ -45,10 +45,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                         "and every other view's region is derived (no masks needed); hull = the masks "
                         "cover it in every view; auto = hull when every training view has a mask, else "
                         "derive")  # fmt: skip
-    p.add_argument("--budget", type=values.positive_float, default=30.0,
+    p.add_argument("--budget", type=values.positive_float, default=10.0,
                    help="the run's wall-clock minutes, every stage and eval included; timing probes turn "
                         "them into steps, recorded in OUT/plan.json; a budget this machine cannot fit is "
-                        "refused with the minimum (default 30; docs/RUN.md, 'The budget')")  # fmt: skip
+                        "refused with the minimum (default 10; docs/RUN.md, 'The budget')")  # fmt: skip
     p.add_argument("--resolution", type=values.positive_float, default=None,
                    help="image scale (0.5 = half); default: picked from the image size (at most "
                         "160k pixels a view, logged)")  # fmt: skip
