@@ -106,7 +106,8 @@ def at_capture(scene: Path, run: Path) -> dict:
     if not doc.is_file():
         from coin_cl.gs.model_kinds import model_from_state
         from coin_cl.gs.trainer import CKPT_NAME
-        from coin_cl.pipeline.eval_stage import capture_views, score_at_capture
+        from coin_cl.pipeline.eval_stage import score_at_capture
+        from coin_cl.pipeline.run_inputs import capture_views
         from coin_cl.pipeline.stages import load_model
         from coin_cl.scene import load_scene
 

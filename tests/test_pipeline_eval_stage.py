@@ -1,5 +1,6 @@
-"""The eval stage's scoring at the capture's resolution (coin_cl.pipeline.eval_stage): the test views
-kept before the resize, rendered at their own size and scored against the photos."""
+"""The eval stage's scoring at the capture's resolution (coin_cl.pipeline.eval_stage; the views it
+scores come from coin_cl.pipeline.run_inputs.capture_views): the test views kept before the resize,
+rendered at their own size and scored against the photos."""
 
 from dataclasses import replace
 
@@ -8,7 +9,8 @@ import pytest
 import torch
 
 from coin_cl import metrics as M
-from coin_cl.pipeline.eval_stage import capture_views, score_at_capture
+from coin_cl.pipeline.eval_stage import score_at_capture
+from coin_cl.pipeline.run_inputs import capture_views
 from coin_cl.scene import load_scene, write_synthetic
 from coin_cl.scene.io import read_image
 from coin_cl.scene.types import resize_image

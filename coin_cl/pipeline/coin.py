@@ -37,11 +37,11 @@ import numpy as np
 from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_resolution
 from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
-from coin_cl.pipeline.eval_stage import CaptureViews, capture_views, stage_eval
+from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
-from coin_cl.pipeline.run_inputs import RunInputs
+from coin_cl.pipeline.run_inputs import CaptureViews, RunInputs, capture_views
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
 from coin_cl.pipeline.schedule import stage_schedule
 from coin_cl.pipeline.stages import (

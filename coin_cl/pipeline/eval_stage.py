@@ -10,42 +10,17 @@ size pays for its blur in the second figure.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from coin_cl.pipeline.runner import StageContext, jsonable
 from coin_cl.pipeline.stages import load_model
 
 if TYPE_CHECKING:
-    from coin_cl.pipeline.run_inputs import RunInputs
-    from coin_cl.scene import Scene
-    from coin_cl.scene.types import Camera
+    from coin_cl.pipeline.run_inputs import CaptureViews, RunInputs
 
 # The folder under the eval stage that holds the capture-size renders and their metrics.
 CAPTURE_DIR = "capture"
-
-
-@dataclass(frozen=True)
-class CaptureViews:
-    """The object-absent test views with a mask at the capture's own resolution, kept from the scene
-    before it is resized to the working resolution: {scene view index: camera / (H, W, 3) float32
-    image in [0, 1] / (H, W) bool mask}."""
-
-    cameras: dict[int, Camera]
-    images: dict[int, np.ndarray]
-    masks: dict[int, np.ndarray]
-
-
-def capture_views(scene: Scene) -> CaptureViews | None:
-    """`CaptureViews` of `scene` at its loaded resolution; None when no test view has a mask."""
-    idx = [i for i in scene.test_idx if np.asarray(scene.masks[i]).any()]
-    if not idx:
-        return None
-    return CaptureViews({i: scene.cameras[i] for i in idx}, {i: scene.images[i] for i in idx},
-                        {i: np.asarray(scene.masks[i], bool) for i in idx})  # fmt: skip
 
 
 def score_at_capture(model, views: CaptureViews, out: Path) -> dict:

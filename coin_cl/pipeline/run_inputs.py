@@ -17,8 +17,28 @@ if TYPE_CHECKING:
     from coin_cl.gs.refgs import RefGSConfig
     from coin_cl.pipeline.budget import Plan
     from coin_cl.pipeline.config import CoInConfig
-    from coin_cl.pipeline.eval_stage import CaptureViews
     from coin_cl.scene import Scene
+    from coin_cl.scene.types import Camera
+
+
+@dataclass(frozen=True)
+class CaptureViews:
+    """The object-absent test views with a mask at the capture's own resolution, kept from the scene
+    before it is resized to the working resolution: {scene view index: camera / (H, W, 3) float32
+    image in [0, 1] / (H, W) bool mask}."""
+
+    cameras: dict[int, Camera]
+    images: dict[int, np.ndarray]
+    masks: dict[int, np.ndarray]
+
+
+def capture_views(scene: Scene) -> CaptureViews | None:
+    """`CaptureViews` of `scene` at its loaded resolution; None when no test view has a mask."""
+    idx = [i for i in scene.test_idx if np.asarray(scene.masks[i]).any()]
+    if not idx:
+        return None
+    return CaptureViews({i: scene.cameras[i] for i in idx}, {i: scene.images[i] for i in idx},
+                        {i: np.asarray(scene.masks[i], bool) for i in idx})  # fmt: skip
 
 
 @dataclass(frozen=True)
