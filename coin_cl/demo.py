@@ -12,7 +12,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the pipeline is imported where it runs: `coin-cl demo --render-only` needs none of it
-    from coin_cl.pipeline.coin import CoInConfig
+    from collections.abc import Callable
+
+    from coin_cl.pipeline.coin import CoInConfig, CoInResult
 
 log = logging.getLogger("coin_cl.demo")
 
@@ -24,6 +26,10 @@ ROOM_METRICS = ("psnr", "m_psnr", "ssim", "hf_ratio", "bbox_gmsd")
 # capped at 10 (50k) it trained CoIn's 891 steps in 131 s instead of 257 s, at 0.12 dB less
 # m-PSNR (20.16 against 20.28; docs/RESULTS.md, "The demo in 10 minutes").
 MR_PIXELS_PER_GAUSSIAN = 10
+# A budget the machine cannot fit is retried this many times in all, each at FIT_MARGIN x the minimum
+# the refusal named (its probes ran on the machine as it was then; a busier one measures slower).
+FIT_ATTEMPTS = 3
+FIT_MARGIN = 1.25
 # CoIn's wall-clock minutes on the room (`--budget` holds every stage: `pipeline.budget`). Chosen to
 # keep the GS training the demo had when its budget counted training alone (2 minutes, beside ~4 of
 # fixed stages on a Zen 3 core pair: the scene prior's 133-step minimum 3 of them, probes, CLG's
@@ -150,14 +156,8 @@ def room(
     rows = {}
     log.info("demo: CoIn on the synthetic room (%.1f min budget)", budget)
     t = time.perf_counter()
-    from coin_cl.pipeline.budget import BudgetTooSmall
-
-    try:
-        coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
-    except BudgetTooSmall as exc:  # the demo must run: at the least budget this machine fits, said so
-        log.warning("demo: %s; the demo runs CoIn at %.1f minutes", exc, exc.minimum)
-        budget, cfg = exc.minimum, replace(cfg, budget_minutes=exc.minimum)
-        coin = inpaint(scene_dir, out / "coin", config=cfg, device=device)
+    coin, cfg = within_reach(cfg, lambda c: inpaint(scene_dir, out / "coin", config=c, device=device))
+    budget = cfg.budget_minutes
     write_report(out / "coin")
     what = "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints"
     rows["coin"] = _row(coin.metrics, time.perf_counter() - t, what)
@@ -232,6 +232,25 @@ def baseline_steps(plan_steps: dict[str, int]) -> int:
     steps (the demo's figure before) masked reconstruction scored 2.1 dB m-PSNR below its own
     figure at CoIn's 1501 on the demo room (docs/RESULTS.md, "The baselines at CoIn's budget")."""
     return int(sum(plan_steps.get(k, 0) for k in ("refgs", "ted_finetune", "ted_adversarial")))
+
+
+def within_reach(cfg: CoInConfig, run: Callable[[CoInConfig], CoInResult]) -> tuple[CoInResult, CoInConfig]:
+    """(run(cfg'), cfg'): `run` at `cfg`'s budget, or, where the machine cannot fit it (`BudgetTooSmall`),
+    at FIT_MARGIN x the minimum the refusal named, up to FIT_ATTEMPTS tries in all (logged; the last
+    refusal is raised): the demo must run on whatever machine it is given."""
+    from coin_cl.pipeline.budget import BudgetTooSmall
+
+    for attempt in range(FIT_ATTEMPTS):
+        try:
+            return run(cfg), cfg
+        except BudgetTooSmall as exc:
+            if attempt == FIT_ATTEMPTS - 1:
+                raise
+            # above the minimum named: the next plan probes again, and a busy machine measures slower
+            budget = math.ceil(10 * FIT_MARGIN * exc.minimum) / 10
+            log.warning("demo: %s; the demo runs CoIn at %.1f minutes", exc, budget)
+            cfg = replace(cfg, budget_minutes=budget)
+    raise AssertionError("unreachable")  # the loop returns or raises
 
 
 def baseline_config(cfg: CoInConfig, run: Path) -> CoInConfig:

@@ -6,6 +6,7 @@ import math
 
 import imageio.v3 as iio
 import numpy as np
+import pytest
 import torch
 
 from coin_cl.demo import ROOM_METRICS, _row, room_markdown, turntable
@@ -66,3 +67,26 @@ def test_baselines_train_coins_gs_steps():
 
     assert baseline_steps({"refgs": 591, "ted_finetune": 411, "ted_adversarial": 499}) == 1501
     assert baseline_steps({"refgs": 12, "prior_seconds": 30}) == 12
+
+
+def test_a_budget_the_machine_cannot_fit_is_retried_above_the_minimum_named():
+    """The demo must run: a refused budget is tried again at 1.25x the minimum the refusal named (a
+    second probe may measure a busier machine), up to three tries; the third refusal is the error."""
+    from coin_cl.demo import within_reach
+    from coin_cl.pipeline.budget import BudgetTooSmall
+    from coin_cl.pipeline.coin import CoInConfig
+
+    tried = []
+
+    def run(cfg, refusals=2, minimum=7.0):
+        tried.append(cfg.budget_minutes)
+        if len(tried) <= refusals:
+            raise BudgetTooSmall(f"--budget {cfg.budget_minutes} cannot fit", minimum + len(tried))
+        return "result"
+
+    res, cfg = within_reach(CoInConfig(budget_minutes=6.0), run)
+    assert res == "result" and tried == [6.0, 10.0, 11.3] and cfg.budget_minutes == 11.3
+    tried.clear()
+    with pytest.raises(BudgetTooSmall):
+        within_reach(CoInConfig(budget_minutes=6.0), lambda c: run(c, refusals=5))
+    assert len(tried) == 3
