@@ -95,8 +95,8 @@ def prior_trained(scene: Scene, cfg: CoInConfig) -> bool:
     with it when its inpainter is the prior. A run with neither plans no time for it (logged)."""
     from coin_cl.pipeline.inpaint2d import fill_source
 
-    if "clg" not in cfg.skip or cfg.sd_path:
-        return "clg" not in cfg.skip
+    if "clg" not in cfg.skip:
+        return True
     if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "prior" and cfg.inpaint2d.use_prior:
         return True
     log.info(

@@ -13,6 +13,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from coin_cl.pipeline.runner import StageContext, jsonable
 from coin_cl.pipeline.stages import load_model
 
@@ -30,7 +32,7 @@ def score_at_capture(model, views: CaptureViews, out: Path) -> dict:
     import torch
 
     from coin_cl.evaluation import score_views
-    from coin_cl.scene.io import read_image, to_uint8, write_png
+    from coin_cl.scene.io import to_uint8, write_png
 
     rdir = Path(out) / "renders"
     rdir.mkdir(parents=True, exist_ok=True)
@@ -38,10 +40,10 @@ def score_at_capture(model, views: CaptureViews, out: Path) -> dict:
     for i, cam in views.cameras.items():
         with torch.no_grad():
             r = model.render(cam, 10**9)
-        path = rdir / f"{Path(cam.name).stem}.png"
-        write_png(path, to_uint8(r.image.clamp(0, 1).numpy()))
+        img = to_uint8(r.image.clamp(0, 1).numpy())
+        write_png(rdir / f"{Path(cam.name).stem}.png", img)
         # scored as written (8 bits), as the working-resolution renders are
-        scored[cam.name] = (read_image(path), views.images[i], views.masks[i])
+        scored[cam.name] = (img.astype(np.float32) / 255.0, views.images[i], views.masks[i])
     return score_views(scored, out)
 
 
@@ -71,8 +73,6 @@ def stage_eval(ctx: StageContext[RunInputs]) -> dict:
         stem = Path(scene.cameras[i].name).stem
         write_png(rdir / f"{stem}.png", to_uint8(r.image.clamp(0, 1).numpy()))
         if i in scene.test_idx:  # camera z where the render is opaque (the depth grid, the ghost figure)
-            import numpy as np
-
             d = r.depth.numpy().astype(np.float32)
             write_npy(ddir / f"{stem}.npy", np.where(r.alpha.numpy() > 0.5, d, np.nan))
     from coin_cl.render_utils import orbit_gif
