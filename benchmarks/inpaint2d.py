@@ -2,6 +2,7 @@
 its real size.
 
 Usage: python benchmarks/inpaint2d.py [--data DIR] [--holes 16] [--size 64] [--lama-path FILE]
+                                      [--rows TEXT ...]
                                       [--sd2 | --sd2-json FILE] [--grid PNG] [--out DIR]
 Holes:
 - "scene": `--holes` square holes of `--size` px in the shared SPIn-NeRF scene's object-present views,
@@ -152,7 +153,7 @@ def room_cases(n_views: int = 8) -> list[dict]:
 
 
 def methods(lama_path: str | None) -> dict:
-    from coin_cl.diffusion.exemplar import ExemplarConfig, exemplar_inpaint
+    from coin_cl.diffusion.exemplar import ExemplarConfig, exemplar_inpaint, smooth_fill
     from coin_cl.diffusion.inpaint2d import opencv_inpaint
 
     def ex(cfg):
@@ -161,7 +162,10 @@ def methods(lama_path: str | None) -> dict:
     rows = {
         "OpenCV TELEA": lambda c: opencv_inpaint(c["truth"], c["mask"], "telea"),
         "OpenCV FSR_FAST": lambda c: opencv_inpaint(c["truth"], c["mask"], "fsr_fast"),
+        "harmonic (Laplace)": lambda c: smooth_fill(c["truth"], c["mask"], "harmonic"),
         "embedded (exemplar, default)": ex(ExemplarConfig()),
+        "exemplar, FSR structure": ex(ExemplarConfig(structure="fsr_fast")),
+        "exemplar, harmonic structure": ex(ExemplarConfig(structure="harmonic")),
         "exemplar full synthesis": ex(ExemplarConfig(mode="full")),
         "exemplar hf, gain 1.0": ex(ExemplarConfig(mode="hf", hf_gain=1.0)),
         "exemplar hf, gain 1.2": ex(ExemplarConfig(mode="hf", hf_gain=1.2)),
@@ -251,6 +255,8 @@ def main() -> None:
     ap.add_argument("--sd2-only", action="store_true", help="only the SD2 measurement")
     ap.add_argument("--sd2-json", type=Path, default=None, help="a saved --sd2 measurement to report")
     ap.add_argument("--grid", type=Path, default=ROOT / "docs" / "img" / "inpaint2d_grid.png")
+    ap.add_argument("--rows", nargs="+", default=None, metavar="TEXT",
+                    help="run only the rows whose name contains one of these (default: every row)")
     args = ap.parse_args()
     torch.set_num_threads(2)
     head = f"{cpu_model()}; {os.cpu_count()} cores; torch {torch.__version__}; commit {git_commit()}"
@@ -269,9 +275,16 @@ def main() -> None:
     }
     results: dict[str, dict[str, dict]] = {k: {} for k in sets}
     outs: dict[str, dict[str, list]] = {k: {} for k in sets}
-    big = ("OpenCV TELEA", "OpenCV FSR_FAST", "embedded (exemplar, default)", "exemplar full synthesis",
+    big = ("OpenCV TELEA", "OpenCV FSR_FAST", "harmonic (Laplace)", "embedded (exemplar, default)",
+           "exemplar, FSR structure", "exemplar, harmonic structure", "exemplar full synthesis",
            "exemplar mean vote (default before)")  # fmt: skip
-    for name, fn in methods(args.lama_path).items():
+    rows = methods(args.lama_path)
+    if args.rows:
+        rows = {n: fn for n, fn in rows.items() if any(t in n for t in args.rows)}
+        if not {"embedded (exemplar, default)", "OpenCV TELEA", "OpenCV FSR_FAST"} <= set(rows):
+            raise SystemExit("--rows must keep 'embedded (exemplar, default)' and both OpenCV rows: "
+                             "the summary compares against them")
+    for name, fn in rows.items():
         for k, cases in sets.items():
             if k == "test" and name not in big and not name.startswith("LaMa"):
                 continue  # real-size holes take ~30 s each: the main rows only

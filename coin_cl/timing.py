@@ -3,6 +3,7 @@ step, a scene-prior step and TE-D's discriminator with it (`coin_cl.pipeline.bud
 
 from __future__ import annotations
 
+import statistics
 import time
 from collections.abc import Callable
 
@@ -18,6 +19,23 @@ def mean_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> fl
     for _ in range(steps):
         step()
     return (time.perf_counter() - t0) / steps
+
+
+def median_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> float:
+    """Median wall seconds of `steps` calls of `step()`, each timed on its own, after `warmup`
+    untimed ones: one call slowed by a burst of other work (a thread pool still winding down from
+    the probe before, a page-fault storm) does not move it, as it moves a mean over few calls.
+    steps >= 1."""
+    if steps < 1:
+        raise ValueError(f"a timing probe needs at least one timed step, got {steps}")
+    for _ in range(warmup):
+        step()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def late_step_seconds(log: list[dict], share: float = 0.2) -> float | None:

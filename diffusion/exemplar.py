@@ -41,6 +41,7 @@ from .inpaint2d import check_image_mask, opencv_inpaint
 log = logging.getLogger(__name__)
 
 EXEMPLAR_NAME = "embedded exemplar inpainting (smooth structure + the scene's patches)"
+STRUCTURES = ("harmonic", "telea", "ns", "fsr_fast", "fsr_best")  # ExemplarConfig.structure
 
 
 @dataclass
@@ -49,7 +50,8 @@ class ExemplarConfig:
     level (levels are added until it is reached). em_iters: search+vote rounds per level (the coarsest
     level gets twice as many). pm_iters: PatchMatch iterations per round. context: the working window
     is the hole's bounding box grown by context x its longer side on every side (clipped to the image);
-    sources are drawn from it. structure: the smooth solver ('telea', 'ns', 'fsr_fast', 'fsr_best').
+    sources are drawn from it. structure: the smooth solver ('harmonic', 'telea', 'ns', 'fsr_fast',
+    'fsr_best'; `smooth_fill`).
     mode: 'full' or 'hf' (module docstring). hf_sigma: Gaussian sigma (px) splitting the bands in
     'hf' mode. hf_gain: gain of the synthesised high band in 'hf' mode. vote_h: the vote's weight
     bandwidth h^2 in units of the level's median patch distance (smaller: the best patches dominate,
@@ -107,6 +109,10 @@ class ExemplarConfig:
     def __post_init__(self) -> None:
         if self.patch < 3 or self.patch % 2 == 0:
             raise ValueError(f"ExemplarConfig.patch must be odd and >= 3, got {self.patch}")
+        if self.structure not in STRUCTURES:
+            raise ValueError(
+                f"ExemplarConfig.structure must be one of {', '.join(STRUCTURES)}, got {self.structure!r}"
+            )
         if self.mode not in ("full", "hf"):
             raise ValueError(f"ExemplarConfig.mode must be 'full' or 'hf', got {self.mode!r}")
         if self.min_coarse < 2 or self.em_iters < 1 or self.pm_iters < 0 or self.context < 0:
@@ -123,6 +129,19 @@ class ExemplarConfig:
             raise ValueError("ExemplarConfig: guard_px >= 0, source_band > 0, gate_tol >= 0, clamp_tol >= 0")
         if not (math.isfinite(self.plain_rms) and self.plain_rms >= 0):
             raise ValueError(f"ExemplarConfig.plain_rms must be finite and >= 0, got {self.plain_rms}")
+
+
+def smooth_fill(image: np.ndarray, hole: np.ndarray, method: str) -> np.ndarray:
+    """The hole of `image` (H, W, 3) float [0, 1] under `hole` (H, W) bool filled by a smooth solver,
+    the full image returned: "harmonic" solves Laplace's equation inside the hole with the known
+    pixels around it as boundary values (`poisson.poisson_blend` with no guidance: the smoothest
+    surface through the ring's colours, no structure of its own), the others are OpenCV's
+    (`inpaint2d.opencv_inpaint`: Telea, Navier-Stokes, frequency-selective reconstruction)."""
+    if method == "harmonic":
+        from .poisson import poisson_blend
+
+        return poisson_blend(image, np.zeros_like(image), hole, hole.astype(np.int8))
+    return opencv_inpaint(image, hole, method)
 
 
 def _window(mask: np.ndarray, context: float, margin: int) -> tuple[slice, slice]:
@@ -419,7 +438,7 @@ def exemplar_inpaint(
     work = cv2.dilate(mask.astype(np.uint8), guard) > 0  # the hole as filled: mask + guard ring
     if work.all():
         raise ValueError("mask (with its guard ring) covers the whole image: no exemplar patches to copy")
-    structure = opencv_inpaint(image, work, cfg.structure)
+    structure = smooth_fill(image, work, cfg.structure)
     win = _window(work, cfg.context, 2 * cfg.patch)
     views = [(image, work)]
     for k, (im, un) in enumerate(sources or []):

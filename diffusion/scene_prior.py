@@ -39,7 +39,7 @@ import torch.nn.functional as F
 
 from coin_cl.atomic import atomic_write  # pure stdlib: no engine, no OpenCL
 from coin_cl.checkpoint import load_checkpoint, malformed  # torch only: no engine, no OpenCL
-from coin_cl.timing import mean_step_seconds  # pure stdlib too
+from coin_cl.timing import median_step_seconds  # pure stdlib too
 
 from .sampling import DDIMSampler, Denoiser, EnergyFn, SamplerConfig, split_prediction
 from .schedule import ScheduleConfig, alphas_cumprod
@@ -67,12 +67,13 @@ def steps_for_seconds(seconds: float, seconds_per_step: float | None = None) -> 
     return max(1, round(seconds / seconds_per_step))
 
 
-def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 2, warmup: int = 1) -> float:
+def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 3, warmup: int = 1) -> float:
     """Seconds one training step of the prior `cfg` takes on this machine: `warmup` + `steps`
     optimizer steps on random patches of its size and batch (a step's cost depends on the network,
-    the patch and the batch, not on the pixels), mean of the timed ones. The plan turns the prior's
-    seconds into steps with it (STEPS_PER_SECOND was measured on one machine; a slower one ran 1.5x
-    over its share)."""
+    the patch and the batch, not on the pixels), the median of the timed ones (the mean of two read
+    1.20 s on a machine whose prior then trained at about 0.8 s a step, and every fixed stage's
+    estimate is scaled by it: `stage_costs.machine_factor`). The plan turns the prior's seconds into steps with
+    it (STEPS_PER_SECOND was measured on one machine; a slower one ran 1.5x over its share)."""
     cfg = cfg or ScenePriorConfig()
     g = torch.Generator().manual_seed(0)
     net = InpaintUNet(cfg.base)
@@ -91,7 +92,7 @@ def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 2, 
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
 
-    return mean_step_seconds(step, steps, warmup)
+    return median_step_seconds(step, steps, warmup)
 
 
 @dataclass

@@ -159,12 +159,17 @@ def test_a_baseline_with_its_counts_given_plans_nothing_and_refuses_nothing(tmp_
 def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     """The dataset's own fills are read, not computed: only the masked training views without one
     count towards stage 1's estimate; the embedded inpainter fills every masked view; CLG guides every
-    masked view either way, and is absent when skipped."""
+    masked view either way (with a sampler, or propagating the reference without one: the default
+    without SD2), and is absent when skipped."""
+    from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig
 
     cfg = CoInConfig()
     views = CP.fixed_views(_Scene(), cfg, [0, 1, 2, 3])
-    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}
+    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg_propagate": 4, "eval": 4}
+    sampled = CP.fixed_views(_Scene(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])
+    assert sampled == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}
+    assert CP.fixed_views(_Scene(), CoInConfig(sd_path="SD2"), [0, 1, 2, 3])["3_clg"] == 4
     assert CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2])["1_inpaint"] == 3
     assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(skip=("clg",)), [0, 1])
     # below the capture's size eval also scores the masked test views there
@@ -174,16 +179,23 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
 
 
 def test_no_time_is_planned_for_a_scene_prior_nothing_trains(tmp_path, monkeypatch, caplog):
-    """CLG skipped and stage 1 filling without the prior (the embedded exemplar inpainter): the prior's
-    steps are still planned (stage 1's key holds them) but its seconds go to the GS stages and the
-    refusal's minimum leaves it out; with the prior as stage 1's inpainter it is charged as before."""
+    """CLG skipped, or propagating without a sampler (the default without SD2), and stage 1 filling
+    without the prior (the embedded exemplar inpainter): the prior's steps are still planned (stage
+    1's key holds them) but its seconds go to the GS stages and the refusal's minimum leaves it out;
+    with CLG sampling with it, or the prior as stage 1's inpainter, it is charged as before."""
+    from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
 
     monkeypatch.setattr(CP, "probe_seconds_per_step", lambda *a, **k: 0.5)
     monkeypatch.setattr(CP, "disc_probe", lambda *a: lambda: 0.1)
     monkeypatch.setattr(CP, "prior_probe", lambda *a: lambda: 0.9)
-    both = CP.plan_for(_OwnCapture(), tmp_path / "a", CoInConfig(budget_minutes=10.0), [0, 1])
+    sampler = CLGConfig(prior_sampler=True)
+    both = CP.plan_for(_OwnCapture(), tmp_path / "a", CoInConfig(budget_minutes=10.0, clg=sampler), [0, 1])
+    default = CP.plan_for(_OwnCapture(), tmp_path / "f", CoInConfig(budget_minutes=10.0), [0, 1])
+    assert "prior" not in default.fixed_seconds
+    assert default.fixed_seconds["3_clg"] < both.fixed_seconds["3_clg"]  # a warp and a blend a view
+    assert default.minutes["refgs"] > both.minutes["refgs"]
     with caplog.at_level("INFO"):
         bare = CP.plan_for(
             _OwnCapture(), tmp_path / "b", CoInConfig(budget_minutes=10.0, skip=("clg",)), [0, 1]
@@ -194,7 +206,7 @@ def test_no_time_is_planned_for_a_scene_prior_nothing_trains(tmp_path, monkeypat
     own = CoInConfig(budget_minutes=10.0, skip=("clg",), inpaint2d=Inpaint2DConfig(inpainter="prior"))
     assert "prior" in CP.plan_for(_OwnCapture(), tmp_path / "c", own, [0, 1]).fixed_seconds
     with pytest.raises(B.BudgetTooSmall) as tiny_with:
-        CP.plan_for(_OwnCapture(), tmp_path / "d", CoInConfig(budget_minutes=0.5), [0, 1])
+        CP.plan_for(_OwnCapture(), tmp_path / "d", CoInConfig(budget_minutes=0.5, clg=sampler), [0, 1])
     with pytest.raises(B.BudgetTooSmall) as tiny_without:
         CP.plan_for(_OwnCapture(), tmp_path / "e", CoInConfig(budget_minutes=0.5, skip=("clg",)), [0, 1])
     assert tiny_without.value.minimum < tiny_with.value.minimum

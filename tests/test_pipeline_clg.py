@@ -180,21 +180,29 @@ def test_stage_clg_reads_the_stage_folders(tmp_path):
         (gs_dir / "depths").mkdir(parents=True, exist_ok=True)
         np.save(gs_dir / "depths" / f"{stem}.npy", scene.extras["depth"][i].astype(np.float32))
     prior = ScenePriorConfig(patch=32, base=16, batch=4, max_steps=3)
-    cfg = CoInConfig(clg=CLGConfig(steps=2, progress=False), inpaint2d=Inpaint2DConfig(prior=prior))
     masks = [np.asarray(m, bool) for m in scene.masks]
     masks[train[1]] = np.zeros_like(masks[train[1]])
     counts = {"refgs": 1, "ted_finetune": 0, "ted_adversarial": 0}
     plan = Plan(counts, dict.fromkeys(counts), 600.0, None, "explicit", {})
-    run = RunInputs(out=tmp_path, scene=replace(scene, masks=masks), masks=masks, ref=k, cfg=cfg, plan=plan,
-                    refgs_cfg=cfg.refgs_settings(k))  # fmt: skip
-    ctx = StageContext("3_clg", tmp_path / "3_clg", {"1_inpaint": inp_dir, "2_refgs": gs_dir}, {}, run)
-    res = stage_clg(ctx)
-    written = sorted(p.stem for p in (ctx.out / "images").iterdir())
     expect = sorted(scene.cameras[i].name.rsplit(".", 1)[0] for i in train[2:])
-    assert written == expect and res["n_skipped"] == 2
-    assert res["n_guided"] + res["n_kept_input"] == len(expect)
-    assert any("P_k" in n for n in ctx.notes) and any("skipped" in n for n in ctx.notes)
-    assert not list(inp_dir.glob("scene_prior_*.pt"))  # nothing written into stage 1's folder
+    # without SD2: by default no sampler (the reference propagated, nothing trained); with
+    # prior_sampler the scene prior is trained in CLG's own folder and samples
+    for name, sampler in (("3_clg", False), ("3_clg_prior", True)):
+        clg = CLGConfig(steps=2, progress=False, prior_sampler=sampler)
+        cfg = CoInConfig(clg=clg, inpaint2d=Inpaint2DConfig(prior=prior))
+        run = RunInputs(out=tmp_path, scene=replace(scene, masks=masks), masks=masks, ref=k, cfg=cfg,
+                        plan=plan, refgs_cfg=cfg.refgs_settings(k))  # fmt: skip
+        ctx = StageContext(name, tmp_path / name, {"1_inpaint": inp_dir, "2_refgs": gs_dir}, {}, run)
+        res = stage_clg(ctx)
+        written = sorted(p.stem for p in (ctx.out / "images").iterdir())
+        assert written == expect and res["n_skipped"] == 2
+        assert res["n_guided"] + res["n_kept_input"] == len(expect)
+        assert any("P_k" in n for n in ctx.notes) and any("skipped" in n for n in ctx.notes)
+        assert not list(inp_dir.glob("scene_prior_*.pt"))  # nothing written into stage 1's folder
+        assert bool(list(ctx.out.glob("scene_prior_*.pt"))) == sampler
+        assert any("without a sampler" in n for n in ctx.notes) == (not sampler)
+        statuses = {r["status"] for r in res["views"].values()} - {"skipped"}
+        assert statuses <= ({"guided", "kept input"} if sampler else {"propagated", "kept input"})
 
 
 def test_a_view_never_leaves_clg_worse_than_it_came(room, tmp_path):
@@ -229,7 +237,7 @@ def test_warp_guard_keeps_the_input_where_the_warped_reference_is_worse(room, tm
     inp[k] = noisy
 
     def run(out, guard):
-        cfg = CLGConfig(progress=False, sample=False, warp_guard=guard)
+        cfg = CLGConfig(progress=False, sample=False, warp_guard=guard, propagate=False)
         return run_clg(k, [n], s.cameras, inp, inp, s.depth_absent, s.masks, room["pk"], None, None, out, cfg)
 
     stem = f"view_{n:03d}"
@@ -315,3 +323,47 @@ def test_clg_keeps_texture_and_moves_toward_the_reference(tmp_path):
     assert res["n_guided"] >= 3  # not by keeping the inputs: most views are CLG's own images
     _, tex_none, _ = run("none", detail="none", strength=1.0, keep_if_worse=False)
     assert tex_none < 0.5
+
+
+def test_propagation_carries_the_reference_in_each_views_own_light(room, tmp_path):
+    """One answer, propagated (no sampler, `propagate` on): view n's capture is at another exposure
+    than the reference's (x0.8). The reference's truth warped into view n's hole and blended against
+    view n's own surroundings lands near view n's truth in its own light; the plain warp keeps the
+    reference's brightness, and the initial inpaint (Telea) is further off still."""
+    s, k, n = room["s"], room["k"], room["train"][2]
+    gain = 0.8
+    inp = list(room["inp"])
+    inp[n] = (inp[n] * gain).astype(np.float32)
+    truth = s.absent[n] * gain
+    m = np.asarray(s.masks[n], bool)
+
+    def run(name, **kw):
+        cfg = CLGConfig(progress=False, sample=False, **kw)
+        res = run_clg(k, [n], s.cameras, inp, inp, s.depth_absent, s.masks, room["pk"], None, None,
+                      tmp_path / name, cfg)  # fmt: skip
+        rec = res["views"][f"view_{n:03d}"]
+        return rec, read_image(tmp_path / name / "images" / f"view_{n:03d}.png")
+
+    rec_h, out_h = run("harmonised")
+    rec_w, out_w = run("warped", propagate=False)
+    assert rec_h["status"] == "propagated" and rec_w["status"] == "warped"
+    from coin_cl.pipeline.reprojection import reference_in_view
+
+    _, weight = reference_in_view(inp[k], s.cameras[n], s.cameras[k], room["pk"], s.depth_absent[k])
+    sup = m & (weight > 0)  # where the reference's answer reaches; Telea's fill, scaled, elsewhere
+    assert rec_h["support_px"] == rec_w["support_px"] == int(sup.sum()) > 0.2 * m.sum()
+
+    def err(img):
+        return float(np.abs(img - truth).mean(-1)[sup].mean())
+
+    def bias(img):  # the exposure left over: mean signed difference
+        return float(np.abs((img - truth)[sup].mean(0)).mean())
+
+    e_h, e_w, e_in = err(out_h), err(out_w), err(inp[n])
+    print(json.dumps({"harmonised": [e_h, bias(out_h)], "warped": [e_w, bias(out_w)], "input": e_in}))
+    assert bias(out_w) > 0.05  # the plain warp carries the reference's exposure
+    assert bias(out_h) < 0.25 * bias(out_w)  # the blend takes view n's own
+    # at this size the warp's resampling costs about 0.06 at equal exposures: closer than the
+    # input and than the plain warp, not exact
+    assert e_h < 0.9 * e_w and e_h < 0.9 * e_in
+    assert np.array_equal(to_uint8(out_h)[~m], to_uint8(inp[n])[~m])  # outside the mask: untouched

@@ -172,3 +172,23 @@ def test_ted_is_costed_from_refgs_late_rate_where_recorded(tmp_path):
         _stage(tmp_path, "2_refgs", {"steps": 100, "train_minutes": 1.0, "late_seconds_per_step": bad}, 12.0)
         with pytest.raises(SchemaError, match="late_seconds_per_step"):
             S.refgs_step_seconds(tmp_path)
+
+
+def test_a_stage_is_planned_from_the_stages_before_it_only(tmp_path):
+    """A finished (or resumed) run folder plans 0_refine and Ref-GS as they were planned when they
+    were reached: the manifests of later stages (Ref-GS's measured rate above all, which costs
+    TE-D's share) do not move their counts, so their keys hold and a resumed run does not redo them."""
+    plan = _plan(tmp_path, 10)
+    _finish(tmp_path, "0_scene", plan.fixed_seconds["0_scene"])
+    refine = S.stage_schedule(tmp_path, plan, "0_refine", 10).steps
+    _finish(tmp_path, "0_refine", 30.0, {"iters": refine["refine"]})
+    _finish(tmp_path, "1_inpaint", plan.fixed_seconds["1_inpaint"])
+    refgs = S.stage_schedule(tmp_path, plan, "2_refgs", 10).steps
+    # Ref-GS ran 3x slower than the probe said: TE-D is costed from that rate from now on
+    spent = refgs["refgs"] * 3 * 0.2 * B.STEP_COST["refgs"]
+    _finish(tmp_path, "2_refgs", spent, {"steps": refgs["refgs"], "train_minutes": spent / 60,
+                                         "late_seconds_per_step": spent / refgs["refgs"]})  # fmt: skip
+    _finish(tmp_path, "3_clg", plan.fixed_seconds["3_clg"] + plan.fixed_seconds["prior"])
+    assert S.stage_schedule(tmp_path, plan, "0_refine", 10).steps == refine
+    assert S.stage_schedule(tmp_path, plan, "2_refgs", 10).steps == refgs
+    assert S.ted_schedule(tmp_path, plan, 10).refgs_seconds_per_step == pytest.approx(spent / refgs["refgs"])

@@ -20,6 +20,19 @@ def test_warm_up_calls_run_untimed_and_the_mean_is_of_the_timed_ones(monkeypatch
         timing.mean_step_seconds(step, steps=0, warmup=1)
 
 
+def test_the_median_probe_is_not_moved_by_one_slow_call(monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(timing.time, "perf_counter", lambda: clock[0])
+    costs = iter([9.0, 1.0, 4.0, 1.2])  # warm-up, then one timed call slowed by other work
+
+    def step():
+        clock[0] += next(costs)
+
+    assert timing.median_step_seconds(step, steps=3, warmup=1) == pytest.approx(1.2)  # a mean: 2.07
+    with pytest.raises(ValueError, match="at least one timed step"):
+        timing.median_step_seconds(step, steps=0, warmup=0)
+
+
 def test_late_step_seconds_is_the_rate_over_the_last_fifth():
     """A run whose steps slow down from 0.1 s to 0.3 s after step 50 of 100 (log entries every 10
     steps): the last fifth costs 0.3 s a step, the mean would say 0.2."""

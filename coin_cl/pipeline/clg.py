@@ -145,7 +145,8 @@ def run_clg(
         cfg: `CLGConfig`. device: OpenCL device for the warp (Runtime, name, or None).
     Returns:
         {"views": {stem: record}, "n_guided", "n_skipped", "n_resumed", "steps", "model", ...};
-        a record has status 'guided' | 'resumed' | 'skipped' (+ reason) and, when run, the energy
+        a record has status 'guided' | 'propagated' | 'kept input' | 'resumed' | 'skipped' (+ reason)
+        and, when run, the energy
         of I^_n and of the output, the guided steps' energies, the consistency residuals before and
         after, support sizes and seconds.
     """
@@ -200,9 +201,10 @@ def run_clg(
             ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
             depth_n = _depth_of(depths, n, cam.height, cam.width, f"depth of view {n}")
             if not cfg.sample:
-                out, rec = warp_view(n, cam, inp_n, ren_n, depth_n, mask, ref, device)
-                log.info("CLG (warp, no sampler): view %d (%s): %d of %d hole px supported, "
-                         "residual %.4f -> %.4f", n, stem, rec["support_px"], rec["hole_px"],
+                out, rec = warp_view(n, cam, inp_n, ren_n, depth_n, mask, ref, device, cfg.propagate)
+                log.info("CLG (warp, no sampler%s): view %d (%s): %d of %d hole px supported, "
+                         "residual %.4f -> %.4f", ", harmonised" if cfg.propagate else "", n, stem,
+                         rec["support_px"], rec["hole_px"],
                          rec["residual_before"], rec["residual_after"])  # fmt: skip
                 candidates = [(out, rec)]
             else:
@@ -228,7 +230,8 @@ def run_clg(
     status = [r["status"] for r in records.values()]
     return {
         "views": records,
-        "n_guided": sum(s in ("guided", "unguided", "warped") for s in status),
+        "n_guided": sum(s in ("guided", "unguided", "warped", "propagated") for s in status),
+        "n_propagated": status.count("propagated"),
         "n_kept_input": status.count("kept input"),
         "n_skipped": status.count("skipped"),
         "n_resumed": status.count("resumed"),
@@ -320,7 +323,8 @@ def stage_clg(
         points = reference_points(scene.cameras[k], depths[k], masks[k])
         ctx.note(f"P_k: {len(points)} points unprojected from the reference render's depth")
     if (ctx.inputs["1_inpaint"] / "edit" / "points.ply").is_file():
-        cfg = replace(cfg, sample=False)
+        # not harmonised either: the inserted object's colours are the edit's, not its surroundings'
+        cfg = replace(cfg, sample=False, propagate=False)
         ctx.note("edited reference: no sampler (no model here can draw the inserted object); each hole pixel "
                  "takes the reference warped through P_k, or R_n where P_k does not reach")  # fmt: skip
     sd2_plan = ctx.inputs["1_inpaint"] / "sd2.json"
@@ -334,6 +338,11 @@ def stage_clg(
         ctx.note("SD2 reference_only: no sampler; each view takes the reference warped through P_k where "
                  "P_k reaches and its initial inpaint elsewhere, and keeps its input where that is "
                  "worse")  # fmt: skip
+    if cfg.sample and not ccfg.sd_path and not cfg.prior_sampler:
+        cfg = replace(cfg, sample=False, warp_guard=True)
+        ctx.note("no Stable Diffusion 2: CLG runs without a sampler (CLGConfig.prior_sampler): each view's "
+                 "hole takes the reference warped through P_k, blended into the view's own surroundings, "
+                 "where that is no worse than its initial inpaint")  # fmt: skip
     denoiser, extractor = None, None
     if cfg.sample:
         from coin_cl.diffusion.features import make_feature_extractor

@@ -99,6 +99,20 @@ class CLGConfig:
     # (1 + colour_tol) x the input's distance); such a view keeps I^_n, logged with the reason
     # (`coin_cl.pipeline.clg_guard.no_worse`).
     keep_if_worse: bool = True
+    # Without a sampler (`sample` False): the reference warped into view n's hole is blended in the
+    # gradient domain against view n's own surroundings (True, `clg_view.propagated`,
+    # `coin_cl.diffusion.poisson.poisson_blend`: the reference's texture in view n's light and
+    # exposure, no seam) or pasted as it is (False: an edited reference, whose inserted object must
+    # keep the edit's colours).
+    propagate: bool = True
+    # Where no Stable Diffusion 2 is given, CLG samples with the embedded scene prior (True: the
+    # paper's guided sampler on a 64 px model trained on the scene's own pixels, minutes of training)
+    # or, by default (False), runs without a sampler: every view's hole takes the reference's answer
+    # propagated (`propagate`), kept only where it is no worse than the view's initial inpaint
+    # (`keep_if_worse` applies as `warp_guard`), and the prior's minutes go to the GS stages. Measured
+    # on the real captures (docs/RESULTS.md): the prior's samples were kept in 1 view of 4, and the
+    # run without them scored higher inside the masks. With SD2 the sampler always runs.
+    prior_sampler: bool = False
     # keep_if_worse also for the warp-only fill (sample False). Off by default because that fill's
     # main use is an edited reference, whose warp adds an object with colours and texture its
     # surroundings lack (the colour check would reject what was asked for); SD2's reference_only

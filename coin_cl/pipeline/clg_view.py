@@ -66,16 +66,44 @@ def output_residuals(out: np.ndarray, cam: Camera, mask: np.ndarray, depth_n: np
 
 
 def warp_view(n: int, cam: Camera, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: np.ndarray | None,
-              mask: np.ndarray, ref: ReferenceView,
-              device: DeviceLike) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+              mask: np.ndarray, ref: ReferenceView, device: DeviceLike,
+              harmonise: bool = False) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """CLG without a sampler for view n: (output [H, W, 3], record). The fill is the reference itself
-    (both bands: no band split is needed, the detail comes through the same warp as the colours)."""
+    (both bands: no band split is needed, the detail comes through the same warp as the colours),
+    with R_n `ren_n` where the warp does not land; `harmonise`: blended in the gradient domain
+    against view n's surroundings (`propagated`, with `ren_n` as the view's own fill)."""
     warp = reference_warp(ref, cam, device)
-    out, n_sup = warp_fill(inp_n, ren_n, mask, *warp)
-    rec = {"view": n, "status": "warped", **input_residuals(inp_n, cam, mask, depth_n, ref, warp),
+    if harmonise:
+        out, n_sup = propagated(np.where(np.asarray(mask, bool)[..., None], ren_n, inp_n), mask, warp)
+        out = np.where(np.asarray(mask, bool)[..., None], out, inp_n).astype(np.float32)
+    else:
+        out, n_sup = warp_fill(inp_n, ren_n, mask, *warp)
+    rec = {"view": n, "status": "propagated" if harmonise else "warped",
+           **input_residuals(inp_n, cam, mask, depth_n, ref, warp),
            **output_residuals(out, cam, mask, depth_n, ref, warp), "support_px": n_sup,
            "hole_px": int(mask.sum())}  # fmt: skip
     return out, rec
+
+
+def propagated(
+    inp_n: np.ndarray, mask: np.ndarray, warp: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, int]:
+    """The reference's answer in view n: inside `mask` (H, W) bool the reference warped through P_k
+    (`reference_warp`'s colours and weights) where the warp lands, I^_n `inp_n` (H, W, 3) elsewhere,
+    blended in the gradient domain against I^_n's pixels outside the mask (`poisson_blend`, a
+    gradient between the warped part and anything else not carried): the reference's texture on
+    colours that meet view n's own surroundings, which differ from the reference's in light and
+    exposure. Returns ((H, W, 3) float32, supported pixels); outside the mask bit-identical to I^_n."""
+    from coin_cl.diffusion.poisson import poisson_blend
+
+    warped, weight = warp
+    m = np.asarray(mask, bool)
+    sup = m & (weight > 0)
+    if not sup.any():
+        return inp_n.astype(np.float32, copy=True), 0
+    guide = np.where(sup[..., None], warped[..., :3], inp_n)
+    out = poisson_blend(inp_n, guide, m, sup.astype(np.int8))
+    return np.where(m[..., None], out, inp_n).astype(np.float32), int(sup.sum())
 
 
 def sample_view(n: int, stem: str, cam: Camera, inp_n: np.ndarray, ren_n: np.ndarray,

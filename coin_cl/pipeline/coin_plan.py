@@ -73,7 +73,8 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
 
 def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:
     """{fixed stage: the views it works on} for `stage_costs.fixed_costs`: 0_scene and eval every
-    view, CLG the masked training views (absent when skipped), stage 1 the masked training views it
+    view, CLG the masked training views (absent when skipped; "3_clg_propagate" when it runs without a
+    sampler), stage 1 the masked training views it
     fills by computation (with the dataset's own fills only those without one: the rest are read);
     "eval_capture": the masked test views eval also scores at the capture's size (a run below it)."""
     from coin_cl.pipeline.inpaint2d import fill_source
@@ -87,21 +88,30 @@ def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, in
         views["eval_capture"] = sum(bool(scene.masks[i].any()) for i in scene.test_idx)
     if "clg" in cfg.skip:
         del views["3_clg"]
+    elif not clg_samples(cfg):  # CLG without a sampler: a warp and a blend per view
+        views["3_clg_propagate"] = views.pop("3_clg")
     return views
 
 
+def clg_samples(cfg: CoInConfig) -> bool:
+    """Whether CLG runs a diffusion sampler: with Stable Diffusion 2, and with the embedded scene prior
+    only where `CLGConfig.prior_sampler` asks (else it propagates the reference: `clg.stage_clg`)."""
+    clg = cfg.clg_settings()
+    return clg.sample and (bool(cfg.sd_path) or clg.prior_sampler)
+
+
 def prior_trained(scene: Scene, cfg: CoInConfig) -> bool:
-    """Whether a stage trains the scene prior: CLG guides with it unless skipped, and stage 1 fills
-    with it when its inpainter is the prior. A run with neither plans no time for it (logged)."""
+    """Whether a stage trains the scene prior: CLG samples with it unless skipped or propagating
+    (`clg_samples`), and stage 1 fills with it when its inpainter is the prior. A run with neither
+    plans no time for it (logged)."""
     from coin_cl.pipeline.inpaint2d import fill_source
 
-    if "clg" not in cfg.skip:
+    if "clg" not in cfg.skip and clg_samples(cfg):
         return True
     if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "prior" and cfg.inpaint2d.use_prior:
         return True
-    log.info(
-        "scene prior: not trained here (CLG is skipped and stage 1 fills without it): no time planned for it"
-    )
+    why = "CLG is skipped" if "clg" in cfg.skip else "CLG propagates the reference without a sampler"
+    log.info("scene prior: not trained here (%s and stage 1 fills without it): no time planned for it", why)
     return False
 
 

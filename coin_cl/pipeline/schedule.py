@@ -101,9 +101,12 @@ def stage_schedule(out: Path, plan: Plan, stage: str, budget_minutes: float) -> 
     numbers, and a resumed run too."""
     mine = [k for k in plan.steps if costs.GS_STAGES[k] == stage]
     steps = {k: plan.steps[k] for k in mine}
-    rate = refgs_step_seconds(out)
-    left, measured = seconds_left(out, plan, stage, budget_minutes)
     at = costs.STAGE_ORDER.index(stage)
+    # Ref-GS's recorded rate only for the stages after it: when 0_refine or Ref-GS itself was
+    # reached there was none, and a finished run's (or a resumed one's) 2_refgs manifest must not
+    # change their counts, hence their keys, after the fact
+    rate = refgs_step_seconds(out) if at > costs.STAGE_ORDER.index("2_refgs") else None
+    left, measured = seconds_left(out, plan, stage, budget_minutes)
     weights = {k: w for k, w in gs_weights(plan.shares).items()
                if k in plan.steps and plan.minutes.get(k) is not None
                and costs.STAGE_ORDER.index(costs.GS_STAGES[k]) >= at}  # fmt: skip
