@@ -70,8 +70,8 @@ def score_run(run: Path, capture: Path, cell: int = 120) -> tuple[dict, np.ndarr
         stem = view_stem(cam.name, i)
         gt = truth_of(capture, cam.name, cam.width, cam.height)
         if gt is None:
-            raise SystemExit(f"{capture / 'images'} has no photo named {Path(cam.name).stem}.*: pass the capture "
-                             "the scene was made from (--capture)")  # fmt: skip
+            raise SystemExit(f"{capture / 'images'} has no photo named {Path(cam.name).stem}.*: pass the "
+                             "capture the scene was made from (--capture)")  # fmt: skip
         up = run / "0_refine" / "unseen" / f"{stem}.png"
         unseen = read_mask(up, mask.shape) if up.is_file() else mask
         tiles = []
@@ -80,9 +80,11 @@ def score_run(run: Path, capture: Path, cell: int = 120) -> tuple[dict, np.ndarr
             if not p.is_file():
                 continue
             img = read_image(p)
+            both = mask & unseen
             rec = {"m_psnr": metrics.masked_psnr(img, gt, mask),
-                   "u_psnr": metrics.masked_psnr(img, gt, mask & unseen) if (mask & unseen).any() else None,
-                   "bbox_gmsd": metrics.bbox_gmsd(img, gt, mask), "hf": metrics.hf_ratio(img, gt, mask)}  # fmt: skip
+                   "u_psnr": metrics.masked_psnr(img, gt, both) if both.any() else None,
+                   "bbox_gmsd": metrics.bbox_gmsd(img, gt, mask),
+                   "hf": metrics.hf_ratio(img, gt, mask)}  # fmt: skip
             js = run / s / "views" / f"{stem}.json"
             if js.is_file():
                 v = json.loads(js.read_text())
@@ -124,12 +126,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--capture", type=Path, default=default_data().parent / "cup_capture")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
-    lines = ["| run | stage | views | m-PSNR | unseen PSNR | bbox GMSD | HF ratio | residual to ref | written | s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    head = ("run", "stage", "views", "m-PSNR", "unseen PSNR", "bbox GMSD", "HF ratio", "residual to ref",
+            "written", "s")  # fmt: skip
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for run in a.runs:
         res, crops = score_run(run, a.capture)
         for s, r in res.items():
-            lines.append(f"| {run.name} | {s} | {r['views']} | {fmt(r['m_psnr'], 2)} | {fmt(r['u_psnr'], 2)} | "
+            lines.append(f"| {run.name} | {s} | {r['views']} | {fmt(r['m_psnr'], 2)} | "
+                         f"{fmt(r['u_psnr'], 2)} | "
                          f"{fmt(r['bbox_gmsd'])} | {fmt(r['hf'])} | {fmt(r['residual'], 4)} | "
                          f"{', '.join(f'{k} {v}' for k, v in r['statuses'].items()) or '-'} | "
                          f"{fmt(r['seconds'], 0)} |")  # fmt: skip

@@ -72,8 +72,9 @@ def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 3, 
     optimizer steps on random patches of its size and batch (a step's cost depends on the network,
     the patch and the batch, not on the pixels), the median of the timed ones (the mean of two read
     1.20 s on a machine whose prior then trained at about 0.8 s a step, and every fixed stage's
-    estimate is scaled by it: `stage_costs.machine_factor`). The plan turns the prior's seconds into steps with
-    it (STEPS_PER_SECOND was measured on one machine; a slower one ran 1.5x over its share)."""
+    estimate is scaled by it: `stage_costs.machine_factor`). The plan turns the prior's seconds
+    into steps with it (STEPS_PER_SECOND was measured on one machine; a slower one ran 1.5x over
+    its share)."""
     cfg = cfg or ScenePriorConfig()
     g = torch.Generator().manual_seed(0)
     net = InpaintUNet(cfg.base)
