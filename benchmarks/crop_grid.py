@@ -4,6 +4,7 @@ counts noise as texture), so every results table has one of these beside it. A f
 `eval/renders` is read from its `pred/` (the demo's masked-reconstruction row).
 
     python benchmarks/crop_grid.py RUN_DIR [RUN_DIR ...] --out docs/img/NAME.png [--cell 160]
+        [--views 0 2 4] [--transpose]
 
 The crop is the mask's bounding box plus 8 px (`coin_cl.metrics.bbox_crop`); the scene (masks, truth)
 comes from the first run's `0_scene/scene`. Prints the column order.
@@ -32,11 +33,16 @@ def tile_row(tiles: list[np.ndarray], cell: int) -> np.ndarray:
     return np.concatenate([np.pad(t, p, constant_values=1) for t, p in zip(tiles, pad)], axis=1)
 
 
-def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
-    """[rows * (cell + 4), (len(runs) + 1) * (cell + 4), 3] uint8."""
+def grid(
+    runs: list[Path], cell: int = 160, views: list[int] | None = None, transpose: bool = False
+) -> np.ndarray:
+    """[rows * (cell + 4), (len(runs) + 1) * (cell + 4), 3] uint8; `views`: positions among the
+    masked test views to keep (default all); `transpose`: one row per run (then the truth), one
+    column per view."""
     scene = load_scene(runs[0] / "0_scene" / "scene")
     rows = []
-    for i in scene.test_idx:
+    masked = [i for i in scene.test_idx if np.asarray(scene.masks[i], bool).any()]
+    for i in masked if views is None else [masked[v] for v in views]:
         mask = np.asarray(scene.masks[i], bool)
         if not mask.any():
             continue
@@ -47,7 +53,12 @@ def grid(runs: list[Path], cell: int = 160) -> np.ndarray:
         rows.append(tile_row(tiles, cell))
     if not rows:
         raise ValueError(f"{runs[0]} has no ground-truth test view with a mask")
-    return to_uint8(np.concatenate(rows, axis=0))
+    out = np.concatenate(rows, axis=0)
+    if transpose:  # cut into cells and lay them out the other way round
+        c = cell + 4
+        cells = out.reshape(len(rows), c, len(runs) + 1, c, 3).transpose(2, 0, 1, 3, 4)
+        out = cells.transpose(0, 2, 1, 3, 4).reshape((len(runs) + 1) * c, len(rows) * c, 3)
+    return to_uint8(out)
 
 
 def render_dir(run: Path) -> Path:
@@ -71,9 +82,13 @@ def main() -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--cell", type=int, default=160)
+    ap.add_argument("--views", type=int, nargs="+", default=None,
+                    help="positions among the masked test views to show (default: every one)")
+    ap.add_argument("--transpose", action="store_true", help="one row per run, one column per view")
     args = ap.parse_args()
-    write_png(args.out, grid(args.runs, args.cell))
-    print("columns:", " | ".join(r.name for r in args.runs), "| truth;", f"wrote {args.out}")
+    write_png(args.out, grid(args.runs, args.cell, args.views, args.transpose))
+    what = "rows" if args.transpose else "columns"
+    print(f"{what}:", " | ".join(r.name for r in args.runs), "| truth;", f"wrote {args.out}")
     return 0
 
 

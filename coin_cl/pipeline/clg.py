@@ -201,7 +201,8 @@ def run_clg(
             ren_n = _check_image(renders[n], cam.height, cam.width, f"render of view {n}")
             depth_n = _depth_of(depths, n, cam.height, cam.width, f"depth of view {n}")
             if not cfg.sample:
-                out, rec = warp_view(n, cam, inp_n, ren_n, depth_n, mask, ref, device, cfg.propagate)
+                out, rec = warp_view(n, cam, inp_n, ren_n, depth_n, mask, ref, device, cfg.propagate,
+                                     cfg.detail_gain_max)  # fmt: skip
                 log.info("CLG (warp, no sampler%s): view %d (%s): %d of %d hole px supported, "
                          "residual %.4f -> %.4f", ", harmonised" if cfg.propagate else "", n, stem,
                          rec["support_px"], rec["hole_px"],

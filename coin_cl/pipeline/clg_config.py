@@ -123,7 +123,8 @@ class CLGConfig:
     # The detail band's top-up (`clg_detail.texture_gain`), a gain >= 1 (1 = off): a candidate whose
     # texture inside the mask falls below the input's gets its high band multiplied by the smallest
     # gain up to this that brings it back (the warp resamples the reference's detail and loses some
-    # of it). Recorded per view ("detail_gain").
+    # of it); the propagated image without a sampler likewise (its band above half the view's size).
+    # Recorded per view ("detail_gain").
     detail_gain_max: float = 1.5
     # keep_if_worse's colour tolerance, a share >= 0.
     colour_tol: float = 0.25

@@ -19,6 +19,7 @@ from coin_cl.pipeline.clg_detail import (
     ReferenceView,
     colour_target,
     crop_bands,
+    high_band,
     reference_detail,
     reference_warp,
     texture_gain,
@@ -66,19 +67,32 @@ def output_residuals(out: np.ndarray, cam: Camera, mask: np.ndarray, depth_n: np
 
 
 def warp_view(n: int, cam: Camera, inp_n: np.ndarray, ren_n: np.ndarray, depth_n: np.ndarray | None,
-              mask: np.ndarray, ref: ReferenceView, device: DeviceLike,
-              harmonise: bool = False) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+              mask: np.ndarray, ref: ReferenceView, device: DeviceLike, harmonise: bool = False,
+              detail_gain_max: float = 1.0) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """CLG without a sampler for view n: (output [H, W, 3], record). The fill is the reference itself
     (both bands: no band split is needed, the detail comes through the same warp as the colours),
     with R_n `ren_n` where the warp does not land; `harmonise`: blended in the gradient domain
-    against view n's surroundings (`propagated`, with `ren_n` as the view's own fill)."""
+    against view n's surroundings (`propagated`, with `ren_n` as the view's own fill), its detail
+    band gained back towards the input's texture by at most `detail_gain_max` (`texture_gain`)."""
     warp = reference_warp(ref, cam, device)
+    gain = 1.0
     if harmonise:
-        out, n_sup = propagated(np.where(np.asarray(mask, bool)[..., None], ren_n, inp_n), mask, warp)
-        out = np.where(np.asarray(mask, bool)[..., None], out, inp_n).astype(np.float32)
+        m = np.asarray(mask, bool)
+        out, n_sup = propagated(np.where(m[..., None], ren_n, inp_n), mask, warp)
+        # the warp's resampling softens the reference's detail: its band above half the view's size
+        # is gained back towards the input's texture, as the sampler's detail band is (at most
+        # detail_gain_max)
+        H, W = m.shape
+        high = high_band(out, W // 2, H // 2)
+
+        def compose(g: float) -> np.ndarray:
+            return np.where(m[..., None], np.clip(out + (g - 1.0) * high, 0, 1), inp_n).astype(np.float32)
+
+        out, gain = texture_gain(compose, lambda o: mask_texture(written(o), m), mask_texture(inp_n, m),
+                                 detail_gain_max)  # fmt: skip
     else:
         out, n_sup = warp_fill(inp_n, ren_n, mask, *warp)
-    rec = {"view": n, "status": "propagated" if harmonise else "warped",
+    rec = {"view": n, "status": "propagated" if harmonise else "warped", "detail_gain": gain,
            **input_residuals(inp_n, cam, mask, depth_n, ref, warp),
            **output_residuals(out, cam, mask, depth_n, ref, warp), "support_px": n_sup,
            "hole_px": int(mask.sum())}  # fmt: skip
