@@ -91,7 +91,9 @@ def tiny_config(iters: int, prior_steps: int):
             prior=ScenePriorConfig(patch=32, base=8, batch=4, train_steps=prior_steps),
             inpaint=InpaintConfig(sampler_prior=sampler),
         ),
-        clg=CLGConfig(steps=4),
+        # the scene prior's sampler: its training checkpoint and cache are files a run reads back
+        # (killed mid-training), which the kill chain must cover
+        clg=CLGConfig(steps=4, prior_sampler=True),
         ted=TEDConfig(n_patches=2),
         refgs=RefGSConfig(depth_prior_iters=10),
     )

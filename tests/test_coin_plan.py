@@ -48,8 +48,12 @@ def test_the_adversarial_phase_runs_only_on_a_learned_inpainters_fills(tmp_path,
     monkeypatch.setattr(CP, "probe_seconds_per_step", lambda *a, **k: 0.5)
     monkeypatch.setattr(CP, "disc_probe", lambda *a: lambda: 0.1)
     monkeypatch.setattr(CP, "prior_probe", lambda *a: lambda: 0.9)
-    lama = CP.plan_for(_Scene(), tmp_path / "lama", CoInConfig(budget_minutes=10.0), [0, 1])
-    own = CP.plan_for(_OwnCapture(), tmp_path / "own", CoInConfig(budget_minutes=10.0), [0, 1])
+    # both with CLG's scene-prior sampler, so that both pools are the budget less the same fixed costs
+    from coin_cl.pipeline.clg_config import CLGConfig
+
+    sampler = CLGConfig(prior_sampler=True)
+    lama = CP.plan_for(_Scene(), tmp_path / "lama", CoInConfig(budget_minutes=10.0, clg=sampler), [0, 1])
+    own = CP.plan_for(_OwnCapture(), tmp_path / "own", CoInConfig(budget_minutes=10.0, clg=sampler), [0, 1])
     both = lama.minutes["ted_finetune"] + lama.minutes["ted_adversarial"]
     assert own.minutes["ted_finetune"] == pytest.approx(both, rel=1e-3)  # the same pool, one phase
     assert own.steps["ted_adversarial"] == 0 and own.minutes["ted_adversarial"] is None
@@ -160,16 +164,18 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     """The dataset's own fills are read, not computed: only the masked training views without one
     count towards stage 1's estimate; the embedded inpainter fills every masked view; CLG guides every
     masked view either way (with a sampler, or propagating the reference without one: the default
-    without SD2), and is absent when skipped."""
+    on the embedded inpainter's fills without SD2), and is absent when skipped."""
     from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig
 
     cfg = CoInConfig()
     views = CP.fixed_views(_Scene(), cfg, [0, 1, 2, 3])
-    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg_propagate": 4, "eval": 4}
-    sampled = CP.fixed_views(_Scene(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])
-    assert sampled == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}
-    assert CP.fixed_views(_Scene(), CoInConfig(sd_path="SD2"), [0, 1, 2, 3])["3_clg"] == 4
+    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}  # a learned inpainter's fills
+    own = CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2, 3])  # the exemplar's: CLG without a sampler
+    assert own == {"0_scene": 4, "1_inpaint": 4, "3_clg_propagate": 4, "eval": 4}
+    sampled = CP.fixed_views(_OwnCapture(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])
+    assert sampled == {"0_scene": 4, "1_inpaint": 4, "3_clg": 4, "eval": 4}
+    assert CP.fixed_views(_OwnCapture(), CoInConfig(sd_path="SD2"), [0, 1, 2, 3])["3_clg"] == 4
     assert CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2])["1_inpaint"] == 3
     assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(skip=("clg",)), [0, 1])
     # below the capture's size eval also scores the masked test views there

@@ -47,9 +47,12 @@ def test_hostile_input_runs_no_code_and_changes_no_file_of_the_user(tmp_path):
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     table = proc.stdout[proc.stdout.find("| hostile case") :]
     # every case ran (a second command whose first run ended before it could be tried is missing)
-    assert res["hostile_cases"] == 3 + 4 + 3 + 2, table
+    # the checkpoints planted: Ref-GS's and TE-D's, and the scene prior's cache where the default run
+    # trains one (not on this scene's embedded fills: that cache has its own test,
+    # test_diffusion_scene_prior.py::test_a_hostile_cached_prior_is_refused_without_running)
+    assert res["exec_tried"] >= 2 and res["exec_refused"] == res["exec_tried"]  # none ran its code
+    assert res["hostile_cases"] == res["exec_tried"] + 4 + 3 + 2, table
     assert res["hostile_failed"] == [], table
-    assert res["exec_tried"] == 3 and res["exec_refused"] == 3  # no planted checkpoint ran its code
     assert res["data_loss"] == 0  # no photo, no link's target changed
     assert res["tracebacks"] == 0 and res["vague_messages"] == 0 and res["half_written_files"] == 0
 

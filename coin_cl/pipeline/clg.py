@@ -339,11 +339,15 @@ def stage_clg(
         ctx.note("SD2 reference_only: no sampler; each view takes the reference warped through P_k where "
                  "P_k reaches and its initial inpaint elsewhere, and keeps its input where that is "
                  "worse")  # fmt: skip
-    if cfg.sample and not ccfg.sd_path and not cfg.prior_sampler:
-        cfg = replace(cfg, sample=False, warp_guard=True)
-        ctx.note("no Stable Diffusion 2: CLG runs without a sampler (CLGConfig.prior_sampler): each view's "
-                 "hole takes the reference warped through P_k, blended into the view's own surroundings, "
-                 "where that is no worse than its initial inpaint")  # fmt: skip
+    if cfg.sample:
+        from coin_cl.pipeline.coin_plan import clg_samples
+
+        if not clg_samples(scene, ccfg):
+            cfg = replace(cfg, sample=False, warp_guard=True)
+            ctx.note("stage 1's fills are the embedded inpainter's and no Stable Diffusion 2 is given: CLG "
+                     "runs without a sampler (CLGConfig.prior_sampler): each view's hole takes the reference "
+                     "warped through P_k, blended into the view's own surroundings, where that is no worse "
+                     "than its initial inpaint")  # fmt: skip
     denoiser, extractor = None, None
     if cfg.sample:
         from coin_cl.diffusion.features import make_feature_extractor
