@@ -8,24 +8,9 @@ import time
 from collections.abc import Callable
 
 
-def mean_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> float:
-    """Mean wall seconds of `steps` calls of `step()` after `warmup` untimed ones (kernel builds,
-    first allocations). steps >= 1."""
-    if steps < 1:
-        raise ValueError(f"a timing probe needs at least one timed step, got {steps}")
-    for _ in range(warmup):
-        step()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        step()
-    return (time.perf_counter() - t0) / steps
-
-
-def median_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> float:
-    """Median wall seconds of `steps` calls of `step()`, each timed on its own, after `warmup`
-    untimed ones: one call slowed by a burst of other work (a thread pool still winding down from
-    the probe before, a page-fault storm) does not move it, as it moves a mean over few calls.
-    steps >= 1."""
+def step_seconds(step: Callable[[], object], steps: int, warmup: int) -> list[float]:
+    """Wall seconds of each of `steps` calls of `step()`, timed on its own, after `warmup` untimed
+    ones (kernel builds, first allocations). steps >= 1."""
     if steps < 1:
         raise ValueError(f"a timing probe needs at least one timed step, got {steps}")
     for _ in range(warmup):
@@ -35,7 +20,19 @@ def median_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> 
         t0 = time.perf_counter()
         step()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return times
+
+
+def mean_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> float:
+    """Mean of `step_seconds`."""
+    return statistics.fmean(step_seconds(step, steps, warmup))
+
+
+def median_step_seconds(step: Callable[[], object], steps: int, warmup: int) -> float:
+    """Median of `step_seconds`: one call slowed by a burst of other work (a thread pool still
+    winding down from the probe before, a page-fault storm) does not move it, as it moves a mean
+    over few calls."""
+    return statistics.median(step_seconds(step, steps, warmup))
 
 
 def late_step_seconds(log: list[dict], share: float = 0.2) -> float | None:

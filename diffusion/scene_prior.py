@@ -70,11 +70,10 @@ def steps_for_seconds(seconds: float, seconds_per_step: float | None = None) -> 
 def probe_seconds_per_step(cfg: ScenePriorConfig | None = None, steps: int = 3, warmup: int = 1) -> float:
     """Seconds one training step of the prior `cfg` takes on this machine: `warmup` + `steps`
     optimizer steps on random patches of its size and batch (a step's cost depends on the network,
-    the patch and the batch, not on the pixels), the median of the timed ones (the mean of two read
-    1.20 s on a machine whose prior then trained at about 0.8 s a step, and every fixed stage's
-    estimate is scaled by it: `stage_costs.machine_factor`). The plan turns the prior's seconds
-    into steps with it (STEPS_PER_SECOND was measured on one machine; a slower one ran 1.5x over
-    its share)."""
+    the patch and the batch, not on the pixels), the median of the timed ones (every fixed stage's
+    estimate is scaled by it, `stage_costs.machine_factor`: one slow step must not move them). The
+    plan turns the prior's seconds into steps with it (STEPS_PER_SECOND was measured on one
+    machine; a slower one ran 1.5x over its share)."""
     cfg = cfg or ScenePriorConfig()
     g = torch.Generator().manual_seed(0)
     net = InpaintUNet(cfg.base)
