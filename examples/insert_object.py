@@ -43,6 +43,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from coin_cl.pipeline.insert_config import PROFILES  # no torch: coin_cl imports lazily
+
 # The defaults' hand-given cut: the cup in view 32 (turned upright, 600x800 pixels), lid, body and base,
 # without its strap; and where its bottom centre goes in view 24: the wood to the real cup's left.
 CUP_POLYGON_32 = ((270, 250), (272, 212), (300, 200), (330, 196), (380, 192), (420, 190), (470, 190),
@@ -322,7 +324,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--max-points", type=int, default=60_000,
                     help="cap on the lifted points (InsertConfig.max_points): they seed Ref-GS")  # fmt: skip
     ap.add_argument("--cell", type=int, default=180, help="crop tile size in the grid (px)")
+    ap.add_argument("--profile", choices=PROFILES, default="revolve",
+                    help="the object's shape behind its silhouette (InsertConfig.profile): a cup is "
+                         "round")  # fmt: skip
     ap.add_argument("--edit-only", action="store_true", help="stop after writing the edited photo")
+    ap.add_argument("--lift-only", action="store_true",
+                    help="stop after stage 1's crop grid (the derived regions and the lift in every view; "
+                         "no training, seconds)")  # fmt: skip
     args = ap.parse_args(argv)
     if args.polygon is None:
         if args.source_view != "32":
@@ -394,13 +402,16 @@ def main(argv: list[str] | None = None) -> dict:
         f"view: {listed}"
     )
 
-    icfg = InsertConfig(regions="derive", max_points=args.max_points)
-    cfg = CoInConfig(resolution=args.resolution, ref=args.edited_view, iters_refgs=args.iters,
-                     iters_ted_finetune=args.ted_iters, iters_ted_adversarial=0, insert=icfg)  # fmt: skip
-    t_run = time.perf_counter()
-    res = coin_cl.inpaint(scene, out / "run", config=cfg, edited_ref=out / "edited.png")
-    info["run_minutes"] = round((time.perf_counter() - t_run) / 60, 2)
-    say(f"run done in {info['run_minutes']:.1f} min: {out / 'run'}")
+    icfg = InsertConfig(regions="derive", max_points=args.max_points, profile=args.profile)
+    info["profile"] = args.profile
+    res = None
+    if not args.lift_only:
+        cfg = CoInConfig(resolution=args.resolution, ref=args.edited_view, iters_refgs=args.iters,
+                         iters_ted_finetune=args.ted_iters, iters_ted_adversarial=0, insert=icfg)  # fmt: skip
+        t_run = time.perf_counter()
+        res = coin_cl.inpaint(scene, out / "run", config=cfg, edited_ref=out / "edited.png")
+        info["run_minutes"] = round((time.perf_counter() - t_run) / 60, 2)
+        say(f"run done in {info['run_minutes']:.1f} min: {out / 'run'}")
 
     # every view of the subset at the working size: derived regions, the lift's warp, the render
     work = scene.resized(args.resolution)
@@ -412,7 +423,7 @@ def main(argv: list[str] | None = None) -> dict:
     if warp_dir.exists():
         shutil.rmtree(warp_dir)
     run_insert_derived(work, regions, list(range(len(work))), k, edited, warp_dir, icfg, "edited.png")
-    lift = read_lift(out / "run" / "1_inpaint")
+    lift = read_lift(warp_dir if res is None else out / "run" / "1_inpaint")
     rows = []
     for i in sorted(range(len(work)), key=lambda i: rel[views[i]]):
         cam, stem = work.cameras[i], Path(work.cameras[i].name).stem
@@ -424,15 +435,19 @@ def main(argv: list[str] | None = None) -> dict:
         # context around the region (the desk under it, the real cup beside it)
         pad = max(8, round(CROP_CONTEXT * max(np.ptp(ys), np.ptp(xs))))
         crop = metrics.bbox_crop(regions[i], pad=pad)
-        with torch.no_grad():
-            render = res.model.render(cam, 10**9).image.clamp(0, 1).numpy()
-        write_png(out / "renders" / f"{stem}.png", to_uint8(render))
         warp = read_image(warp_dir / "images" / f"{stem}.png")
+        tiles = [work.images[i][crop], warp[crop]]
+        if res is not None:
+            with torch.no_grad():
+                render = res.model.render(cam, 10**9).image.clamp(0, 1).numpy()
+            write_png(out / "renders" / f"{stem}.png", to_uint8(render))
+            tiles.append(render[crop])
         tag = "edited" if i == k else ("HO" if i in work.test_idx else "train")
         label = f"{stem} {rel[views[i]]:+.0f}/{el[views[i]]:.0f} {tag}"
-        rows.append((label, foot[crop], [work.images[i][crop], warp[crop], render[crop]]))
-    write_png(out / "crops.png", region_grid(rows, args.cell))
-    shutil.copyfile(out / "run" / "1_inpaint" / "edit" / "regions.png", out / "regions.png")
+        rows.append((label, foot[crop], tiles))
+    grid = "lift_crops.png" if res is None else "crops.png"
+    write_png(out / grid, region_grid(rows, args.cell))
+    shutil.copyfile(warp_dir / "edit" / "regions.png", out / "regions.png")
     info["minutes"] = round((time.perf_counter() - t0) / 60, 2)
     write_text(out / "views.json", json.dumps(info, indent=1))
     say(

@@ -104,6 +104,11 @@ def test_scene_prior_steps_follow_its_own_probe(tmp_path):
     assert big.prior_seconds == 540 and big.prior_steps == 300
     assert small.prior_seconds == B.PRIOR_MIN_SECONDS and small.prior_steps == 133
     assert fast.prior_seconds_per_step == 0.9 and "(133 steps)" in fast.describe()
+    # a run that trains no prior plans its steps (stage 1's key holds them) but does not claim the time
+    untrained = B.plan_run(tmp_path / "g", {"k": 1}, 10, none, 120.0, lambda: 0.2, lambda: 0.9,
+                           prior_trained=False)  # fmt: skip
+    assert untrained.prior_steps == 133 and "no scene prior trained" in untrained.describe()
+    assert "scene prior 120 s" in fast.describe()
     assert B.plan_run(tmp_path / "a", {"k": 1}, 10, none, 120.0, lambda: 0.2, lambda: 5.0) == fast  # reused
 
     def never():

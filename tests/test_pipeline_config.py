@@ -171,6 +171,7 @@ FLAG_FIELDS = {
     "sd2_mode": "inpaint2d.sd2_mode",
     "inpainter": "inpaint2d.inpainter",
     "insert_regions": "insert.regions",
+    "insert_profile": "insert.profile",
     "lama_path": "inpaint2d.lama_path",
     "dino_path": "dino_path",
     "device": "device",

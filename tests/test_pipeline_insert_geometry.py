@@ -85,8 +85,9 @@ def _look_at(eye, target, width: int, height: int, f: float) -> Camera:
 def test_object_wider_above_its_foot_stands_on_its_foot():
     """A cup-like silhouette (a trapezoid wider at the top) on the ground z = 0, seen 35 degrees from
     above: the columns beside the foot whose lowest pixel falls in the bottom band are the object's
-    flanks, not contacts. Their fronts stay with the foot's (taken as contacts, their rays met the
-    ground far behind it: the object then reached 4.7 deep along the view instead of 3.4)."""
+    flanks, not contacts. The extruded front stays with the foot's (taken as contacts, their rays met
+    the ground far behind it: the object then reached 4.7 deep along the view instead of 3.4); the
+    revolve profile's axis, from the same contacts, is checked in test_pipeline_insert_revolve.py."""
     cam = _look_at([0.0, -6.0, 4.2], [0.0, 0.0, 0.8], 120, 160, 150.0)
     g = np.linspace(-4, 4, 41)
     ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
@@ -96,7 +97,7 @@ def test_object_wider_above_its_foot_stands_on_its_foot():
     half = 10 + 30 * (bottom - yy) / (bottom - top)  # 20 px wide at the foot, 80 at the top
     region = (yy >= top) & (yy <= bottom) & (np.abs(xx - u0) <= half)
     edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
-    lift = lift_one_photo(edited, region, cam, ground, "cup.png", CFG)
+    lift = lift_one_photo(edited, region, cam, ground, "cup.png", replace(CFG, profile="extrude"))
     to_cam = cam.center - lift.points.mean(0)
     b = to_cam - to_cam[2] * np.array([0.0, 0.0, 1.0])
     b /= np.linalg.norm(b)

@@ -45,6 +45,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                         "and every other view's region is derived (no masks needed); hull = the masks "
                         "cover it in every view; auto = hull when every training view has a mask, else "
                         "derive")  # fmt: skip
+    p.add_argument("--insert-profile", choices=("revolve", "extrude", "rounded"), default="revolve",
+                   help="with derived regions: the object's shape behind its silhouette; revolve = a "
+                        "solid of revolution about the vertical (round objects, and the safe choice), "
+                        "extrude = a prism as deep as 0.65 of its width (a box seen face-on), rounded = "
+                        "a prism thinner toward its outline")  # fmt: skip
     p.add_argument("--budget", type=values.positive_float, default=10.0,
                    help="the run's wall-clock minutes, every stage and eval included; timing probes turn "
                         "them into steps, recorded in OUT/plan.json; a budget this machine cannot fit is "
@@ -96,7 +101,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         mask_dilate=args.mask_dilate,
         skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
         inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
-        insert=InsertConfig(regions=args.insert_regions),
+        insert=InsertConfig(regions=args.insert_regions, profile=args.insert_profile),
     ).with_iters(args.iters)  # fmt: skip
     with output_folder(args.out, "run"):
         res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,

@@ -160,6 +160,8 @@ class Plan:
         for k, n in self.steps.items():
             m = self.minutes.get(k)
             parts.append(f"{k} {n} steps" + ("" if m is None else f" (~{m:.1f} min)"))
+        if self.fixed_seconds is not None and "prior" not in self.fixed_seconds:
+            return ", ".join(parts) + ", no scene prior trained"
         prior = "" if self.prior_steps is None else f" ({self.prior_steps} steps)"
         return ", ".join(parts) + f", scene prior {self.prior_seconds:.0f} s{prior}"
 

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+# The object's shape behind its silhouette (`InsertConfig.profile`).
+PROFILES = ("extrude", "rounded", "revolve")
+
 
 @dataclass
 class InsertConfig:
@@ -28,13 +31,15 @@ class InsertConfig:
     under this share of the largest are dropped (stray retouches). surface_tol: RANSAC inlier
     distance of the surface fit, as a share of the depth there. contact: "columns" (a vertical
     front over the silhouette's contact curve) or "plane" (one billboard through the contacts).
-    profile: "extrude" (constant thickness) or "rounded" (thickness from the silhouette's distance
-    transform). thickness: the object's depth as a share of its width. region_margin: px the
-    derived regions extend beyond the object's projection (None: 1 % of the view's longer side,
-    at least 1). max_points: cap on lifted points
-    (samples along the rays get coarser beyond it). occlusion: the scene's sparse points standing
-    in front of the object hide it in a view (its region there leaves them out, so the captured
-    scene stays in front of it); False: the object is drawn over everything it projects onto."""
+    profile: "extrude" (constant thickness), "rounded" (thickness from the silhouette's distance
+    transform) or "revolve" (a solid of revolution about the vertical: round objects; `thickness`
+    and `contact` unused, `coin_cl.pipeline.insert_revolve`). thickness: the object's depth as a
+    share of its width. region_margin: px the derived regions extend beyond the object's
+    projection (None: 1 % of the view's longer side, at least 1). max_points: cap on lifted points
+    (samples along the rays, or the shell's spacing, get coarser beyond it). occlusion: the
+    scene's sparse points standing in front of the object hide it in a view (its region there
+    leaves them out, so the captured scene stays in front of it); False: the object is drawn over
+    everything it projects onto."""
 
     edit_tol: float = 2.0 / 255.0
     hull_fraction: float = 0.9
@@ -46,7 +51,7 @@ class InsertConfig:
     min_component: float = 0.05
     surface_tol: float = 0.01
     contact: str = "columns"
-    profile: str = "extrude"
+    profile: str = "revolve"
     thickness: float = 0.65
     region_margin: int | None = None
     max_points: int = 2_000_000
@@ -68,7 +73,7 @@ class InsertConfig:
             ("min_component", 0.0 <= self.min_component <= 1.0, "in [0, 1]"),
             ("surface_tol", 0.0 < self.surface_tol < 1.0, "in (0, 1)"),
             ("contact", self.contact in ("columns", "plane"), "'columns' or 'plane'"),
-            ("profile", self.profile in ("extrude", "rounded"), "'extrude' or 'rounded'"),
+            ("profile", self.profile in PROFILES, "one of " + ", ".join(map(repr, PROFILES))),
             ("thickness", 0.0 <= self.thickness <= 10.0, "in [0, 10]"),
             (
                 "region_margin",

@@ -144,6 +144,11 @@ class Camera:
         c2w = self.camtoworld
         return pc @ c2w[:3, :3].T + c2w[:3, 3]
 
+    def rays(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """World directions (N, 3), scaled to camera z = 1, through pixel coordinates (xs, ys) (N,)."""
+        uv = np.stack([np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)], 1)
+        return self.unproject(uv, np.ones(len(uv))) - self.center
+
     def in_image(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixel coordinates -> (N,) bool, inside [0, W) x [0, H)."""
         u, v = uv[:, 0], uv[:, 1]
