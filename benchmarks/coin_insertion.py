@@ -10,7 +10,9 @@ stage folders with `share_stages`, and the runner keeps exactly those whose sett
                   edited reference beside the unedited views, as many GS steps as insert's Ref-GS + TE-D
     insert_one_photo  what a user has: the same room and edited reference but no mask in any view;
                   the box is stood on the table under it and every view's region derived
-                  (`coin_cl.pipeline.insert_geometry`, `InsertConfig.regions = "derive"`)
+                  (`coin_cl.pipeline.insert_geometry`, `InsertConfig.regions = "derive"`; the
+                  default profile, a solid of revolution)
+    insert_one_photo_extrude  the same with the prism profile (`InsertConfig.profile = "extrude"`)
     input_360     removal on a 360-degree capture with the input (seg) masks
     refined_360   the same with 3D-first refined masks (`inpaint_region="refined"`, stage 0_refine)
     seg           removal on the room (a 90-degree arc, forward-facing) with seg masks; also the
@@ -242,6 +244,11 @@ def run(args: argparse.Namespace) -> int:
     rows["insert_one_photo"] = {**score_insertion(res_1, sc_i, syn_i, ref_name), "minutes": minutes,
                                 "ran": _ran(res_1), **_regions(res_1, sc_i, syn_i)}  # fmt: skip
     _progress("insert_one_photo", rows["insert_one_photo"])
+    prism = replace(icfg, insert=InsertConfig(regions="derive", profile="extrude"))
+    res_e, minutes = _run(sc_i, out / "insert_one_photo_extrude", prism, edited_ref=edited, masks=none)
+    rows["insert_one_photo_extrude"] = {**score_insertion(res_e, sc_i, syn_i, ref_name), "minutes": minutes,
+                                        "ran": _ran(res_e), **_regions(res_e, sc_i, syn_i)}  # fmt: skip
+    _progress("insert_one_photo_extrude", rows["insert_one_photo_extrude"])
     if args.insertion_rows_only:
         _insertion_table(rows, ref_name)
         keys = ("m_psnr", "m_psnr_train", "depth_err", "depth_rel", "colour_reach", "leak_max", "minutes")
@@ -376,7 +383,7 @@ def _insertion_table(rows: dict, ref_name: str) -> None:
     print("\n| row | m-PSNR test | m-PSNR other train | depth err (median, m) | rel. | colour reach | "
           "leak (max) | minutes | stages run |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
-    for name in ("insert", "insert_naive", "insert_one_photo"):
+    for name in ("insert", "insert_naive", "insert_one_photo", "insert_one_photo_extrude"):
         r = rows[name]
         print(f"| {name} | {f(r['m_psnr'])} | {f(r['m_psnr_train'])} | {f(r['depth_err'], 3)} | "
               f"{f(r['depth_rel'], 3)} | {f(r['colour_reach'], 3)} | {f(r['leak_max'], 4)} | "
@@ -384,9 +391,11 @@ def _insertion_table(rows: dict, ref_name: str) -> None:
     ri = rows["insert"]
     empty = f"{f(ri['m_psnr_empty'])} | | {f(ri['depth_err_empty'], 3)} | | 0 | | | |"
     print(f"| (no box: the empty room) | {empty}")
-    r1 = rows["insert_one_photo"]
-    print(f"\ninsert_one_photo's derived regions against the box's true footprint: recall min "
-          f"{f(r1['region_recall_min'], 3)}, area / true area max {f(r1['region_area_max'], 2)}")  # fmt: skip
+    for name in ("insert_one_photo", "insert_one_photo_extrude"):
+        r1 = rows[name]
+        print(f"\n{name}'s derived regions against the box's true footprint: recall min "
+              f"{f(r1['region_recall_min'], 3)}, area / true area max "
+              f"{f(r1['region_area_max'], 2)}")  # fmt: skip
 
 
 def _regions(res: CoInResult, scene, syn: SyntheticScene) -> dict:

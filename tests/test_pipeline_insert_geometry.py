@@ -19,6 +19,7 @@ from coin_cl.pipeline.insert_geometry import (
     lift_one_photo,
     lift_reference,
     run_insert_derived,
+    splat_colors,
     splat_depth,
     visible_footprint,
 )
@@ -229,3 +230,19 @@ def test_pipeline_derives_regions_without_masks(edit, tmp_path):
     with pytest.raises(ValueError, match="has no mask, and the hull path needs masks"):
         hull = replace(cfg, insert=InsertConfig(regions="hull"))
         inpaint(scene, tmp_path / "hull", config=hull, masks=none, edited_ref=edited)
+
+
+def test_splat_colors_keeps_the_nearest_point_over_its_footprint():
+    """Two points on one ray, the far one red and the near one blue, both drawn as 3x3 squares: blue
+    everywhere they land; a lone far point beside them keeps its own square."""
+    cam = _look_at([0.0, -5.0, 0.0], [0.0, 0.0, 0.0], 40, 30, 30.0)
+    ray = cam.rays(np.array([20.5]), np.array([15.5]))[0]
+    side = cam.rays(np.array([30.5]), np.array([15.5]))[0]
+    pts = cam.center + np.array([6.0, 4.0, 6.0])[:, None] * np.stack([ray, ray, side])
+    col = np.array([[1, 0, 0], [0, 0, 1], [0, 1, 0]], np.float32)
+    img, wt = splat_colors(pts, col, cam)
+    assert wt.sum() == 18 and (wt[14:17, 19:22] == 1).all() and (wt[14:17, 29:32] == 1).all()
+    np.testing.assert_array_equal(img[14:17, 19:22], np.broadcast_to([0, 0, 1], (3, 3, 3)))
+    np.testing.assert_array_equal(img[14:17, 29:32], np.broadcast_to([0, 1, 0], (3, 3, 3)))
+    one, w1 = splat_colors(pts, col, cam, radius=0)
+    assert w1.sum() == 2 and (one[15, 20] == [0, 0, 1]).all()
