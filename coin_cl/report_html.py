@@ -160,11 +160,13 @@ def _stages_html(logdoc: dict) -> str:
 
 
 def _plan_html(plan: dict | None, logdoc: dict) -> str:
+    from coin_cl.pipeline.budget import prior_text
+
     items = []
     if plan:
         steps = ", ".join(f"{_esc(k)} {_esc(v)}" for k, v in plan.get("steps", {}).items())
-        items.append(f"<li>plan ({_esc(plan.get('source', '?'))}): {steps} steps; scene prior "
-                     f"{_esc(plan.get('prior_seconds'))} s (plan.json)</li>")  # fmt: skip
+        items.append(f"<li>plan ({_esc(plan.get('source', '?'))}): {steps} steps; "
+                     f"{_esc(prior_text(plan))} (plan.json)</li>")  # fmt: skip
     device = logdoc.get("device")
     if device is None:
         asked = (plan or {}).get("key", {}).get("device")

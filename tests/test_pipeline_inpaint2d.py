@@ -189,3 +189,36 @@ def test_effective_prior_steps_come_from_the_plan():
     assert effective_config(cfg, 120.0, 0, 192, 144).prior.train_steps == steps_for_seconds(120.0)
     fixed = Inpaint2DConfig(prior=ScenePriorConfig(train_steps=5))
     assert effective_config(fixed, 120.0, 0, 192, 144, prior_steps=67).prior.train_steps == 5
+
+
+@pytest.mark.parametrize("inpainter", ["embedded", "telea"])
+def test_a_refined_core_is_filled_from_the_captures_around_the_input_mask(scene, tmp_path, inpainter):
+    """A refined run's image holds a grey render in the observed ring around the unseen core; the
+    captures around the input mask are a flat orange. With the captures as context the core is
+    filled orange (the ring keeps the render: the core alone changes); inpainted on the split's
+    image it takes the grey the render put around it."""
+    views = _views(scene)
+    orange, grey = np.array([0.8, 0.5, 0.2], np.float32), np.array([0.5, 0.5, 0.5], np.float32)
+    captures, split = list(scene.images), list(scene.images)
+    inputs, cores = list(scene.masks), list(scene.masks)
+    for i in views:
+        h, w = scene.masks[i].shape
+        yy, xx = np.mgrid[0:h, 0:w]
+        inputs[i] = (np.abs(yy - h / 2) < 12) & (np.abs(xx - w / 2) < 16)
+        cores[i] = (np.abs(yy - h / 2) < 5) & (np.abs(xx - w / 2) < 7)
+        captures[i] = np.broadcast_to(orange, (h, w, 3)).copy()
+        split[i] = np.where((inputs[i] & ~cores[i])[..., None], grey, captures[i]).astype(np.float32)
+    from dataclasses import replace
+
+    shown = replace(scene, images=split)
+    cfg = Inpaint2DConfig(use_dataset=False, inpainter=inpainter)
+    run_inpaint2d(shown, cores, views, tmp_path / "ctx", cfg, context=(captures, inputs))
+    run_inpaint2d(shown, cores, views, tmp_path / "split", cfg)
+    for i in views:
+        stem = scene.cameras[i].name.rsplit(".", 1)[0] + ".png"
+        ctx, old = (read_image(tmp_path / d / "images" / stem) for d in ("ctx", "split"))
+        assert np.abs(ctx[cores[i]] - orange).max() < 0.03, "the core continues the captures"
+        near_grey = np.abs(old[cores[i]] - grey).mean() < 0.5 * np.abs(old[cores[i]] - orange).mean()
+        assert near_grey, "without them it continues the render"
+        ring = inputs[i] & ~cores[i]
+        assert np.abs(ctx[ring] - grey).max() <= 1 / 255 + 1e-6  # the observed ring keeps the split's image

@@ -160,10 +160,18 @@ class Plan:
         for k, n in self.steps.items():
             m = self.minutes.get(k)
             parts.append(f"{k} {n} steps" + ("" if m is None else f" (~{m:.1f} min)"))
-        if self.fixed_seconds is not None and "prior" not in self.fixed_seconds:
-            return ", ".join(parts) + ", no scene prior trained"
-        prior = "" if self.prior_steps is None else f" ({self.prior_steps} steps)"
-        return ", ".join(parts) + f", scene prior {self.prior_seconds:.0f} s{prior}"
+        return ", ".join(parts) + ", " + prior_text(asdict(self))
+
+
+def prior_text(plan: dict[str, Any]) -> str:
+    """What a plan (`Plan` as a dict, plan.json's form) gives the scene prior, for logs and reports:
+    "scene prior S s (N steps)", or "no scene prior trained" where no stage trains one (its steps
+    are still planned: stage 1's key holds them)."""
+    fixed = plan.get("fixed_seconds")
+    if fixed is not None and "prior" not in fixed:
+        return "no scene prior trained"
+    steps = "" if plan.get("prior_steps") is None else f" ({plan['prior_steps']} steps)"
+    return f"scene prior {plan.get('prior_seconds', 0):.0f} s{steps}"
 
 
 # A recorded plan's probe-planned step count may exceed what its own recorded rate gives by this factor

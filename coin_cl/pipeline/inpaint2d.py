@@ -74,9 +74,21 @@ class Inpaint2DConfig:
     # reference: the CPU-practical mode) or "auto" (default: "reference_only" on a CPU when the
     # estimate for "all" exceeds `models.SD2_ALL_VIEWS_MAX_HOURS`, logged with the estimate).
     sd2_mode: str = "auto"
+    # With refined masks (stage 0_refine), what the inpainter sees around a view's unseen core, from
+    # CONTEXTS: "captures" (default: the captured photo with the whole input mask as the hole, so
+    # the fill continues the real surroundings; it is kept in the unseen core only) or "split" (the
+    # split's image: the object-free fit's render in the observed part around the core, supplement
+    # C.2 as written). Measured on cup_plain's 56 training views against the photo behind the
+    # virtual box, the embedded inpainter after a 10-minute run's split: unseen core 25.46 dB
+    # against 22.59 (the render around it was 19.8 dB there, a grey wash the fill continued).
+    context: str = "captures"
 
     def __post_init__(self) -> None:
         from coin_cl.pipeline.models import SD2_MODES
+
+        if self.context not in CONTEXTS:
+            raise ValueError(f"Inpaint2DConfig.context must be one of {', '.join(CONTEXTS)}, "
+                             f"got {self.context!r}")  # fmt: skip
 
         if self.inpainter not in INPAINTERS:
             raise ValueError(f"Inpaint2DConfig.inpainter must be one of {', '.join(INPAINTERS)}, "
@@ -95,6 +107,7 @@ class Inpaint2DConfig:
 
 
 INPAINTERS = ("auto", "embedded", "lama", "prior", "telea")
+CONTEXTS = ("captures", "split")  # Inpaint2DConfig.context
 
 
 def resolve_inpainter(cfg: Inpaint2DConfig) -> str:
@@ -198,8 +211,13 @@ def run_inpaint2d(
     sd2_views: list[int] | None = None,
     sd2_why: str = "",
     exact_masks: bool = False,
+    context: tuple[list[np.ndarray], list[np.ndarray]] | None = None,
 ) -> dict:
     """Inpaint `views` of `scene` in `masks`; writes `images/<name>.png` and `sources.json`.
+
+    context: (images, holes) per scene view that the inpainter works on instead of the scene's own
+    (`Inpaint2DConfig.context` "captures": the captured photos and the input masks, which hold
+    `masks`); its fill then replaces the scene's image inside `masks` only.
 
     exact_masks: the masks end at the object's edge (not dilated beyond it, or refined cores whose
     captured pixels are the object): a pasted fill is feathered toward the surroundings continued
@@ -264,19 +282,22 @@ def run_inpaint2d(
             note(name, "captured image (no mask)")
             write_png(path, to_uint8(scene.images[i]))
             continue
+        image, hole = (scene.images, masks) if context is None else context
         if i in todo and kind == "embedded":
-            src = [(scene.images[j], masks[j]) for j in neighbour_views(i, views, cfg.exemplar_views)]
-            img = exemplar_inpaint(scene.images[i], masks[i], cfg.exemplar, seed=cfg.seed + i, sources=src)
+            src = [(image[j], hole[j]) for j in neighbour_views(i, views, cfg.exemplar_views)]
+            img = exemplar_inpaint(image[i], hole[i], cfg.exemplar, seed=cfg.seed + i, sources=src)
             src = EXEMPLAR_NAME
         elif i in todo and kind == "lama":
-            fill = lama_inpaint(lama, scene.images[i], masks[i])
-            img, src = paste(scene.images[i], fill, masks[i], cfg.inpaint.feather_px, edge), LAMA_NAME
+            fill = lama_inpaint(lama, image[i], hole[i])
+            img, src = paste(image[i], fill, hole[i], cfg.inpaint.feather_px, edge), LAMA_NAME
         else:
             img, src = inpaint_image(
-                scene.images[i], masks[i], sd2=sd2 if i in by_sd2 else None, dataset_inpaint=dataset.get(i),
+                image[i], hole[i], sd2=sd2 if i in by_sd2 else None, dataset_inpaint=dataset.get(i),
                 scene_prior=prior,
                 cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i, edge=edge,
             )  # fmt: skip
+        if context is not None:
+            img = np.where(np.asarray(masks[i], bool)[..., None], img, scene.images[i])
         note(name, src)
         write_png(path, to_uint8(img))
     sources = {**done, **sources}

@@ -51,17 +51,15 @@ def run_report(res: CoInResult) -> str:
     if plan_path.is_file():
         from dataclasses import asdict
 
-        from coin_cl.pipeline.budget import read_plan
+        from coin_cl.pipeline.budget import prior_text, read_plan
         from coin_cl.pipeline.schedule import run_steps
 
         plan = asdict(read_plan(plan_path))
         # the counts as each GS stage was re-planned when reached (plan.json holds the probe's)
         given = ", ".join(f"{k} {n}" for k, n in run_steps(out).items())
         probe = plan.get("probe_seconds_per_step")
-        prior = "" if plan.get("prior_steps") is None else f", {plan['prior_steps']} steps"
         probe = "" if probe is None else f", probe {probe:.3f} s/step"
-        lines += ["", f"  plan ({plan['source']}{probe}): {given} steps; "
-                      f"scene prior {plan['prior_seconds']:.0f} s{prior} (plan.json)"]  # fmt: skip
+        lines += ["", f"  plan ({plan['source']}{probe}): {given} steps; {prior_text(plan)} (plan.json)"]
     if res.metrics:
         lines += ["", "Metrics, mean over the ground-truth test views (object absent):"]
         lines += metric_table(res.metrics)

@@ -141,9 +141,14 @@ def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
         ctx.note(why)
         only = [ctx.run.ref] if mode == "reference_only" else None
     # Undilated or refined masks end where the object does: a paste must not blend its outline back.
+    # (Inpainted on the captures, the hole is the input mask, exact only when not dilated.)
     exact = cfg.mask_dilate == 0 or "0_refine" in ctx.inputs
+    context = None
+    if "0_refine" in ctx.inputs and icfg.context == "captures":
+        context, exact = (ctx.run.scene.images, ctx.run.masks), cfg.mask_dilate == 0
+        ctx.note("the unseen cores are filled from the captures around the whole input masks")
     res = run_inpaint2d(scene, masks, train, ctx.out, icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt,
-                        sd2_views=only, sd2_why=why, exact_masks=exact)  # fmt: skip
+                        sd2_views=only, sd2_why=why, exact_masks=exact, context=context)  # fmt: skip
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
     return res
