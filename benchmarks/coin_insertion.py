@@ -86,7 +86,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--mask-kinds", default="seg,scribble", help="mask rows on the room: seg,scribble[,bbox]")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--insertion-rows-only", action="store_true",
-                   help="only insert, insert_naive and insert_one_photo (no removal rows)")  # fmt: skip
+                   help="only the insertion rows (insert, insert_naive, insert_one_photo[_extrude]; "
+                        "no removal rows)")  # fmt: skip
 
 
 def _scene(root: Path, **kw) -> tuple[SyntheticScene, object]:
