@@ -250,6 +250,8 @@ def run(args: argparse.Namespace) -> int:
     rows["insert_one_photo_extrude"] = {**score_insertion(res_e, sc_i, syn_i, ref_name), "minutes": minutes,
                                         "ran": _ran(res_e), **_regions(res_e, sc_i, syn_i)}  # fmt: skip
     _progress("insert_one_photo_extrude", rows["insert_one_photo_extrude"])
+    _rows_grid(out, sc_i, syn_i, {"insert": res, "insert_naive": res_n, "insert_one_photo": res_1,
+                                  "insert_one_photo_extrude": res_e})  # fmt: skip
     if args.insertion_rows_only:
         _insertion_table(rows, ref_name)
         keys = ("m_psnr", "m_psnr_train", "depth_err", "depth_rel", "colour_reach", "leak_max", "minutes")
@@ -448,6 +450,38 @@ def _refined_masks(res: CoInResult, scene, syn: SyntheticScene) -> dict:
         "unseen_precision": float(np.mean(precision)) if precision else math.nan,
         "unseen_over_input": float(np.mean([unseen_by[j].sum() / syn.masks[j].sum() for j in js])),
     }
+
+
+def _rows_grid(out: Path, sc_i, syn_i, results: dict) -> None:
+    """out/insertion_rows.jpg: one line per insertion test view, the box's true footprint (its
+    bounding box grown by half its size) of: the capture (no box) | the truth | each row's render
+    in `results` ({row: CoInResult}, that order). Nearest-neighbour 3x, for the docs."""
+    import cv2
+
+    from coin_cl import metrics
+    from coin_cl.scene.io import to_uint8
+
+    lines = []
+    for i in sc_i.test_idx:
+        j = _syn_index(syn_i, sc_i.cameras[i].name)
+        foot = np.asarray(syn_i.masks[j], bool)
+        if not foot.any():
+            continue
+        ys, xs = np.nonzero(foot)
+        crop = metrics.bbox_crop(foot, pad=max(4, int(0.5 * max(np.ptp(ys), np.ptp(xs)))))
+        renders = [_render(r, sc_i.cameras[i])[0] for r in results.values()]
+        tiles = [syn_i.absent[j], syn_i.present[j], *renders]
+        line = np.concatenate([np.pad(np.asarray(t, np.float32)[crop], ((1, 1), (1, 1), (0, 0)),
+                                      constant_values=1.0) for t in tiles], 1)  # fmt: skip
+        lines.append(line)
+    if not lines:
+        return
+    w = max(x.shape[1] for x in lines)
+    img = np.concatenate([np.pad(x, ((0, 0), (0, w - x.shape[1]), (0, 0)), constant_values=1.0)
+                          for x in lines])  # fmt: skip
+    img = cv2.resize(to_uint8(img), None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(out / "insertion_rows.jpg"), img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 88])
+    print(f"crops: {out / 'insertion_rows.jpg'} (capture | truth | " + " | ".join(results) + ")")
 
 
 def _grid(out: Path, sc_i, syn_i, res, res_n, ref_name: str, sc_r, syn_r, res_rf) -> None:
