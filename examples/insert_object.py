@@ -23,11 +23,12 @@ What it does, step by step (everything it writes lies in --out):
    azimuth / elevation in degrees, train / HO = held out / edited), cropped around the derived region:
    the capture with the inserted object's projected outline, the lift warped into the view (stage 1's
    image; for held-out views the same warp, computed here) and the final render; `regions.png`, stage
-   1's sheet of the derived regions on every training view; `views.json`, the figures.
+   1's sheet of the derived regions on every training view; `views.json`, the figures. With
+   --lift-only it stops before training and writes `lift_crops.png` without the render column.
 
-Runtime: 15.5 minutes on 2 CPU cores shared with another benchmark (AMD EPYC, Intel's OpenCL CPU
-runtime): Ref-GS 9.9, TE-D 5.0, the rest half a minute (--edit-only: 10 seconds). docs/RUN.md,
-"Insertion on a real capture", says what the crop grid shows view by view.
+Runtime: 3.8 minutes on 2 CPU cores (AMD EPYC, Intel's OpenCL CPU runtime; --edit-only and
+--lift-only: seconds). docs/RUN.md, "Insertion on a real capture", says what the crop grid shows
+view by view.
 """
 
 from __future__ import annotations
@@ -452,7 +453,7 @@ def main(argv: list[str] | None = None) -> dict:
     write_text(out / "views.json", json.dumps(info, indent=1))
     say(
         f"crop grid (the capture with the object's outline | the lift warped in | the render; label: view, "
-        f"azimuth/elevation in degrees from the edited view): {out / 'crops.png'}; regions: "
+        f"azimuth/elevation in degrees from the edited view): {out / grid}; regions: "
         f"{out / 'regions.png'}; {info['minutes']:.1f} min in all"
     )
     return {"out": out, "result": res, "info": info}
