@@ -34,6 +34,18 @@ def look_at_camera(
     return viewmat, K
 
 
+def camera_looking_at(eye, target, width: int, height: int, f: float, name: str = "v.png"):
+    """A `coin_cl.scene.Camera` of `width` x `height` px and focal `f` px at `eye` looking at
+    `target`, world z up (`conventions.look_at`), the principal point at the image's centre."""
+    import numpy as np
+
+    from coin_cl.scene.conventions import look_at
+    from coin_cl.scene.types import Camera
+
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=np.float64)
+    return Camera(K=K, viewmat=look_at(eye, target, (0.0, 0.0, 1.0)), width=width, height=height, name=name)
+
+
 def random_gaussians(
     n: int,
     seed: int = 0,

@@ -28,6 +28,7 @@ from coin_cl.scene.io import read_image, write_png
 from coin_cl.scene.masks import read_mask
 from coin_cl.scene.synthetic import make_synthetic, paste_object
 from coin_cl.scene.types import Camera
+from coin_cl.testing import camera_looking_at
 
 CFG = InsertConfig(regions="derive")
 
@@ -72,15 +73,7 @@ def test_clean_region_drops_specks_and_fills_holes():
 
 def _look_at(eye, target, width: int, height: int, f: float) -> Camera:
     """A camera at `eye` looking at `target`, world z up (image y down)."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    fwd = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(fwd, right), fwd])
-    V = np.eye(4)
-    V[:3, :3], V[:3, 3] = R, -R @ eye
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
-    return Camera(K=K, viewmat=V, width=width, height=height, name="v.png")
+    return camera_looking_at(eye, target, width, height, f)
 
 
 def test_object_wider_above_its_foot_stands_on_its_foot():

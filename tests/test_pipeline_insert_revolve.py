@@ -9,25 +9,14 @@ import pytest
 
 from coin_cl.pipeline.insert_config import InsertConfig
 from coin_cl.pipeline.insert_geometry import footprint, lift_one_photo, splat_colors, splat_depth
-from coin_cl.scene.types import Camera
+from coin_cl.testing import camera_looking_at
 
 CFG = InsertConfig(regions="derive", profile="revolve")
 R_FOOT, R_TOP, HEIGHT = 0.5, 0.7, 2.0
 
 
-def look_at(eye, target, width: int = 160, height: int = 160, f: float = 150.0) -> Camera:
-    """A camera at `eye` looking at `target`, world z up (image y down)."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    fwd = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    if np.linalg.norm(right) < 1e-6:  # straight down: any right will do
-        right = np.array([1.0, 0.0, 0.0])
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(fwd, right), fwd])
-    V = np.eye(4)
-    V[:3, :3], V[:3, 3] = R, -R @ eye
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
-    return Camera(K=K, viewmat=V, width=width, height=height, name="v.png")
+def look_at(eye, target, width: int = 160, height: int = 160, f: float = 150.0):
+    return camera_looking_at(eye, target, width, height, f)
 
 
 def cone(step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
