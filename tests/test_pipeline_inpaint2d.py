@@ -222,3 +222,17 @@ def test_a_refined_core_is_filled_from_the_captures_around_the_input_mask(scene,
         assert near_grey, "without them it continues the render"
         ring = inputs[i] & ~cores[i]
         assert np.abs(ctx[ring] - grey).max() <= 1 / 255 + 1e-6  # the observed ring keeps the split's image
+
+
+def test_stage_1_is_keyed_by_the_scene_prior_only_where_it_trains_it():
+    """An embedded (or Telea, LaMa) fill does not depend on the scene prior's planned seconds and
+    steps, so a comparison row with another plan keeps the fills; the prior inpainter's does."""
+    from coin_cl.pipeline.inpaint2d import prior_key
+
+    for kind in ("embedded", "telea"):
+        cfg = Inpaint2DConfig(inpainter=kind)
+        assert prior_key(cfg, 270.0, 376) == prior_key(cfg, 120.0, None) == {}
+    prior = Inpaint2DConfig(inpainter="prior")
+    assert prior_key(prior, 270.0, 376) == {"prior_seconds": 270.0, "prior_steps": 376}
+    assert prior_key(prior, 120.0, None) == {"prior_seconds": 120.0}
+    assert prior_key(Inpaint2DConfig(inpainter="prior", use_prior=False), 270.0, 376) == {}

@@ -38,6 +38,7 @@ from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_
 from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
+from coin_cl.pipeline.inpaint2d import prior_key
 from coin_cl.pipeline.inpaint2d import rerun_key as inpaint_key
 from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
@@ -428,10 +429,8 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
         Stage("0_scene", stage_scene, settings=base),
         *([Stage("0_refine", stage_refine, ["0_scene"], refine_key)] if refined else []),
         Stage("1_inpaint", stage_inpaint, ["0_scene", *r],
-              {**inpaint_key(cfg.inpaint2d), "prior_seconds": plan.prior_seconds, "seed": cfg.seed,
-               # the measured step count (plans made before it have none: their key is unchanged)
-               **({"prior_steps": plan.prior_steps} if plan.prior_steps is not None else {}),
-               "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
+              {**inpaint_key(cfg.inpaint2d), **prior_key(cfg.inpaint2d, plan.prior_seconds, plan.prior_steps),
+               "seed": cfg.seed, "sd": cfg.sd_path, "prompt": cfg.prompt, "edited_ref": edit}),
         Stage("2_refgs", stage_refgs, ["0_scene", *r, "1_inpaint"], refgs_key),
         Stage("3_clg", stage_clg_adapter, ["0_scene", *r, "1_inpaint", "2_refgs"],
               {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,

@@ -153,6 +153,17 @@ def rerun_key(cfg: Inpaint2DConfig) -> dict:
     return key
 
 
+def prior_key(cfg: Inpaint2DConfig, prior_seconds: float, prior_steps: int | None) -> dict:
+    """What stage 1's rerun key holds of the plan's scene prior: its seconds and measured steps
+    where stage 1 trains the prior (inpainter "prior"), else nothing: no other fill depends on them,
+    so a comparison row planned differently (a naive row's explicit plan) reuses the fills."""
+    if resolve_inpainter(cfg) != "prior" or not cfg.use_prior:
+        return {}
+    # the measured step count (plans made before it have none: their key is unchanged)
+    steps = {} if prior_steps is None else {"prior_steps": prior_steps}
+    return {"prior_seconds": prior_seconds, **steps}
+
+
 def neighbour_views(i: int, views: list[int], k: int) -> list[int]:
     """Up to k views of `views` other than i, nearest in index first (captures are ordered)."""
     return sorted((j for j in views if j != i), key=lambda j: (abs(j - i), j))[:k]
