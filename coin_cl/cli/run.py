@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from coin_cl.cli import values
+from coin_cl.pipeline.insert_config import PROFILES
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
@@ -45,7 +46,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                         "and every other view's region is derived (no masks needed); hull = the masks "
                         "cover it in every view; auto = hull when every training view has a mask, else "
                         "derive")  # fmt: skip
-    p.add_argument("--insert-profile", choices=("revolve", "extrude", "rounded"), default="revolve",
+    p.add_argument("--insert-profile", choices=PROFILES, default="revolve",
                    help="with derived regions: the object's shape behind its silhouette; revolve = a "
                         "solid of revolution about the vertical (round objects, and the safe choice), "
                         "extrude = a prism as deep as 0.65 of its width (a box seen face-on), rounded = "

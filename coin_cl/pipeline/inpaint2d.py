@@ -282,6 +282,7 @@ def run_inpaint2d(
 
     from tqdm import tqdm
 
+    image, hole = (scene.images, masks) if context is None else context  # what the inpainter sees
     # a bar per view: the exemplar inpainter takes about a second a view, LaMa and SD2 much longer
     for i in tqdm(views, desc="stage 1 inpaint", unit="view"):
         name = Path(scene.cameras[i].name).stem + ".png"
@@ -293,7 +294,6 @@ def run_inpaint2d(
             note(name, "captured image (no mask)")
             write_png(path, to_uint8(scene.images[i]))
             continue
-        image, hole = (scene.images, masks) if context is None else context
         if i in todo and kind == "embedded":
             src = [(image[j], hole[j]) for j in neighbour_views(i, views, cfg.exemplar_views)]
             img = exemplar_inpaint(image[i], hole[i], cfg.exemplar, seed=cfg.seed + i, sources=src)
