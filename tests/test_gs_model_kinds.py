@@ -9,6 +9,7 @@ from coin_cl.gs.gaussians import GaussianConfig
 from coin_cl.gs.model_kinds import (
     MODELS,
     build_model,
+    continue_rates,
     model_from_state,
     scaled_model_config,
     scaled_strategy,
@@ -51,6 +52,27 @@ def test_model_from_state_rebuilds_the_same_model(kind):
     assert r.optimizer.params.keys() == m.optimizer.params.keys()
     for name, p in m.optimizer.params.items():
         assert torch.equal(r.optimizer.params[name], p), name
+
+
+@pytest.mark.parametrize("kind", MODELS)
+def test_continued_rates_go_on_from_where_the_schedule_stood_and_survive_a_checkpoint(kind):
+    pts = np.random.default_rng(0).uniform(-1, 1, (40, 3))
+    m = build_model(kind, pts, None, extent=2.0, seed=3, model_cfg=scaled_model_config(kind, 500))
+    names = list(m.optimizer.lrs)
+    at = {n: m.optimizer.lr(n, 200) for n in names}
+    final = {n: m.optimizer.lr(n, 500) for n in names}
+    decaying = [n for n in names if m.optimizer.lr(n, 0) != final[n]]
+    assert decaying  # offsets / means and the MLPs decay: without them this test is empty
+    continue_rates(m, 200, 300)  # the next trainer counts from 0 where this schedule stood at 200
+    for n in names:
+        assert m.optimizer.lr(n, 0) == pytest.approx(at[n], rel=1e-12), n
+        assert m.optimizer.lr(n, 300) == pytest.approx(final[n], rel=1e-12), n
+        # 300 more steps of the same log-linear decay: the one schedule's step 350 at step 150
+        assert m.optimizer.lr(n, 150) == pytest.approx(at[n] ** 0.5 * final[n] ** 0.5, rel=1e-9), n
+    r = model_from_state(m.state_dict())  # a resumed fine-tune keeps them
+    assert r.cfg == m.cfg
+    for n in names:
+        assert r.optimizer.lr(n, 0) == pytest.approx(at[n], rel=1e-12), n
 
 
 def test_unknown_kind_is_a_clear_error():

@@ -83,6 +83,32 @@ def test_photometric_term_is_the_weighted_masked_loss(scene):
     assert torch.count_nonzero(g[v2.exclude]) == 0
 
 
+def test_weighted_regions_weigh_only_the_region_and_count_the_rest_once(scene):
+    v = scene.views[1]
+    view = type(v)(v.camera, v.image, torch.zeros(16, 24, dtype=torch.bool), 4.0)  # W_n = 4
+    view.exclude[0:3, :] = True
+    region = np.zeros((16, 24), bool)
+    region[6:12, 8:20] = True
+    img = torch.rand(16, 24, 3, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    out = type("R", (), {"image": img, "meta": {}})()
+    cfg = LossConfig(lambda_dssim=0.0)  # L1 alone: each pixel's gradient is its own
+    grads, values = {}, {}
+    for name, regions in (("view", None), ("region", [region])):
+        ctx = LossContext(view=view, index=0, out=out, step=0, model=None)
+        values[name] = PhotometricLoss(cfg, weighted_regions=regions)(ctx)
+        (grads[name],) = torch.autograd.grad(values[name], img)
+    r = torch.as_tensor(region)
+    assert torch.allclose(grads["region"][r], grads["view"][r])  # W_n inside, as on the whole view
+    assert torch.allclose(grads["region"][~r], grads["view"][~r] / 4.0)  # once outside
+    assert torch.count_nonzero(grads["region"][view.exclude]) == 0
+    _, parts = photometric_loss(img[None], view.image[None], None, view.exclude[None], cfg)
+    per_px = (img - view.image).abs().mean(-1).detach()
+    keep = ~view.exclude
+    want = (per_px[keep & ~r].sum() + 4.0 * per_px[keep & r].sum()) / keep.sum()
+    assert values["region"].item() == pytest.approx(want.item(), rel=1e-6)
+    assert values["view"].item() == pytest.approx(4.0 * float(parts["loss"][0]), rel=1e-6)
+
+
 class RefLikeWeights(ViewWeights):
     """Ref-GS-shaped adaptive weights: view `ref` gets `lam`; others 1 / (1 + exp(lam (L_t -
     L_prev))) from the change of their own loss since their previous visit (state per view)."""

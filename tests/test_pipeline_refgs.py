@@ -17,6 +17,7 @@ from coin_cl.checkpoint import load_checkpoint
 from coin_cl.gs import depth_prior
 from coin_cl.gs.anchor_attention import AnchorAttention
 from coin_cl.gs.depth_prior import DATASET_DEPTH_PRIOR, GS_DEPTH_PRIOR
+from coin_cl.gs.model_kinds import scaled_strategy
 from coin_cl.gs.refgs import RefGSConfig
 from coin_cl.gs.scaffold import ScaffoldModel
 from coin_cl.gs.terms import LossTerm
@@ -111,6 +112,20 @@ def test_growth_cap_reaches_the_strategy(room, tmp_path):
     assert st["gaussians_per_pixel"] == 0.5 and st["train_pixels"] == pixels
     assert st["size_limit"]["neural_gaussians"] == int(0.5 * pixels) // 10 * 10
     assert st["size_limit"]["reason"] == f"cap {int(0.5 * pixels)} = 0.5 per training pixel x {pixels} pixels"
+
+
+def test_schedule_iters_lay_the_decay_and_growth_over_the_longer_run(room, tmp_path):
+    # Ref-GS as the first 12 of 40 steps of one fit: its rates end part-way down, its growth
+    # schedule is the 40-step one (TE-D continues both, `TEDConfig.rates`).
+    syn, scene, targets = room
+    cfg = _cfg(feature_attention=False, depth_loss=False)
+    res = run_refgs(scene, targets, tmp_path / "s", cfg, budget_minutes=None, iters=12, seed=0,
+                    schedule_iters=40)  # fmt: skip
+    log = json.loads(Path(res["log"]).read_text())
+    assert log["refgs"]["schedule_iters"] == 40 and res["steps"] == 12
+    assert log["strategy"]["update_until"] == scaled_strategy("scaffold", 40).update_until
+    saved = _final_state(tmp_path / "s")["model"]["cfg"]
+    assert saved["lr_offsets"]["max_steps"] == 40 and saved["lr_mlp_color"]["max_steps"] == 40
 
 
 def _final_state(out: Path) -> dict:

@@ -7,11 +7,11 @@ import torch
 
 from coin_cl.gs.data import View
 from coin_cl.gs.gaussians import GaussianConfig
-from coin_cl.gs.model_kinds import build_model
+from coin_cl.gs.model_kinds import build_model, scaled_model_config
 from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.terms import LossContext
 from coin_cl.gs.trainer import TrainConfig
-from coin_cl.pipeline.ted import AdversarialTerm, TEDConfig, patch_size, run_ted
+from coin_cl.pipeline.ted import RATES, AdversarialTerm, TEDConfig, patch_size, run_ted
 
 W, H = 64, 48
 
@@ -116,6 +116,27 @@ def test_adversarial_phase_changes_the_result_and_resumes(scene, tmp_path):
     _, again = run_ted(_model(scene), views, [], tmp_path / "full", cfg, tc)
     for k, v in _params(full).items():
         assert torch.equal(v, _params(again)[k]), k
+
+
+def test_continued_rates_go_on_from_where_the_coarse_schedule_stood(scene, tmp_path):
+    views = _views(scene)
+    tc = TrainConfig(model="3dgs", progress=False, export_ply=False, ckpt_every=0)
+    coarse = scaled_model_config("3dgs", 26)  # one schedule over the coarse stage's 20 + TE-D's 6
+    moved = {}
+    for rates in RATES:
+        start = build_model("3dgs", scene.noisy_points(), None, 3.5, seed=0, model_cfg=coarse)
+        before = start.optimizer.params["means"].detach().clone()
+        cfg = TEDConfig(iters_finetune=6, iters_adversarial=2, lambda_gen=0.0, rates=rates)
+        _, model = run_ted(start, views, [], tmp_path / rates, cfg, tc, steps_before=20)
+        # after both phases: continued, the adversarial phase holds the final rate; restarted, its
+        # schedule starts again at the initial one
+        want = coarse.lr_means(26 if rates == "continue" else 0) * 3.5
+        assert model.optimizer.lr("means", 0) == pytest.approx(want, rel=1e-9), rates
+        moved[rates] = (model.optimizer.params["means"].detach() - before).abs().mean().item()
+    # going on from step 20 of 26 (3% of the initial rate and falling), the positions barely move
+    assert 0 < moved["continue"] < 0.2 * moved["restart"]
+    with pytest.raises(ValueError, match="TEDConfig.rates is 'warm'"):
+        TEDConfig(rates="warm")
 
 
 def test_discriminator_probe_measures_a_positive_cost_that_grows_with_the_patch():

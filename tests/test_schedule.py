@@ -192,3 +192,12 @@ def test_a_stage_is_planned_from_the_stages_before_it_only(tmp_path):
     assert S.stage_schedule(tmp_path, plan, "0_refine", 10).steps == refine
     assert S.stage_schedule(tmp_path, plan, "2_refgs", 10).steps == refgs
     assert S.ted_schedule(tmp_path, plan, 10).refgs_seconds_per_step == pytest.approx(spent / refgs["refgs"])
+
+
+def test_refgs_lays_its_schedules_over_the_te_d_fine_tune_it_continues_into():
+    steps = {"refgs": 300, "ted_finetune": 500, "ted_adversarial": 0}
+    plan = B.Plan(steps, dict.fromkeys(steps, 1.0), 0.0, 0.25, "probe", {})
+    assert S.refgs_schedule_span(plan, 320, True) == 820  # Ref-GS's own count + the plan's TE-D's
+    assert S.refgs_schedule_span(plan, 320, False) == 320  # TE-D restarts, or does not run
+    no_ted = B.Plan({"refgs": 300}, {"refgs": 1.0}, 0.0, 0.25, "probe", {})
+    assert S.refgs_schedule_span(no_ted, 300, True) == 300

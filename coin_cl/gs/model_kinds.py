@@ -9,13 +9,14 @@ needs only `model_from_state`, to load a checkpoint.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
 
 from coin_cl.gs.base import Model
 from coin_cl.gs.gaussians import GaussianConfig, GaussianModel, gaussian_config_from_dict
+from coin_cl.gs.optim import ExpSchedule, continued
 from coin_cl.gs.scaffold import ScaffoldConfig, ScaffoldModel, scaffold_config_from_dict
 from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy
 
@@ -93,6 +94,19 @@ def scaled_strategy(kind: str, iters: int) -> Strategy:
             update_until=max(every * 4, round(c.update_until * f)),
         )
     raise ValueError(f"unknown model {kind!r}: use one of {MODELS}")
+
+
+def continue_rates(model: Model, done: int, steps: int) -> None:
+    """Make every learning-rate schedule of `model` go on from step `done` of it to its final rate
+    over the next `steps` steps (`optim.continued`), in place; its config too, so that a checkpoint
+    written from here on resumes with the same rates. A trainer counts its steps from 0, so without
+    this a stage that trains a model further (TE-D after Ref-GS) would start the decay again at the
+    initial rates: the offsets' is 100x their final one."""
+    model.cfg = replace(model.cfg, **{f.name: continued(getattr(model.cfg, f.name), done, steps)
+                                      for f in fields(model.cfg)
+                                      if isinstance(getattr(model.cfg, f.name), ExpSchedule)})  # fmt: skip
+    opt = model.optimizer
+    opt.lrs = {name: continued(lr, done, steps) for name, lr in opt.lrs.items()}
 
 
 def model_from_state(sd: dict[str, Any]) -> Model:

@@ -57,6 +57,16 @@ class ExpSchedule:
 LR = float | ExpSchedule
 
 
+def continued(lr: LR, done: int, steps: int) -> LR:
+    """`lr` for a run that goes on after `done` steps of it: a schedule becomes the decay from its
+    rate at `done` to its final rate over the next `steps` steps (once past its end: its final
+    rate, held); a constant stays. One stage training a model another left (TE-D after Ref-GS)
+    thus continues its decay instead of starting again at the initial rates."""
+    if not isinstance(lr, ExpSchedule):
+        return lr
+    return ExpSchedule(lr(done), lr(lr.max_steps), max(1, steps))
+
+
 class ParamOptimizer:
     """Named leaf tensors, each with its own Adam and learning-rate schedule.
 

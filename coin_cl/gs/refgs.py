@@ -56,6 +56,12 @@ class RefGSConfig:
     adaptive_weights: bool = True
     lambda_r: float = 50.0  # supplement: 50 or 100 depending on the scene
     first_visit_weight: float = 0.5  # sigmoid(0): the formula's value for an unchanged loss
+    # The pixels W_n weighs: "mask" (default): each view's inpainting mask, where the views' targets
+    # disagree and the reference arbitrates; outside it every view counts once. "view": the whole
+    # view, the paper's letter. Under Adam a whole view weighted lambda_r = 50 fills the second
+    # moments of every shared parameter (the MLPs), so in a run of a few thousand steps the other
+    # views train at about a fifteenth of their rate; their captured pixels agree and need no arbiter.
+    weight_region: str = "mask"
     # -- anchor feature attention
     feature_attention: bool = True
     attn_heads: int = 4  # value channels are split into heads: feat_dim % attn_heads == 0
@@ -96,6 +102,8 @@ class RefGSConfig:
             raise ValueError(f"prune_min_views must be >= 1, got {self.prune_min_views}")
         if not (math.isfinite(self.lambda_r) and self.lambda_r > 0):
             raise ValueError(f"lambda_r must be a positive number, got {self.lambda_r}")
+        if self.weight_region not in ("mask", "view"):
+            raise ValueError(f"weight_region must be 'mask' or 'view', got {self.weight_region!r}")
         if not 0.0 <= self.first_visit_weight:
             raise ValueError(f"first_visit_weight must be >= 0, got {self.first_visit_weight}")
         if self.attn_heads < 1 or self.attn_head_dim < 1:
@@ -180,7 +188,11 @@ def refgs_terms(
     """
     weights = view_weights(cfg, ref_index)
     terms: list[LossTerm] = [
-        PhotometricLoss(loss_cfg or LossConfig(), view_weights=AdaptiveWeightSource(weights)),
+        PhotometricLoss(
+            loss_cfg or LossConfig(),
+            view_weights=AdaptiveWeightSource(weights),
+            weighted_regions=masks if cfg.weight_region == "mask" else None,
+        ),  # fmt: skip
         ScaleVolumeReg(),
     ]
     if cfg.depth_loss:

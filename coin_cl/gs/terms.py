@@ -28,13 +28,15 @@ current unweighted photometric loss.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from coin_cl.gs.losses import LossConfig, photometric_loss
+from coin_cl.gs.losses import LossConfig, photometric_map
 
 if TYPE_CHECKING:
     from coin_cl.gs.base import Model, RenderOutput
@@ -110,7 +112,8 @@ StaticViewWeights = ViewWeights
 @dataclass
 class PhotometricLoss(LossTerm):
     """W_n x ((1 - lambda) L1 + lambda (1 - SSIM)) over the view's kept pixels (paper eq. 2;
-    `coin_cl.gs.losses.photometric_loss`), W_n from `view_weights`.
+    `coin_cl.gs.losses.photometric_loss`), W_n from `view_weights`; with `weighted_regions`, W_n
+    weighs only the pixels of the view's region and every other pixel counts once.
 
     Logs 'l1' and 'ssim' (over kept pixels) and 'view_weight'.
     """
@@ -119,20 +122,31 @@ class PhotometricLoss(LossTerm):
     view_weights: ViewWeights = field(default_factory=StaticViewWeights)
     weight: float = 1.0
     name: str = "photometric"
+    # Per trainer view, the [H, W] bool pixels W_n weighs (Ref-GS: the inpainting masks, where the
+    # views' targets disagree and the reference arbitrates); the rest of the view counts with
+    # weight 1. None (default): W_n weighs the whole view.
+    weighted_regions: Sequence[np.ndarray] | None = None
 
     def __call__(self, ctx: LossContext) -> Tensor:
         v = ctx.view
         # The fused path runs SSIM as one OpenCL op (kernels/ssim.cl) instead of torch convolutions;
         # a term evaluated without a model (model=None) takes the torch path.
         fused = getattr(ctx.model, "fused", False)
-        loss, parts = photometric_loss(
-            ctx.out.image[None], v.image[None], None,
-            None if v.exclude is None else v.exclude[None], self.cfg,
+        px, n_keep, parts = photometric_map(
+            ctx.out.image[None], v.image[None], None if v.exclude is None else v.exclude[None], self.cfg,
             backend="opencl" if fused else "torch", device=getattr(ctx.model, "device", None),
         )  # fmt: skip
         w = self.view_weights(ctx, parts["loss"][0])
-        w = torch.as_tensor(w, dtype=loss.dtype)
+        w = torch.as_tensor(w, dtype=px.dtype)
         ctx.log.update(l1=float(parts["l1"][0]), ssim=float(parts["ssim"][0]), view_weight=float(w))
+        denom = n_keep[0].clamp_min(1.0)
+        if self.weighted_regions is not None and float(v.weight) != 0:
+            region = torch.as_tensor(np.asarray(self.weighted_regions[ctx.index], bool))
+            # where(): a zero W_n drops the region's pixels with an exactly zero gradient
+            inside = torch.where(region, px[0], torch.zeros_like(px[0])).sum() / denom
+            outside = torch.where(region, torch.zeros_like(px[0]), px[0]).sum() / denom
+            return outside + torch.where(w != 0, w * inside, torch.zeros_like(inside))
+        loss = px[0].sum() / denom
         # A zero weight must give an exactly zero gradient even if the view's loss is not finite
         # (and keep a graph, so that backward still runs when this is the only term).
         return torch.where(w != 0, w * loss, torch.zeros_like(loss))

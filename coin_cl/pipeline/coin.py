@@ -44,7 +44,7 @@ from coin_cl.pipeline.lock import folder_lock
 from coin_cl.pipeline.refine_masks import vote_ring
 from coin_cl.pipeline.run_inputs import CaptureViews, RunInputs, capture_views
 from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_stages
-from coin_cl.pipeline.schedule import stage_schedule
+from coin_cl.pipeline.schedule import refgs_schedule_span, stage_schedule
 from coin_cl.pipeline.stages import (
     carves,
     load_model,
@@ -420,7 +420,10 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
         }
 
     def refgs_key() -> dict[str, Any]:
-        return {"cfg": jsonable(run.refgs_cfg), "ref": ref, "iters": steps("2_refgs")["refgs"],
+        n = steps("2_refgs")["refgs"]
+        return {"cfg": jsonable(run.refgs_cfg), "ref": ref, "iters": n,
+                "schedule_iters": refgs_schedule_span(plan, n, "ted" not in cfg.skip
+                                                      and cfg.ted.rates == "continue"),
                 "seed": cfg.seed,
                 "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
                 "plain": "refgs" in cfg.skip, **observed_key}  # fmt: skip

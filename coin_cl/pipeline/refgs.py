@@ -170,6 +170,7 @@ def run_refgs(
     object_masks: Sequence[np.ndarray] | None = None,
     exclude: Sequence[np.ndarray | None] | None = None,
     gaussians_per_pixel: float | None = None,
+    schedule_iters: int | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
 
@@ -199,6 +200,9 @@ def run_refgs(
             captures teach it, as in masked reconstruction); default none.
         gaussians_per_pixel: the anchor-growth cap in neural Gaussians per training pixel
             (`ScaffoldStrategy.gaussians_per_pixel`; 0: none); None: the strategy's default.
+        schedule_iters: the steps the learning-rate decay and the anchor growth are laid out over
+            (>= the run's steps; None: the run's): a pipeline whose next stage trains the same model
+            on (TE-D's fine-tune) passes both stages' steps, so that the two run one schedule.
     Returns:
         JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
     """
@@ -287,7 +291,8 @@ def run_refgs(
         log.info(
             "background depth held in the masks of %d of %d views", sum(d is not None for d in bg), len(bg)
         )
-    mcfg = scaled_model_config("scaffold", n_iters)
+    span = n_iters if schedule_iters is None else max(n_iters, int(schedule_iters))
+    mcfg = scaled_model_config("scaffold", span)
     model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed, mcfg)
     model.device = device
     terms = refgs_terms(cfg, kt, masks, n_iters, feat_dim=mcfg.feat_dim,
@@ -297,7 +302,7 @@ def run_refgs(
     tcfg = TrainConfig(model="scaffold", iters=n_iters, backend=backend, seed=seed, ckpt_every=ckpt_every,
                        max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else max_seconds,
                        progress=True, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
-    strategy = scaled_strategy("scaffold", n_iters)
+    strategy = scaled_strategy("scaffold", span)
     if gaussians_per_pixel is not None:
         strategy = replace(strategy, gaussians_per_pixel=float(gaussians_per_pixel))
     tr = Trainer(model, views, [], tcfg, out / "gs", callback, strategy=strategy, terms=terms)
@@ -318,6 +323,7 @@ def run_refgs(
         "n_removed": n_removed,
         "n_points": int(len(pts)),
         "iters": n_iters,
+        "schedule_iters": span,
     }  # fmt: skip
     t0 = time.perf_counter()
     res = tr.train()

@@ -133,6 +133,17 @@ def ted_schedule(out: Path, plan: Plan, budget_minutes: float) -> Schedule:
     return stage_schedule(out, plan, "4_ted", budget_minutes)
 
 
+def refgs_schedule_span(plan: Plan, refgs_steps: int, ted_continues: bool) -> int:
+    """The steps Ref-GS lays its learning-rate decay and anchor growth out over: its own, plus the
+    plan's TE-D fine-tune steps where TE-D runs and continues that decay (`TEDConfig.rates`
+    "continue"), so that the two stages train the model as one fit of their steps would. From the
+    plan, not from TE-D's count planned again later: the stage's key must not change after Ref-GS
+    ran."""
+    if not ted_continues:
+        return refgs_steps
+    return refgs_steps + int(plan.steps.get("ted_finetune", 0))
+
+
 def refgs_rate(out: Path) -> tuple[int, float]:
     """(steps, training seconds) that Ref-GS recorded in OUT/2_refgs/manifest.json; (0, 0.0) when it
     has not run."""

@@ -25,7 +25,7 @@ from coin_cl.pipeline.budget import CAP_FACTOR
 from coin_cl.pipeline.inpaint2d import planned_config, read_inpaints, run_inpaint2d
 from coin_cl.pipeline.models import resolve_sd2_mode, sd2_denoiser, sd2_on_cpu
 from coin_cl.pipeline.runner import StageContext, jsonable
-from coin_cl.pipeline.schedule import stage_schedule, ted_schedule
+from coin_cl.pipeline.schedule import refgs_rate, stage_schedule, ted_schedule
 
 if TYPE_CHECKING:
     from coin_cl.diffusion.sampling import Denoiser
@@ -213,6 +213,7 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
     elif rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
+                     schedule_iters=int(ctx.settings["schedule_iters"]),
                      max_seconds=cap, device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
@@ -333,6 +334,7 @@ def stage_ted(ctx: StageContext[RunInputs]) -> dict:
         TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
         extra_terms=extra,
         max_seconds=caps,
+        steps_before=refgs_rate(ctx.run.out)[0],
     )
     if not any(ctx.out.rglob(CKPT_NAME)):
         # Both phases had 0 iterations (a tiny budget or explicit settings): the stage passes the

@@ -13,9 +13,10 @@ folder:
    ratio, as pix2pix.
 
 The primitives are fixed in this stage (no densification): it refines the appearance of the coarse
-structure Ref-GS built. The paper runs 10k + 10k iterations; a CoIn run takes its counts from the
-budget plan (`pipeline.budget`) unless `TEDConfig.iters_*` give them; the plan gives the adversarial
-phase 0 steps where stage 1's fills are not a learned inpainter's (`coin_plan.adversarial_skip`).
+structure Ref-GS built, continuing the decay of Ref-GS's learning rates (`TEDConfig.rates`). The
+paper runs 10k + 10k iterations; a CoIn run takes its counts from the budget plan
+(`pipeline.budget`) unless `TEDConfig.iters_*` give them; the plan gives the adversarial phase 0
+steps where stage 1's fills are not a learned inpainter's (`coin_plan.adversarial_skip`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from coin_cl.diffusion.discriminator import (
     g_loss,
     sample_patch_corners,
 )
+from coin_cl.gs.model_kinds import continue_rates
 from coin_cl.gs.strategy import Strategy
 from coin_cl.gs.terms import LossContext, LossTerm, PhotometricLoss
 from coin_cl.gs.trainer import TrainConfig, Trainer
@@ -46,6 +48,8 @@ if TYPE_CHECKING:
     from coin_cl.gs.base import Model
 
 log = logging.getLogger(__name__)
+
+RATES = ("continue", "restart")  # TEDConfig.rates
 
 
 @dataclass
@@ -75,6 +79,12 @@ class TEDConfig:
     lr_d: float = 2e-4
     # The discriminator's Adam betas (each in [0, 1)). Default (0.5, 0.999): pix2pix's.
     betas_d: tuple[float, float] = (0.5, 0.999)
+    # Learning rates: "continue" (default): the fine-tune phase goes on with the decay of the
+    # model's schedules from where Ref-GS left it (`run_ted`'s steps_before) to their final rates,
+    # and the adversarial phase holds those; Ref-GS and the fine-tune thus run one schedule, as a
+    # single GS fit of their steps would. "restart": each phase starts the model's schedules again
+    # from their initial rates (the offsets' 100x its final one), as a fresh trainer does.
+    rates: str = "continue"
     # Patch RNG seed. None (default): in a CoIn run the run's seed (`CoInConfig.seed`); `run_ted` on
     # its own: 0.
     seed: int | None = None
@@ -98,6 +108,8 @@ class TEDConfig:
         ):  # fmt: skip
             if not ok:
                 raise ValueError(f"TEDConfig.{name} is {getattr(self, name)!r}: give {what}")
+        if self.rates not in RATES:
+            raise ValueError(f"TEDConfig.rates is {self.rates!r}: use one of {RATES}")
         if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
             raise ValueError(f"TEDConfig.seed is {self.seed!r}: give an integer, or None for the run's seed")
 
@@ -229,6 +241,7 @@ def run_ted(
     train_cfg: TrainConfig | None = None,
     extra_terms: list[LossTerm] = (),
     max_seconds: dict[str, float] | None = None,
+    steps_before: int = 0,
 ) -> tuple[dict[str, Any], Model]:
     """Run both TE-D phases from `model` (the Ref-GS scene).
 
@@ -241,6 +254,8 @@ def run_ted(
         extra_terms: more loss terms for both phases (e.g. the reference depth term).
         max_seconds: {"finetune" | "adversarial": a cap on that phase's training seconds} (the
             pipeline's budget plan; 0 or absent: `train_cfg.max_seconds`).
+        steps_before: the steps `model` trained before (Ref-GS's): with `cfg.rates` "continue" its
+            schedules go on from that step of theirs.
     Returns:
         (a JSON-able record: the config and both phases' results, the final model).
     """
@@ -262,5 +277,8 @@ def run_ted(
             continue
         cap = (max_seconds or {}).get(phase, base.max_seconds)
         pcfg = replace(base, iters=iters, export_ply=phase == "adversarial", max_seconds=cap)
+        if cfg.rates == "continue":
+            continue_rates(model, steps_before, iters)
         res[phase], model = _train_phase(model, views, test_views, pcfg, out_dir / phase, terms)
+        steps_before = res[phase]["step"]  # the next phase goes on from where this one stopped
     return res, model
