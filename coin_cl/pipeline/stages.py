@@ -209,7 +209,11 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
     if lift is not None or cfg.prompt or ctx.run.edited is not None:
-        rcfg = replace(rcfg, bg_depth=False)  # insertion: the masks hold the new object, not the background
+        # insertion: the masks hold the new object, not the background; and the reference, the one
+        # view that shows the object, says where it ends also outside its mask, where the other
+        # views' captures show the empty scene (weighed in the mask alone, the object's colour
+        # leaked into 3% of the far pixels of a view of the synthetic room)
+        rcfg = replace(rcfg, bg_depth=False, weight_region="view")
     elif rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
