@@ -13,10 +13,10 @@ folder:
    ratio, as pix2pix.
 
 The primitives are fixed in this stage (no densification): it refines the appearance of the coarse
-structure Ref-GS built, continuing the decay of Ref-GS's learning rates (`TEDConfig.rates`). The
-paper runs 10k + 10k iterations; a CoIn run takes its counts from the budget plan
-(`pipeline.budget`) unless `TEDConfig.iters_*` give them; the plan gives the adversarial phase 0
-steps where stage 1's fills are not a learned inpainter's (`coin_plan.adversarial_skip`).
+structure Ref-GS built (its learning rates: `TEDConfig.rates`). The paper runs 10k + 10k
+iterations; a CoIn run takes its counts from the budget plan (`pipeline.budget`) unless
+`TEDConfig.iters_*` give them; the plan gives the adversarial phase 0 steps where stage 1's fills
+are not a learned inpainter's (`coin_plan.adversarial_skip`).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-RATES = ("continue", "restart")  # TEDConfig.rates
+RATES = ("restart", "continue")  # TEDConfig.rates
 
 
 @dataclass
@@ -79,12 +79,15 @@ class TEDConfig:
     lr_d: float = 2e-4
     # The discriminator's Adam betas (each in [0, 1)). Default (0.5, 0.999): pix2pix's.
     betas_d: tuple[float, float] = (0.5, 0.999)
-    # Learning rates: "continue" (default): the fine-tune phase goes on with the decay of the
-    # model's schedules from where Ref-GS left it (`run_ted`'s steps_before) to their final rates,
-    # and the adversarial phase holds those; Ref-GS and the fine-tune thus run one schedule, as a
-    # single GS fit of their steps would. "restart": each phase starts the model's schedules again
-    # from their initial rates (the offsets' 100x its final one), as a fresh trainer does.
-    rates: str = "continue"
+    # Learning rates: "restart" (default): each phase starts the model's schedules again from their
+    # initial rates (the offsets' 100x its final one) and decays them over Ref-GS's steps, as a
+    # fresh trainer does. "continue": Ref-GS lays its decay and growth out over its own and the
+    # fine-tune's planned steps and the fine-tune goes on from where Ref-GS left them (`run_ted`'s
+    # steps_before), the adversarial phase holding the final rates: one fit of both stages' steps.
+    # On cup_plain (docs/RUN.md) "continue" gave +0.6 dB m-PSNR at the same steps but more of the
+    # removed volume left in front of the background (ghost 0.024-0.048 against 0.016-0.019): the
+    # background-depth term moves the geometry less at the lower rates.
+    rates: str = "restart"
     # Patch RNG seed. None (default): in a CoIn run the run's seed (`CoInConfig.seed`); `run_ted` on
     # its own: 0.
     seed: int | None = None
