@@ -60,7 +60,8 @@ class RefGSConfig:
     # disagree and the reference arbitrates; outside it every view counts once. "view": the whole
     # view, the paper's letter. Under Adam a whole view weighted lambda_r = 50 fills the second
     # moments of every shared parameter (the MLPs), so in a run of a few thousand steps the other
-    # views train at about a fifteenth of their rate; their captured pixels agree and need no arbiter.
+    # views train at a fraction of their rate (about a fifteenth, estimated from the moments'
+    # averages); their captured pixels agree and need no arbiter.
     weight_region: str = "mask"
     # -- anchor feature attention
     feature_attention: bool = True
