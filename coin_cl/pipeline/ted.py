@@ -85,8 +85,8 @@ class TEDConfig:
     # fine-tune's planned steps and the fine-tune goes on from where Ref-GS left them (`run_ted`'s
     # steps_before), the adversarial phase holding the final rates: one fit of both stages' steps.
     # On cup_plain (docs/RUN.md) "continue" gave +0.6 dB m-PSNR at the same steps but more of the
-    # removed volume left in front of the background (ghost 0.024-0.048 against 0.016-0.019): the
-    # background-depth term moves the geometry less at the lower rates.
+    # removed volume left in front of the background (ghost 0.024-0.048 against 0.016-0.019), likely
+    # because the background-depth term moves the geometry less at the lower rates.
     rates: str = "restart"
     # Patch RNG seed. None (default): in a CoIn run the run's seed (`CoInConfig.seed`); `run_ted` on
     # its own: 0.
