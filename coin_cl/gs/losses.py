@@ -51,12 +51,13 @@ def photometric_map(
     cfg: LossConfig = LossConfig(),
     backend: str = "torch",
     device: Any = None,
-) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-    """Per-pixel (1 - lambda) L1 + lambda (1 - SSIM) of [B, H, W, C] images, 0 at excluded pixels.
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """Each pixel's share of its view's (1 - lambda) L1 + lambda (1 - SSIM), the mean over the
+    kept pixels: [B, H, W] images' map sums to the per-view loss, 0 at excluded pixels (a view with
+    every pixel excluded has loss 0).
 
     Returns:
-        (map [B, H, W], kept pixels per view [B], parts with per-view 'l1', 'ssim', 'loss' [B]:
-        the means over kept pixels, detached; a view with every pixel excluded has loss 0).
+        (map [B, H, W], parts with per-view 'l1', 'ssim', 'loss' [B], detached).
     """
     b = pred.shape[0]
     target = target.to(pred.dtype)
@@ -67,20 +68,14 @@ def photometric_map(
         target = torch.where(ex, torch.full_like(target, MASK_FILL), target)
         n_keep = keep.sum((1, 2))
     else:
-        keep = None
+        keep = torch.ones(pred.shape[:3], dtype=pred.dtype)
         n_keep = pred.new_full((b,), float(pred.shape[1] * pred.shape[2]))
-    l1_px = (pred - target).abs().mean(-1)
-    s_px = ssim_map(pred, target, cfg, backend, device)
-    if keep is not None:
-        l1_px, s_px = l1_px * keep, s_px * keep
-    denom = n_keep.clamp_min(1.0)
-    l1 = l1_px.sum((1, 2)) / denom
-    ssim = s_px.sum((1, 2)) / denom
-    per_view = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim)
-    per_view = torch.where(n_keep > 0, per_view, torch.zeros_like(per_view))  # all pixels excluded
-    kept = torch.ones_like(l1_px) if keep is None else keep
-    px = (1 - cfg.lambda_dssim) * l1_px + cfg.lambda_dssim * (kept - s_px)
-    return px, n_keep, {"l1": l1.detach(), "ssim": ssim.detach(), "loss": per_view.detach()}
+    l1_px = (pred - target).abs().mean(-1) * keep
+    s_px = ssim_map(pred, target, cfg, backend, device) * keep
+    denom = n_keep.clamp_min(1.0)[:, None, None]
+    px = ((1 - cfg.lambda_dssim) * l1_px + cfg.lambda_dssim * (keep - s_px)) / denom
+    parts = {"l1": (l1_px / denom).sum((1, 2)), "ssim": (s_px / denom).sum((1, 2)), "loss": px.sum((1, 2))}
+    return px, {k: v.detach() for k, v in parts.items()}
 
 
 def photometric_loss(
@@ -110,8 +105,8 @@ def photometric_loss(
     if weights is None:
         weights = pred.new_ones(b)
     weights = torch.as_tensor(weights, dtype=pred.dtype)
-    px, n_keep, parts = photometric_map(pred, target, exclude, cfg, backend, device)
-    per_view = px.sum((1, 2)) / n_keep.clamp_min(1.0)
+    px, parts = photometric_map(pred, target, exclude, cfg, backend, device)
+    per_view = px.sum((1, 2))
     # A zero weight must give an exactly zero gradient even if the view's loss is not finite.
     weighted = torch.where(weights != 0, weights * per_view, torch.zeros_like(per_view))
     return weighted.sum(), parts

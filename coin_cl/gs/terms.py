@@ -132,21 +132,20 @@ class PhotometricLoss(LossTerm):
         # The fused path runs SSIM as one OpenCL op (kernels/ssim.cl) instead of torch convolutions;
         # a term evaluated without a model (model=None) takes the torch path.
         fused = getattr(ctx.model, "fused", False)
-        px, n_keep, parts = photometric_map(
+        px, parts = photometric_map(
             ctx.out.image[None], v.image[None], None if v.exclude is None else v.exclude[None], self.cfg,
             backend="opencl" if fused else "torch", device=getattr(ctx.model, "device", None),
         )  # fmt: skip
         w = self.view_weights(ctx, parts["loss"][0])
         w = torch.as_tensor(w, dtype=px.dtype)
         ctx.log.update(l1=float(parts["l1"][0]), ssim=float(parts["ssim"][0]), view_weight=float(w))
-        denom = n_keep[0].clamp_min(1.0)
         if self.weighted_regions is not None and float(v.weight) != 0:
             region = torch.as_tensor(np.asarray(self.weighted_regions[ctx.index], bool))
             # where(): a zero W_n drops the region's pixels with an exactly zero gradient
-            inside = torch.where(region, px[0], torch.zeros_like(px[0])).sum() / denom
-            outside = torch.where(region, torch.zeros_like(px[0]), px[0]).sum() / denom
+            inside = torch.where(region, px[0], torch.zeros_like(px[0])).sum()
+            outside = torch.where(region, torch.zeros_like(px[0]), px[0]).sum()
             return outside + torch.where(w != 0, w * inside, torch.zeros_like(inside))
-        loss = px[0].sum() / denom
+        loss = px[0].sum()
         # A zero weight must give an exactly zero gradient even if the view's loss is not finite
         # (and keep a graph, so that backward still runs when this is the only term).
         return torch.where(w != 0, w * loss, torch.zeros_like(loss))
