@@ -41,7 +41,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import cpu_model, git_commit  # noqa: E402
-from real import data_root, ghost_figures, scene_folder  # noqa: E402
+from real import data_root, ghost_figures, scene_folder, truth_photos  # noqa: E402
 
 from coin_cl.atomic import write_text  # noqa: E402
 
@@ -92,7 +92,11 @@ def run_point(scene: Path, run: Path, budget: float, args) -> dict:
     if "refused" in point:  # not kept: a rerun on a quieter machine probes again (seconds)
         return point
     if not args.no_ghost:
-        point["ghost"] = ghost_figures({"run": run}, run, run.parent, args.ghost_iters)["run"]
+        truth = truth_photos(scene, data_root() if args.data is None else args.data)
+        from ghost import RING
+
+        for key, ring in (("ghost", None), ("ghost_ring", RING)):
+            point[key] = ghost_figures({"run": run}, run, run.parent, args.ghost_iters, truth, ring)["run"]
     point.update(at_capture(scene, run))
     write_text(done, json.dumps(point, indent=1))
     return point

@@ -29,11 +29,12 @@ Rows (`--rows`; each a run folder OUT/<scene>/<row>):
 
 Columns: PSNR, m-PSNR, VGG-PD (whole view), m-VGG-PD (mask's bounding box), bbox GMSD, HF ratio
 (`coin_cl.evaluation`), the ghost figure (`benchmarks/ghost.py`: the share of the test masks rendered
-more than 10 % in front of a Scaffold-GS fitted to the object-absent test views, `--ghost-iters`
-steps, cached in OUT/<scene>/ghost_reference), minutes (what the row's stages took when they ran, a
-shared stage counted in each row that uses it; masked_recon its training and scoring). "n/a (why)"
-where a figure cannot be computed. One crop grid per scene (`benchmarks/crop_grid.py`):
-OUT/<scene>/crops.png, columns = the rows in table order, then the truth.
+more than 10 % in front of a Scaffold-GS fitted to the object-absent photos, the test views or on a
+cup scene every view's, `--ghost-iters` steps at least, cached in OUT/<scene>/ghost_reference) and
+its ring-relative form (the reference scaled to the render around the mask first), minutes (what
+the row's stages took when they ran, a shared stage counted in each row that uses it; masked_recon
+its training and scoring). "n/a (why)" where a figure cannot be computed. One crop grid per scene
+(`benchmarks/crop_grid.py`): OUT/<scene>/crops.png, columns = the rows in table order, then the truth.
 
 Resumable: a rerun scores the finished rows without training (the stage runner finds their stages
 up to date; masked_recon keeps its `row.json`). Writes OUT/real.md; the last line is JSON.
@@ -197,10 +198,30 @@ def masked_recon_row(default_run: Path, run: Path, steps: int) -> dict:
     return row
 
 
-def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: int) -> dict[str, float | str]:
+def truth_photos(scene_dir: Path, data: Path) -> Path | None:
+    """The folder of every view's object-absent photo for a virtual-object scene (its capture's images,
+    named in virtual_object.json; looked up in `data` by the capture's folder name when that path does
+    not resolve from here), else None: only the test views are object-absent."""
+    doc = Path(scene_dir) / "virtual_object.json"
+    if not doc.is_file():
+        return None
+    from coin_cl.scene.folder import image_dir
+
+    capture = Path(json.loads(doc.read_text())["capture"])
+    if not capture.is_dir():
+        capture = data / capture.name
+    if not capture.is_dir():
+        raise SystemExit(f"{doc}: its capture {capture} is not found; pass --data DIR holding it")
+    return image_dir(capture, None)
+
+
+def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: int,
+                  truth: Path | None = None, ring: tuple[int, int] | None = None,
+                  ) -> dict[str, float | str]:  # fmt: skip
     """{row: ghost figure, or "n/a (why)"}: each row's final model against a Scaffold-GS fitted to the
-    object-absent test views of the default row's working-resolution scene (`ghost.reference_depths`,
-    `iters` steps, cached in out/ghost_reference/r<resolution>_i<iters>)."""
+    object-absent views of the default row's working-resolution scene (`ghost.reference_depths`: the
+    test views, or with `truth` (`truth_photos`) every view; `iters` steps at least, cached in
+    out/ghost_reference/r<resolution>_i<iters>); `ring`: the ring-relative figure (`ghost.RING`)."""
     import torch
     from ghost import ghost_of_model, ghost_of_run, reference_depths
 
@@ -213,7 +234,7 @@ def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: in
     if not any(np.asarray(scene.masks[i]).any() for i in scene.test_idx):
         return dict.fromkeys(runs, "n/a (no test view with a mask)")
     res_key = json.loads((default_run / "plan.json").read_text())["key"]["resolution"]
-    depths = reference_depths(scene, out / "ghost_reference" / f"r{res_key:g}_i{iters}", iters)
+    depths = reference_depths(scene, out / "ghost_reference" / f"r{res_key:g}_i{iters}", iters, truth)
     res = {}
     for name, run in runs.items():
         if name == "masked_recon":
@@ -223,10 +244,10 @@ def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: in
                 continue
             with torch.no_grad():
                 res[name] = ghost_of_model(
-                    model_from_state(load_checkpoint(ckpts[-1])["model"]), scene, depths
+                    model_from_state(load_checkpoint(ckpts[-1])["model"]), scene, depths, ring
                 )
         else:
-            res[name] = ghost_of_run(run, scene, depths)
+            res[name] = ghost_of_run(run, scene, depths, ring)
     return res
 
 
@@ -270,11 +291,15 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
         )
     runs = {r: out / r for r in table if "na" not in table[r]}
     if args.no_ghost:
-        ghosts = dict.fromkeys(runs, "n/a (--no-ghost)")
+        ghosts = rings = dict.fromkeys(runs, "n/a (--no-ghost)")
     else:
-        ghosts = ghost_figures(runs, default_run, out, args.ghost_iters)
+        from ghost import RING
+
+        truth = truth_photos(scene, data_root() if args.data is None else args.data)
+        ghosts = ghost_figures(runs, default_run, out, args.ghost_iters, truth)
+        rings = ghost_figures(runs, default_run, out, args.ghost_iters, truth, RING)
     for r, g in ghosts.items():
-        table[r]["ghost"] = g
+        table[r]["ghost"], table[r]["ghost_ring"] = g, rings[r]
     from crop_grid import grid
 
     from coin_cl.scene.io import write_png
@@ -294,17 +319,19 @@ def cell(v, digits: int = 2, why: str = "not computed") -> str:
 
 def markdown(name: str, scene: Path, table: dict, header: str) -> str:
     lines = [f"## {name} ({scene})", "", header, "",
-             "| row | PSNR | m-PSNR | VGG-PD | m-VGG-PD | bbox GMSD | HF ratio | ghost | minutes | stage 1 |",
-             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| row | PSNR | m-PSNR | VGG-PD | m-VGG-PD | bbox GMSD | HF ratio | ghost | ghost (ring) "
+             "| minutes | stage 1 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for row, r in table.items():
         if "na" in r:
-            lines.append(f"| {row} | " + " | ".join([r["na"]] + ["-"] * 8) + " |")
+            lines.append(f"| {row} | " + " | ".join([r["na"]] + ["-"] * 9) + " |")
             continue
         vgg = "weights absent"
         lines.append(
             f"| {row} | {cell(r['psnr'])} | {cell(r['m_psnr'])} | {cell(r['vgg_pd'], 3, vgg)} "
             f"| {cell(r['m_vgg_pd'], 3, vgg)} | {cell(r['bbox_gmsd'], 3)} | {cell(r['hf_ratio'], 3)} "
-            f"| {cell(r.get('ghost'), 3)} | {r['minutes']:.1f} | {', '.join(r.get('sources') or ['-'])} |"
+            f"| {cell(r.get('ghost'), 3)} | {cell(r.get('ghost_ring'), 3)} | {r['minutes']:.1f} "
+            f"| {', '.join(r.get('sources') or ['-'])} |"
         )
     lines += ["", f"Crop grid: {name}/crops.png (columns: "
               f"{', '.join(r for r in table if 'na' not in table[r])}, truth)", ""]  # fmt: skip

@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 from skimage.metrics import structural_similarity
 
+from coin_cl.scene.masks import dilate_mask
+
 log = logging.getLogger(__name__)
 
 SSIM_KW = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
@@ -459,16 +461,34 @@ def jsonable(v):
     return v
 
 
-def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, tol: float = 0.1) -> float:
+def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, tol: float = 0.1,
+                   ring: tuple[int, int] | None = None) -> float:  # fmt: skip
     """The ghost figure of a removal: the share of `mask` [H, W] bool pixels whose
     rendered `depth` [H, W] (camera z) lies more than `tol` of the `reference` depth in front of
     it: something still stands where the object was. Pixels without a finite positive reference are
-    left out; NaN when none is left (an empty mask)."""
+    left out; NaN when none is left (an empty mask).
+
+    ring=(inner, outer) px: the reference is first scaled by the median of depth / reference over the
+    pixels between `inner` and `outer` px outside the mask (both finite there), so that a reference
+    fitted separately (a GS of the object-absent photos) and the render may disagree about the
+    surroundings' depth without that counting as ghost: what is left is the object's volume in front
+    of the surface the render itself continues. NaN when the ring has no such pixel."""
     d, r = np.asarray(depth, np.float64), np.asarray(reference, np.float64)
-    m = np.asarray(mask, bool) & np.isfinite(r) & (r > 0)
+    given = np.asarray(mask, bool)
+    m = given & np.isfinite(r) & (r > 0)
     if d.shape != r.shape or d.shape != m.shape:
         raise ValueError(f"depth {d.shape}, reference {r.shape} and mask {m.shape} must have one shape")
     if not m.any():
         return float("nan")
+    if ring is not None:
+        inner, outer = (int(v) for v in ring)
+        if not 0 <= inner < outer:
+            raise ValueError(f"ring must be (inner, outer) px with 0 <= inner < outer, got {ring}")
+        band = dilate_mask(given, 3, outer) & ~dilate_mask(given, 3, inner)
+        band &= np.isfinite(d) & (d > 0) & np.isfinite(r) & (r > 0)
+        if not band.any():
+            return float("nan")
+        r = r * float(np.median(d[band] / r[band]))
     dd = np.where(np.isfinite(d), d, np.inf)  # nothing rendered: no ghost
     return float(np.mean(dd[m] < (1.0 - tol) * r[m]))
+

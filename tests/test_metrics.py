@@ -365,3 +365,39 @@ def test_vgg_pd_judges_a_shift_closer_than_a_blur_unlike_psnr(vgg, kind):
     d_shift, d_blur = distances(vgg, [shifted, blurred], ref)
     assert d_shift < d_blur
     assert M.psnr(shifted, ref) < M.psnr(blurred, ref)  # PSNR prefers the blur on the same pair
+
+
+def _ghost_scene(bump: float = 0.5):
+    """A plane at depth 4 seen head-on, a 20x20 mask in a 64x64 view, and a render that leaves a
+    6x20 slab of the object at `bump` of the surface's depth inside the mask."""
+    ref = np.full((64, 64), 4.0)
+    mask = np.zeros((64, 64), bool)
+    mask[22:42, 22:42] = True
+    render = ref.copy()
+    render[22:28, 22:42] = bump * 4.0
+    return render, ref, mask
+
+
+def test_ghost_is_the_share_of_the_mask_in_front_of_the_reference():
+    render, ref, mask = _ghost_scene()
+    assert M.ghost_fraction(render, ref, mask) == pytest.approx(120 / 400)
+    assert M.ghost_fraction(ref, ref, mask) == 0.0
+    render[22:24, 22:42] = np.inf  # nothing drawn there: no ghost
+    assert M.ghost_fraction(render, ref, mask) == pytest.approx(80 / 400)
+    assert math.isnan(M.ghost_fraction(render, ref, np.zeros_like(mask)))
+
+
+def test_ring_relative_ghost_ignores_a_reference_that_disagrees_everywhere_alike():
+    render, ref, mask = _ghost_scene()
+    far_ref = ref / 0.85  # a reference fitted apart, 15 % deeper than the render around the mask too
+    assert M.ghost_fraction(render, far_ref, mask) == 1.0  # the plain figure counts the disagreement
+    assert M.ghost_fraction(render, far_ref, mask, ring=(3, 15)) == pytest.approx(120 / 400)
+    assert M.ghost_fraction(ref, far_ref, mask, ring=(3, 15)) == 0.0
+
+
+def test_ring_relative_ghost_without_a_ring_is_nan_and_a_bad_ring_an_error():
+    render, ref, mask = _ghost_scene()
+    render[:] = np.nan  # nothing rendered anywhere: no ring to calibrate against
+    assert math.isnan(M.ghost_fraction(render, ref, mask, ring=(3, 15)))
+    with pytest.raises(ValueError, match="ring"):
+        M.ghost_fraction(ref, ref, mask, ring=(5, 5))
