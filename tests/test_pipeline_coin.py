@@ -2,6 +2,7 @@
 room, reruns skip what is up to date, a changed setting reruns only the stages it touches, bad
 input gives clear errors."""
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -361,6 +362,16 @@ def test_removal_holds_every_mask_to_its_background_depth(first_run):
     assert d.shape == np.asarray(scene.masks[with_mask[0]]).shape and np.isfinite(d).all() and (d > 0).all()
     assert any("background depth" in n for n in res.stages["2_refgs"]["notes"])
     assert any("keeps the background depth term" in n for n in res.stages["4_ted"]["notes"])
+
+
+def test_removal_lays_one_learning_rate_schedule_over_ref_gs_and_te_d(first_run):
+    """TEDConfig.rates "auto" is "continue" in a removal: Ref-GS's schedules span its own and the
+    fine-tune's steps, and TE-D goes on from where Ref-GS stopped."""
+    out, _ = first_run
+    ted = json.loads((out / "4_ted" / "manifest.json").read_text())["settings"]["cfg"]
+    refgs = json.loads((out / "2_refgs" / "manifest.json").read_text())["settings"]
+    assert ted["rates"] == "continue"
+    assert refgs["schedule_iters"] == TINY.iters_refgs + TINY.iters_ted_finetune
 
 
 def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_path, monkeypatch):

@@ -3,6 +3,7 @@ room's insertion task: the captured views show the room without the red box, the
 footprint, the reference is edited by pasting the box's true appearance into it. The pipeline must
 put the box's colour into the other views at the projected location and nowhere else."""
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -131,6 +132,10 @@ def test_object_appears_in_the_other_views_and_nowhere_else(edit, run, naive):
     assert leaks.max() < 0.01, leaks
     # scored against the box's ground truth in the test views: better than the naive alternative
     assert res.metrics["m_psnr"] > naive[1].metrics["m_psnr"] + 0.5
+    # an insertion restarts TE-D's learning rates (TEDConfig.rates "auto"; a continued fit leaked)
+    ted = json.loads((out / "4_ted" / "manifest.json").read_text())["settings"]["cfg"]
+    refgs = json.loads((out / "2_refgs" / "manifest.json").read_text())["settings"]
+    assert ted["rates"] == "restart" and refgs["schedule_iters"] == refgs["iters"]
 
 
 def test_edited_image_hash_reruns_from_stage_1(edit, run, tmp_path):

@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-RATES = ("restart", "continue")  # TEDConfig.rates
+RATES = ("restart", "continue")  # TEDConfig.rates, as a run resolves it ("auto" besides)
 
 
 @dataclass
@@ -79,15 +79,17 @@ class TEDConfig:
     lr_d: float = 2e-4
     # The discriminator's Adam betas (each in [0, 1)). Default (0.5, 0.999): pix2pix's.
     betas_d: tuple[float, float] = (0.5, 0.999)
-    # Learning rates: "restart" (default): each phase starts the model's schedules again from their
-    # initial rates (the offsets' 100x its final one) and decays them over Ref-GS's steps, as a
-    # fresh trainer does. "continue": Ref-GS lays its decay and growth out over its own and the
+    # Learning rates. "continue": Ref-GS lays its decay and growth out over its own and the
     # fine-tune's planned steps and the fine-tune goes on from where Ref-GS left them (`run_ted`'s
     # steps_before), the adversarial phase holding the final rates: one fit of both stages' steps.
-    # On cup_plain (docs/RUN.md) "continue" gave +0.6 dB m-PSNR at the same steps but more of the
-    # removed volume left in front of the background (ghost 0.024-0.048 against 0.016-0.019), likely
-    # because the background-depth term moves the geometry less at the lower rates.
-    rates: str = "restart"
+    # "restart": each phase starts the model's schedules again from their initial rates (the
+    # offsets' 100x its final one) and decays them over Ref-GS's steps, as a fresh trainer does.
+    # "auto" (default): "continue" in a removal run, "restart" in an insertion run and in `run_ted`
+    # on its own. On cup_plain at the same steps (docs/RUN.md) "continue" gave +0.65 dB m-PSNR,
+    # the same masked VGG distance and GMSD, and less of the removed volume left in front of the
+    # background (ghost 0.056 against 0.072); on the synthetic insertion room it let the inserted
+    # object's colour leak past its region (0.8% against none), so insertion restarts.
+    rates: str = "auto"
     # Patch RNG seed. None (default): in a CoIn run the run's seed (`CoInConfig.seed`); `run_ted` on
     # its own: 0.
     seed: int | None = None
@@ -111,8 +113,8 @@ class TEDConfig:
         ):  # fmt: skip
             if not ok:
                 raise ValueError(f"TEDConfig.{name} is {getattr(self, name)!r}: give {what}")
-        if self.rates not in RATES:
-            raise ValueError(f"TEDConfig.rates is {self.rates!r}: use one of {RATES}")
+        if self.rates not in ("auto", *RATES):
+            raise ValueError(f"TEDConfig.rates is {self.rates!r}: use one of {('auto', *RATES)}")
         if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
             raise ValueError(f"TEDConfig.seed is {self.seed!r}: give an integer, or None for the run's seed")
 
@@ -258,7 +260,8 @@ def run_ted(
         max_seconds: {"finetune" | "adversarial": a cap on that phase's training seconds} (the
             pipeline's budget plan; 0 or absent: `train_cfg.max_seconds`).
         steps_before: the steps `model` trained before (Ref-GS's): with `cfg.rates` "continue" its
-            schedules go on from that step of theirs.
+            schedules go on from that step of theirs ("auto" restarts them here: only a CoIn run
+            lays Ref-GS's schedules out over both stages).
     Returns:
         (a JSON-able record: the config and both phases' results, the final model).
     """
