@@ -57,7 +57,8 @@ def test_model_from_state_rebuilds_the_same_model(kind):
 @pytest.mark.parametrize("kind", MODELS)
 def test_continued_rates_go_on_from_where_the_schedule_stood_and_survive_a_checkpoint(kind):
     pts = np.random.default_rng(0).uniform(-1, 1, (40, 3))
-    m = build_model(kind, pts, None, extent=2.0, seed=3, model_cfg=scaled_model_config(kind, 500))
+    # extent 2.7: a power of two would scale the rates exactly and hide a rounding difference
+    m = build_model(kind, pts, None, extent=2.7, seed=3, model_cfg=scaled_model_config(kind, 500))
     names = list(m.optimizer.lrs)
     at = {n: m.optimizer.lr(n, 200) for n in names}
     final = {n: m.optimizer.lr(n, 500) for n in names}
@@ -69,10 +70,11 @@ def test_continued_rates_go_on_from_where_the_schedule_stood_and_survive_a_check
         assert m.optimizer.lr(n, 300) == pytest.approx(final[n], rel=1e-12), n
         # 300 more steps of the same log-linear decay: the one schedule's step 350 at step 150
         assert m.optimizer.lr(n, 150) == pytest.approx(at[n] ** 0.5 * final[n] ** 0.5, rel=1e-9), n
-    r = model_from_state(m.state_dict())  # a resumed fine-tune keeps them
+    r = model_from_state(m.state_dict())  # a resumed fine-tune keeps them, to the last bit
     assert r.cfg == m.cfg
     for n in names:
-        assert r.optimizer.lr(n, 0) == pytest.approx(at[n], rel=1e-12), n
+        steps = (0, 150, 300)
+        assert [r.optimizer.lr(n, k) for k in steps] == [m.optimizer.lr(n, k) for k in steps], n
 
 
 def test_unknown_kind_is_a_clear_error():

@@ -99,6 +99,12 @@ class Model:
     def n_primitives(self) -> int:
         raise NotImplementedError
 
+    def learning_rates(self) -> dict[str, Any]:
+        """{parameter name: constant rate or `ExpSchedule`} as the model's config gives them (what
+        its optimizer is built with; rebuilt from a changed config by `continue_rates`, so that a
+        model rebuilt from a checkpoint computes the very same rates)."""
+        raise NotImplementedError
+
     def export_gaussians(self, cam_center: Tensor | None = None) -> Splats:
         """Plain 3DGS Gaussians (`coin_cl.gs.splats.Splats`, detached). Models whose colour is
         decoded per view freeze it as seen from `cam_center` [3] (default: the origin)."""

@@ -90,8 +90,11 @@ class GaussianModel(Model):
             "sh0": rgb_to_sh(col)[:, None, :],
             "shN": torch.zeros(n, k - 1, 3),
         }
+        self.optimizer = ParamOptimizer(params, self.learning_rates())
+
+    def learning_rates(self) -> dict[str, Any]:
         c = self.cfg
-        lrs = {
+        return {
             "means": c.lr_means.scaled(self.extent),
             "scales": c.lr_scales,
             "quats": c.lr_quats,
@@ -99,7 +102,6 @@ class GaussianModel(Model):
             "sh0": c.lr_sh0,
             "shN": c.lr_shN,
         }
-        self.optimizer = ParamOptimizer(params, lrs)
 
     # ---- accessors ----
     @property

@@ -105,8 +105,9 @@ def continue_rates(model: Model, done: int, steps: int) -> None:
     model.cfg = replace(model.cfg, **{f.name: continued(getattr(model.cfg, f.name), done, steps)
                                       for f in fields(model.cfg)
                                       if isinstance(getattr(model.cfg, f.name), ExpSchedule)})  # fmt: skip
-    opt = model.optimizer
-    opt.lrs = {name: continued(lr, done, steps) for name, lr in opt.lrs.items()}
+    # from the config, as a model rebuilt from a checkpoint does: continuing the optimizer's scaled
+    # schedules instead rounds differently in the last digit, and a resumed run would drift
+    model.optimizer.lrs = model.learning_rates()
 
 
 def model_from_state(sd: dict[str, Any]) -> Model:

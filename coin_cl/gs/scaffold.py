@@ -158,20 +158,26 @@ class ScaffoldModel(Model):
             "features": torch.zeros(a, c.feat_dim),
             "scaling": torch.log(dist)[:, None].repeat(1, 6),
         }
+        for mname in MLPS:
+            for pname, prm in self.mlps[mname].named_parameters():
+                params[f"{mname}.{pname}"] = prm
+        self.optimizer = ParamOptimizer(params, self.learning_rates())
+        # A volume kept empty (the pipeline's carve of a removed object, `coin_cl.gs.carve`, sets
+        # it): neural Gaussians inside it get zero opacity at every render and are left out of
+        # exports, whatever densification grows there. None: nothing is kept empty.
+        self.carve: KeptEmpty | None = None
+
+    def learning_rates(self) -> dict[str, Any]:
+        c = self.cfg
         lrs: dict[str, Any] = {
             "offsets": c.lr_offsets.scaled(self.extent),
             "features": c.lr_features,
             "scaling": c.lr_scaling,
         }
         for mname in MLPS:
-            for pname, prm in self.mlps[mname].named_parameters():
-                params[f"{mname}.{pname}"] = prm
+            for pname, _ in self.mlps[mname].named_parameters():
                 lrs[f"{mname}.{pname}"] = getattr(c, f"lr_{mname}")
-        self.optimizer = ParamOptimizer(params, lrs)
-        # A volume kept empty (the pipeline's carve of a removed object, `coin_cl.gs.carve`, sets
-        # it): neural Gaussians inside it get zero opacity at every render and are left out of
-        # exports, whatever densification grows there. None: nothing is kept empty.
-        self.carve: KeptEmpty | None = None
+        return lrs
 
     def _carved(self, g: dict[str, Tensor]) -> dict[str, Tensor]:
         if self.carve is None or g["means"].shape[0] == 0:

@@ -85,10 +85,12 @@ class TEDConfig:
     # "restart": each phase starts the model's schedules again from their initial rates (the
     # offsets' 100x its final one) and decays them over Ref-GS's steps, as a fresh trainer does.
     # "auto" (default): "continue" in a removal run, "restart" in an insertion run and in `run_ted`
-    # on its own. On cup_plain at the same steps (docs/RUN.md) "continue" gave +0.65 dB m-PSNR,
-    # the same masked VGG distance and GMSD, and less of the removed volume left in front of the
-    # background (ghost 0.056 against 0.072); on the synthetic insertion room it let the inserted
-    # object's colour leak past its region (0.8% against none), so insertion restarts.
+    # on its own. At equal steps (docs/RUN.md) "continue" left less of the removed volume in front
+    # of the background on cup_plain (ghost 0.056 / 0.079 against 0.072 / 0.127 in two runs), the
+    # masked VGG distance and GMSD level, m-PSNR +0.65 / -0.22 dB; on SPIn-NeRF it was 0.13 dB
+    # lower in m-PSNR and 1.4% higher in masked VGG distance, ghost level. On the synthetic
+    # insertion room it let the inserted object's colour leak past its region (0.8% against none),
+    # so insertion restarts.
     rates: str = "auto"
     # Patch RNG seed. None (default): in a CoIn run the run's seed (`CoInConfig.seed`); `run_ted` on
     # its own: 0.
