@@ -491,4 +491,3 @@ def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, t
         r = r * float(np.median(d[band] / r[band]))
     dd = np.where(np.isfinite(d), d, np.inf)  # nothing rendered: no ghost
     return float(np.mean(dd[m] < (1.0 - tol) * r[m]))
-
