@@ -101,7 +101,7 @@ def main() -> int:
         res = inpaint(data, out / name, config=cfg)
         rows[name] = {k: res.metrics[k] for k in ("m_psnr", "hf_ratio", "bbox_gmsd")}
         rows[name]["minutes"] = (time.perf_counter() - t) / 60
-        rows[name]["ghost"] = ghost_of_run(out / name, scene, depths)
+        rows[name]["ghost"] = ghost_of_run(out / name, scene, depths)["ghost"]
     print(f"\nremoval geometry on {args.scene} ({iters} Ref-GS steps, no CLG/TE-D); CPU {cpu_model()}; "
           f"commit {git_commit()}; visibility estimate {share:.3f}; "
           f"ghost of D_bg itself {dbg_ghost:.3f}")  # fmt: skip

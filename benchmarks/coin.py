@@ -106,7 +106,7 @@ def row_ghost(run: Path, data: Path) -> float | None:
     if not any(np.asarray(scene.masks[i]).any() for i in scene.test_idx):
         return None
     depths = reference_depths(scene, ROOT / "benchmarks" / "out" / "ghost_reference" / f"r{scale}_i600")
-    return ghost_of_run(run, scene, depths)
+    return ghost_of_run(run, scene, depths)["ghost"]
 
 
 def run_row(name: str, data: Path, out: Path, cfg: CoInConfig) -> dict:

@@ -110,10 +110,10 @@ def object_absent(scene, truth: Path):
     return dataclasses.replace(scene, images=images)
 
 
-def ghost_of_model(model, scene, depths: dict[int, np.ndarray], ring: tuple[int, int] | None = None) -> float:
-    """Mean ghost figure of `model` over the test views with a mask (`ring`: the ring-relative figure,
-    `metrics.ghost_fraction`)."""
-    vals = []
+def ghost_of_model(model, scene, depths: dict[int, np.ndarray]) -> dict[str, float]:
+    """{"ghost", "ghost_ring"}: the mean ghost figure of `model` over the test views with a mask,
+    plain and ring-relative (`RING`, `metrics.ghost_fraction`), from one render per view."""
+    vals: dict[str, list[float]] = {"ghost": [], "ghost_ring": []}
     for i, ref in depths.items():
         m = np.asarray(scene.masks[i], bool)
         if not m.any():
@@ -122,8 +122,9 @@ def ghost_of_model(model, scene, depths: dict[int, np.ndarray], ring: tuple[int,
             r = model.render(scene.cameras[i], 10**9, return_depth=True)
         d = r.depth.numpy().astype(np.float64)
         d[r.alpha.numpy() < 0.5] = np.inf  # nothing drawn there: no ghost
-        vals.append(ghost_fraction(d, ref, m, ring=ring))
-    return float(np.nanmean(vals)) if vals else float("nan")
+        vals["ghost"].append(ghost_fraction(d, ref, m))
+        vals["ghost_ring"].append(ghost_fraction(d, ref, m, ring=RING))
+    return {k: float(np.nanmean(v)) if v else float("nan") for k, v in vals.items()}
 
 
 def final_model(run: Path):
@@ -142,10 +143,9 @@ def final_model(run: Path):
     return model_from_state(load_checkpoint(ckpt)["model"])
 
 
-def ghost_of_run(run: Path, scene, depths: dict[int, np.ndarray], ring: tuple[int, int] | None = None,
-                 ) -> float:  # fmt: skip
-    """The ghost figure of a `coin-cl run` folder's final model (`ring`: `ghost_of_model`'s)."""
-    return ghost_of_model(final_model(run), scene, depths, ring)
+def ghost_of_run(run: Path, scene, depths: dict[int, np.ndarray]) -> dict[str, float]:
+    """`ghost_of_model`'s figures of a `coin-cl run` folder's final model."""
+    return ghost_of_model(final_model(run), scene, depths)
 
 
 def depth_grid(runs: list[Path], scene, depths: dict[int, np.ndarray], views: list[int], cell: int = 160):
@@ -217,10 +217,8 @@ def main() -> int:
     print(f"| run | ghost (share of mask px > 10 % in front) | ring-relative ({RING[0]}-{RING[1]} px) |")
     print("|---|---|---|")
     for run in args.runs:
-        model = final_model(run)
-        g, gr = ghost_of_model(model, scene, depths), ghost_of_model(model, scene, depths, RING)
-        res[str(run)] = {"ghost": g, "ghost_ring": gr}
-        print(f"| {run} | {g:.3f} | {gr:.3f} |")
+        res[str(run)] = g = ghost_of_run(run, scene, depths)
+        print(f"| {run} | {g['ghost']:.3f} | {g['ghost_ring']:.3f} |")
     if args.grid is not None:
         from coin_cl.scene.io import write_png
 

@@ -199,29 +199,26 @@ def masked_recon_row(default_run: Path, run: Path, steps: int) -> dict:
 
 
 def truth_photos(scene_dir: Path, data: Path) -> Path | None:
-    """The folder of every view's object-absent photo for a virtual-object scene (its capture's images,
-    named in virtual_object.json; looked up in `data` by the capture's folder name when that path does
-    not resolve from here), else None: only the test views are object-absent."""
+    """The folder of every view's object-absent photo for a virtual-object scene: its capture's
+    images, the capture found in `data` by the folder name virtual_object.json gives (a name only:
+    no path from the file is followed), else None: only the test views are object-absent."""
     doc = Path(scene_dir) / "virtual_object.json"
     if not doc.is_file():
         return None
     from coin_cl.scene.folder import image_dir
 
-    capture = Path(json.loads(doc.read_text())["capture"])
+    capture = data / Path(str(json.loads(doc.read_text())["capture"])).name
     if not capture.is_dir():
-        capture = data / capture.name
-    if not capture.is_dir():
-        raise SystemExit(f"{doc}: its capture {capture} is not found; pass --data DIR holding it")
+        raise SystemExit(f"{doc}: its capture {capture.name} is not in {data}; pass --data DIR holding it")
     return image_dir(capture, None)
 
 
 def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: int,
-                  truth: Path | None = None, ring: tuple[int, int] | None = None,
-                  ) -> dict[str, float | str]:  # fmt: skip
-    """{row: ghost figure, or "n/a (why)"}: each row's final model against a Scaffold-GS fitted to the
-    object-absent views of the default row's working-resolution scene (`ghost.reference_depths`: the
-    test views, or with `truth` (`truth_photos`) every view; `iters` steps at least, cached in
-    out/ghost_reference/r<resolution>_i<iters>); `ring`: the ring-relative figure (`ghost.RING`)."""
+                  truth: Path | None = None) -> dict[str, dict[str, float] | str]:  # fmt: skip
+    """{row: {"ghost", "ghost_ring"} (`ghost.ghost_of_model`), or "n/a (why)"}: each row's final model
+    against a Scaffold-GS fitted to the object-absent views of the default row's working-resolution
+    scene (`ghost.reference_depths`: the test views, or with `truth` (`truth_photos`) every view;
+    `iters` steps at least, cached in out/ghost_reference/r<resolution>_i<iters>)."""
     import torch
     from ghost import ghost_of_model, ghost_of_run, reference_depths
 
@@ -235,19 +232,18 @@ def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: in
         return dict.fromkeys(runs, "n/a (no test view with a mask)")
     res_key = json.loads((default_run / "plan.json").read_text())["key"]["resolution"]
     depths = reference_depths(scene, out / "ghost_reference" / f"r{res_key:g}_i{iters}", iters, truth)
-    res = {}
+    res: dict[str, dict[str, float] | str] = {}
     for name, run in runs.items():
         if name == "masked_recon":
             ckpts = sorted((run / "train").rglob(CKPT_NAME), key=lambda p: p.stat().st_mtime)
             if not ckpts:
                 res[name] = "n/a (no checkpoint)"
                 continue
+            model = model_from_state(load_checkpoint(ckpts[-1])["model"])
             with torch.no_grad():
-                res[name] = ghost_of_model(
-                    model_from_state(load_checkpoint(ckpts[-1])["model"]), scene, depths, ring
-                )
+                res[name] = ghost_of_model(model, scene, depths)
         else:
-            res[name] = ghost_of_run(run, scene, depths, ring)
+            res[name] = ghost_of_run(run, scene, depths)
     return res
 
 
@@ -291,15 +287,12 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
         )
     runs = {r: out / r for r in table if "na" not in table[r]}
     if args.no_ghost:
-        ghosts = rings = dict.fromkeys(runs, "n/a (--no-ghost)")
+        ghosts = dict.fromkeys(runs, "n/a (--no-ghost)")
     else:
-        from ghost import RING
-
         truth = truth_photos(scene, data_root() if args.data is None else args.data)
         ghosts = ghost_figures(runs, default_run, out, args.ghost_iters, truth)
-        rings = ghost_figures(runs, default_run, out, args.ghost_iters, truth, RING)
     for r, g in ghosts.items():
-        table[r]["ghost"], table[r]["ghost_ring"] = g, rings[r]
+        table[r].update(g if isinstance(g, dict) else {"ghost": g, "ghost_ring": g})
     from crop_grid import grid
 
     from coin_cl.scene.io import write_png

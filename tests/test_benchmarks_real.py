@@ -57,3 +57,19 @@ def test_real_benchmark_tiny_room_table_json_grid_and_resume(tmp_path, capfd):
     again = json.loads(second.strip().splitlines()[-1])
     assert again["room_coin_mpsnr"] == result["room_coin_mpsnr"]
     assert again["room_naive_minutes"] == pytest.approx(result["room_naive_minutes"])
+
+
+def test_truth_photos_takes_the_capture_by_name_from_data_only(tmp_path):
+    """A virtual-object scene's ghost reference is fitted to its capture's photos: the capture is
+    looked up in --data by the folder name virtual_object.json gives, never at the path it gives."""
+    real = _real()
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    assert real.truth_photos(scene, tmp_path) is None  # not a virtual-object scene: test views only
+    (tmp_path / "elsewhere" / "cap" / "images").mkdir(parents=True)  # where the file points
+    (scene / "virtual_object.json").write_text(json.dumps({"capture": str(tmp_path / "elsewhere" / "cap")}))
+    data = tmp_path / "data"
+    with pytest.raises(SystemExit, match="capture cap is not in"):
+        real.truth_photos(scene, data)
+    (data / "cap" / "images").mkdir(parents=True)
+    assert real.truth_photos(scene, data) == data / "cap" / "images"

@@ -222,12 +222,12 @@ def inpaint(
 
         env = resolve_sd2_path(None)  # COIN_SD2_PATH
         cfg = replace(cfg, sd_path=None if env is None else str(env))
-    if cfg.inpaint_region == "auto" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+    insertion = bool(cfg.prompt or edited_ref is not None or cfg.edited_ref)
+    if cfg.inpaint_region == "auto" and insertion:
         cfg = replace(cfg, inpaint_region="input")  # insertion: nothing to recover from other views
     if cfg.ted.rates == "auto":  # TEDConfig.rates: insertion restarts (a continued fit let the object leak)
-        insertion = bool(cfg.prompt or edited_ref is not None or cfg.edited_ref)
         cfg = replace(cfg, ted=replace(cfg.ted, rates="restart" if insertion else "continue"))
-    if cfg.inpaint_region == "refined" and (cfg.prompt or edited_ref is not None or cfg.edited_ref):
+    if cfg.inpaint_region == "refined" and insertion:
         raise ValueError(
             "refined masks are for removal: they cannot be combined with a prompt or --edited-ref"
         )
