@@ -1,6 +1,7 @@
 """The run's plan (coin_cl.pipeline.budget): working resolution, steps from the probe's rate, the plan
 recorded in OUT/plan.json and reused."""
 
+import itertools
 import json
 import math
 
@@ -8,6 +9,7 @@ import pytest
 
 from coin_cl.pipeline import budget as B
 from coin_cl.pipeline import schedule as S
+from coin_cl.pipeline import stage_costs as costs
 
 
 def test_working_resolution_brings_views_under_the_pixel_cap():
@@ -200,6 +202,31 @@ def test_standalone_steps_use_the_pipelines_rule():
         B.standalone_steps("refgs", None, 0, probe)
     with pytest.raises(ValueError, match="probe"):
         B.standalone_steps("refgs", 1.0, None, lambda: float("nan"))
+
+
+def test_refgs_count_from_its_first_steps_prices_the_growth_its_cap_allows():
+    """Ref-GS's re-plan (`refgs_steps_from_rate`): a model at or over its size cap costs its first
+    steps' rate throughout; one that may grow k-fold ends at k^GROWTH_COST_EXPONENT of it, and its
+    mean step is halfway. More seconds or a faster step never give fewer steps; the floor is the
+    plan's minimum; bad rates are errors."""
+    steps, mean = B.refgs_steps_from_rate(60.0, 0.2, 553_000, 97_000)
+    assert mean == 0.2 and steps == 300
+    steps, mean = B.refgs_steps_from_rate(60.0, 0.2, 50_000, 200_000)
+    assert mean == pytest.approx(0.2 * (1 + 4**B.GROWTH_COST_EXPONENT) / 2) and steps == int(60.0 / mean)
+    assert B.refgs_steps_from_rate(60.0, 0.2, 50_000, 0) == (300, 0.2)  # no cap known: no growth priced
+    assert B.refgs_steps_from_rate(1.0, 0.2, 1, 1)[0] == costs.MIN_STEPS["refgs"]
+    grid = [(s, r) for s in (10.0, 60.0, 600.0) for r in (0.05, 0.2, 1.0)]
+    for (s1, r1), (s2, r2) in itertools.product(grid, grid):
+        if s1 <= s2 and r1 >= r2:
+            assert (
+                B.refgs_steps_from_rate(s1, r1, 1000, 3000)[0]
+                <= B.refgs_steps_from_rate(s2, r2, 1000, 3000)[0]
+            )
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="seconds per step"):
+            B.refgs_steps_from_rate(60.0, bad, 1000, 3000)
+    with pytest.raises(ValueError, match="seconds"):
+        B.refgs_steps_from_rate(float("nan"), 0.2, 1000, 3000)
 
 
 def test_run_ted_refuses_counts_left_to_a_plan(tmp_path):

@@ -241,6 +241,44 @@ def test_a_minute_budget_follows_the_pipelines_rule(room, tmp_path, monkeypatch)
     assert res["iters"] == 6 and len(calls) == 1
 
 
+def test_the_count_is_planned_again_from_the_first_steps_and_kept_on_a_rerun(room, tmp_path, monkeypatch):
+    """`replan_seconds`: PROBE_STEPS steps of a thrown-away copy time the machine (here each reported
+    as 0.01 s), the count follows `budget.refgs_steps_from_rate` and stage.json records it; the copy
+    leaves no trace (the run equals one given that count outright), and a rerun with the same request
+    keeps the decision without timing again."""
+    syn, scene, targets = room
+    calls = []
+
+    def timed(step, steps, warmup):
+        for _ in range(steps + warmup):
+            step()
+        calls.append(steps)
+        return 0.01
+
+    monkeypatch.setattr(stage, "median_step_seconds", timed)
+    cfg = _cfg(feature_attention=False, depth_loss=False)
+    res = run_refgs(scene, targets, tmp_path / "r", cfg, budget_minutes=None, iters=7, seed=0,
+                    replan_seconds=1.5, schedule_iters=27)  # fmt: skip
+    rp = res["replan"]
+    assert calls == [B.PROBE_STEPS] and rp["request"] == 7 and rp["first_seconds_per_step"] == 0.01
+    assert 0 < rp["seconds"] <= 1.5
+    assert rp["steps"] == B.refgs_steps_from_rate(rp["seconds"], 0.01, rp["size"], rp["size_limit"])[0]
+    assert res["iters"] == res["steps"] == rp["steps"] >= B.costs.MIN_STEPS["refgs"]
+    assert json.loads((tmp_path / "r" / stage.STAGE_JSON).read_text())["replan"] == rp
+    log = json.loads(Path(res["log"]).read_text())["refgs"]
+    assert log["schedule_iters"] == rp["steps"] + 20  # TE-D's 20 steps still follow it
+    direct = run_refgs(scene, targets, tmp_path / "d", cfg, budget_minutes=None, iters=rp["steps"], seed=0,
+                       schedule_iters=rp["steps"] + 20)  # fmt: skip
+    assert direct["replan"] is None
+    pa = _final_state(tmp_path / "r")["model"]["optimizer"]["params"]
+    pb = _final_state(tmp_path / "d")["model"]["optimizer"]["params"]
+    for name in pa:
+        assert torch.equal(pa[name], pb[name]), name
+    again = run_refgs(scene, targets, tmp_path / "r", cfg, budget_minutes=None, iters=7, seed=0,
+                      replan_seconds=1.5, schedule_iters=27)  # fmt: skip
+    assert calls == [B.PROBE_STEPS] and again["iters"] == rp["steps"] and again["replan"] == rp
+
+
 def test_render_kwargs_clash_is_an_error():
     from coin_cl.gs.synthetic import tiny_scene
     from coin_cl.gs.terms import PhotometricLoss

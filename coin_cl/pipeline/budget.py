@@ -27,6 +27,8 @@ Ref-GS steps, 10k + 10k TE-D, paper supp. A) is far beyond 2 CPU cores, so a run
    (`ted_step_seconds`). Every figure is a pure function of plan.json and the manifests already
    written, so a killed run resumes to the same schedule, and a stage's key changes only when its
    counts do.
+   Ref-GS measures its own first steps before it trains and plans its count again from them
+   (`refgs_steps_from_rate`, its growth included; the stage records the decision, so a rerun keeps it).
 5. A safety cap: each GS stage also stops at `CAP_FACTOR` x its planned seconds (logged), so a
    machine much slower than its probe (another job starting) cannot run far over the budget.
 
@@ -53,7 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 from coin_cl.atomic import write_text
 from coin_cl.pipeline import stage_costs as costs
-from coin_cl.schema import PLAN, SchemaError, parse, run_folder_fix
+from coin_cl.schema import MAX_STEPS, PLAN, SchemaError, parse, run_folder_fix
 from coin_cl.timing import mean_step_seconds
 
 if TYPE_CHECKING:
@@ -96,6 +98,13 @@ STEP_COST = {"refine": 2.5, "refgs": 2.2}
 # counts are planned again from Ref-GS's measured rate once it has run (`schedule.stage_schedule`).
 TED_PER_REFGS_STEP = {"ted_finetune": 0.86, "ted_adversarial": 1.23}
 STEP_COST.update({k: STEP_COST["refgs"] * r for k, r in TED_PER_REFGS_STEP.items()})
+# Ref-GS plans its count again from its own first steps (`refgs_steps_from_rate`), as the probe's
+# plain model measured 0.67x (SPIn-NeRF: Ref-GS's pruned, masked model is cheaper) to 5x (two real
+# captures: the model grows) of Ref-GS's mean step. Its step cost grows with the model's size to
+# this power (cup_plain at budget 10: 52.8k -> 134k neural Gaussians, the late step 1.65x the first
+# steps'; 2.55^0.55 = 1.67); a model that starts at its size cap does not grow (SPIn-NeRF: 553k
+# against a cap of 97k, mean step 0.91-1.07x the first steps').
+GROWTH_COST_EXPONENT = 0.55
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
 PROBE_WARMUP = 3
 CAP_FACTOR = 1.25
@@ -254,6 +263,24 @@ def stage_steps(stage: str, minutes: float, seconds_per_step: float) -> int:
     """Steps of GS stage `stage` ("refgs", "ted_finetune", "ted_adversarial") in `minutes` at the
     probe's `seconds_per_step`: the stage's step costs STEP_COST[stage] probe steps."""
     return int(minutes * 60.0 / (seconds_per_step * STEP_COST[stage]))
+
+
+def refgs_steps_from_rate(
+    seconds: float, first_seconds_per_step: float, size: int, limit: int
+) -> tuple[int, float]:
+    """(steps, mean seconds per step) of a Ref-GS run given `seconds` of training, from the seconds
+    per step of its first steps at `size` primitives and the size its growth may reach (`limit`,
+    `Strategy.size_limit`; 0: unknown, taken as no growth). The last step costs the first times
+    (limit / size) ^ GROWTH_COST_EXPONENT (at least 1), the mean step halfway between. At least
+    `stage_costs.MIN_STEPS["refgs"]` steps (the plan gave the stage its floor's minutes), at most
+    MAX_STEPS. Monotone: more seconds or a faster step never give fewer steps."""
+    if not (math.isfinite(first_seconds_per_step) and first_seconds_per_step > 0):
+        raise ValueError(f"seconds per step must be a positive number, got {first_seconds_per_step}")
+    if not math.isfinite(seconds) or seconds < 0:
+        raise ValueError(f"Ref-GS's seconds must be a finite number >= 0, got {seconds}")
+    late = max(1.0, limit / size) ** GROWTH_COST_EXPONENT if size > 0 and limit > 0 else 1.0
+    mean = first_seconds_per_step * (1.0 + late) / 2.0
+    return min(MAX_STEPS, max(costs.MIN_STEPS["refgs"], int(seconds / mean))), mean
 
 
 def standalone_steps(stage: str, minutes: float | None, iters: int | None, probe: Callable[[], float]) -> int:

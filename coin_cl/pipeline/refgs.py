@@ -49,11 +49,17 @@ from coin_cl.gs.prune import prune_points_in_masks
 from coin_cl.gs.refgs import RefGSConfig, adaptive_weights_of, refgs_terms
 from coin_cl.gs.targets import composite_targets
 from coin_cl.gs.trainer import TrainConfig, Trainer
-from coin_cl.pipeline.budget import probe_seconds_per_step, standalone_steps
+from coin_cl.pipeline.budget import (
+    PROBE_STEPS,
+    PROBE_WARMUP,
+    probe_seconds_per_step,
+    refgs_steps_from_rate,
+    standalone_steps,
+)
 from coin_cl.pipeline.reference import choose_reference, pk_margin_px, reference_pixels, reference_points
 from coin_cl.scene.io import view_stem, write_npy, write_png, write_text
 from coin_cl.schema import DEPTH_PRIOR, REFGS_STAGE, parse, parse_optional, run_folder_fix
-from coin_cl.timing import late_step_seconds
+from coin_cl.timing import late_step_seconds, median_step_seconds
 
 if TYPE_CHECKING:
     from coin_cl.engine import DeviceLike
@@ -171,6 +177,7 @@ def run_refgs(
     exclude: Sequence[np.ndarray | None] | None = None,
     gaussians_per_pixel: float | None = None,
     schedule_iters: int | None = None,
+    replan_seconds: float | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the Ref-GS stage; see the module doc for what lands in `out_dir`.
 
@@ -203,9 +210,14 @@ def run_refgs(
         schedule_iters: the steps the learning-rate decay and the anchor growth are laid out over
             (>= the run's steps; None: the run's): a pipeline whose next stage trains the same model
             on (TE-D's fine-tune) passes both stages' steps, so that the two run one schedule.
+        replan_seconds: with `iters`, the seconds the stage is planned to take from the call on:
+            before training, `PROBE_STEPS` steps of the same model on a copy measure this machine
+            and `iters` is planned again from them (`budget.refgs_steps_from_rate`); the decision
+            is recorded in stage.json, and a rerun with the same `iters` keeps it. None: `iters`.
     Returns:
         JSON-able dict: output paths, reference, prior name, n_removed, steps, minutes, weights.
     """
+    t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seed = seed if cfg.seed is None else int(cfg.seed)
@@ -218,7 +230,14 @@ def run_refgs(
     else:
         probe = lambda: probe_seconds_per_step(scene, train_idx, device, seed)  # noqa: E731
         n_iters = standalone_steps("refgs", budget_minutes, iters, probe)
-    if (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
+    # the steps after Ref-GS's own that its schedule spans (TE-D's, when it continues it)
+    extra = 0 if schedule_iters is None else max(0, int(schedule_iters) - n_iters)
+    replan = (prev_stage or {}).get("replan")
+    if not (isinstance(replan, dict) and replan.get("request") == n_iters):
+        replan = None
+    if replan is not None:
+        n_iters = int(replan["steps"])  # the first call's decision (`replan_seconds`)
+    elif (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
         log.warning("resuming a run planned for %d steps; ignoring the new request of %d",
                     prev_stage["iters"], n_iters)  # fmt: skip
         n_iters = int(prev_stage["iters"])
@@ -291,21 +310,30 @@ def run_refgs(
         log.info(
             "background depth held in the masks of %d of %d views", sum(d is not None for d in bg), len(bg)
         )
-    span = n_iters if schedule_iters is None else max(n_iters, int(schedule_iters))
-    mcfg = scaled_model_config("scaffold", span)
-    model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed, mcfg)
-    model.device = device
-    terms = refgs_terms(cfg, kt, masks, n_iters, feat_dim=mcfg.feat_dim,
-                        depth_prior=None if prior is None else prior.prior,
-                        depth_is_disparity=bool(prior is not None and prior.is_disparity),
-                        bg_depths=bg)  # fmt: skip
-    tcfg = TrainConfig(model="scaffold", iters=n_iters, backend=backend, seed=seed, ckpt_every=ckpt_every,
-                       max_seconds=60.0 * budget_minutes if budget_minutes and iters is None else max_seconds,
-                       progress=True, log_every=max(1, min(50, n_iters // 20)))  # fmt: skip
-    strategy = scaled_strategy("scaffold", span)
-    if gaussians_per_pixel is not None:
-        strategy = replace(strategy, gaussians_per_pixel=float(gaussians_per_pixel))
-    tr = Trainer(model, views, [], tcfg, out / "gs", callback, strategy=strategy, terms=terms)
+    cap_seconds = 60.0 * budget_minutes if budget_minutes and iters is None else max_seconds
+
+    def trainer(n: int, folder: Path | None, cb: Callable[[Trainer, int], None] | None) -> Trainer:
+        mcfg = scaled_model_config("scaffold", n + extra)
+        model = build_model("scaffold", pts, cols, scene_extent([v.camera for v in views]), seed, mcfg)
+        model.device = device
+        terms = refgs_terms(cfg, kt, masks, n, feat_dim=mcfg.feat_dim,
+                            depth_prior=None if prior is None else prior.prior,
+                            depth_is_disparity=bool(prior is not None and prior.is_disparity),
+                            bg_depths=bg)  # fmt: skip
+        tcfg = TrainConfig(model="scaffold", iters=n, backend=backend, seed=seed, ckpt_every=ckpt_every,
+                           max_seconds=cap_seconds, progress=folder is not None,
+                           log_every=max(1, min(50, n // 20)))  # fmt: skip
+        strategy = scaled_strategy("scaffold", n + extra)
+        if gaussians_per_pixel is not None:
+            strategy = replace(strategy, gaussians_per_pixel=float(gaussians_per_pixel))
+        return Trainer(model, views, [], tcfg, folder, cb, strategy=strategy, terms=terms)
+
+    if replan_seconds is not None and replan is None and not (out / "gs" / "ckpt.pt").is_file():
+        replan = _replan(trainer, n_iters, replan_seconds - (time.perf_counter() - t_start))
+        n_iters = replan["steps"]
+        write_text(out / STAGE_JSON, json.dumps({"iters": n_iters, "replan": replan}, indent=1))
+    span = n_iters + extra
+    tr = trainer(n_iters, out / "gs", callback)
     resumed = tr.ckpt_path is not None and tr.ckpt_path.is_file()
     if resumed:
         tr.load_checkpoint()
@@ -324,6 +352,7 @@ def run_refgs(
         "n_points": int(len(pts)),
         "iters": n_iters,
         "schedule_iters": span,
+        "replan": replan,
     }  # fmt: skip
     t0 = time.perf_counter()
     res = tr.train()
@@ -358,10 +387,35 @@ def run_refgs(
         "resumed": resumed,
         "n_primitives": res["n"],
         "mean_weight": {str(v): s["mean_weight"] for v, s in weights.summary().items()},
+        "replan": tr.log["refgs"]["replan"],
         "config": cfg.to_dict(),
     }
     write_text(out / STAGE_JSON, json.dumps(result, indent=1))
     return result
+
+
+def _replan(
+    trainer: Callable[[int, Path | None, None], Trainer], request: int, seconds: float
+) -> dict[str, Any]:
+    """Ref-GS's count for `seconds` of training, planned from `PROBE_STEPS` steps of a copy of its
+    model (`trainer(request, None, None)`, thrown away) and the growth its size cap allows
+    (`budget.refgs_steps_from_rate`); logged. The record stage.json keeps: {"request", "steps",
+    "first_seconds_per_step", "mean_seconds_per_step", "size", "size_limit", "seconds"}."""
+    tr = trainer(request, None, None)
+
+    def step() -> None:
+        tr.train_step()
+        tr.step += 1
+
+    size = tr.model.n_primitives
+    limit = int(tr.strategy.size_limit(tr.model).get("neural_gaussians", 0))
+    first = median_step_seconds(step, PROBE_STEPS, PROBE_WARMUP)
+    steps, mean = refgs_steps_from_rate(max(0.0, seconds), first, size, limit)
+    log.info("Ref-GS: %d steps in its %.1f min left (its first steps %.3f s each at %d primitives, "
+             "growth to %d allowed: %.3f s/step on average; the plan's count was %d)", steps,
+             seconds / 60, first, size, limit, mean, request)  # fmt: skip
+    return {"request": request, "steps": steps, "first_seconds_per_step": first,
+            "mean_seconds_per_step": mean, "size": size, "size_limit": limit, "seconds": seconds}  # fmt: skip
 
 
 def _save_bg_depths(

@@ -191,8 +191,8 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
     sched = stage_schedule(ctx.run.out, ctx.run.plan, "2_refgs", cfg.budget_minutes)
     iters, cap = int(ctx.settings["iters"]), sched.caps.get("refgs", 0.0)
     ctx.note(f"Ref-GS: {iters} steps" + ("" if not cap else f", ~{cap / CAP_FACTOR / 60:.1f} min planned"
-             f" (stopped at {cap / 60:.1f} min if slower; the probe's plan: "
-             f"{ctx.run.plan.steps['refgs']})"))  # fmt: skip
+             f" (the count planned again from its first steps; stopped at {cap / 60:.1f} min if slower; "
+             f"the probe's plan: {ctx.run.plan.steps['refgs']})"))  # fmt: skip
     lift = read_lift(ctx.inputs["1_inpaint"])
     # The object's volume is the input masks', also when refined masks narrow what is inpainted (the
     # carve here, the pruning vote and the background depth in run_refgs's object_masks).
@@ -218,7 +218,8 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
                      schedule_iters=int(ctx.settings["schedule_iters"]),
-                     max_seconds=cap, device=cfg.device, seed=cfg.seed,
+                     max_seconds=cap, replan_seconds=cap / CAP_FACTOR if cap else None,
+                     device=cfg.device, seed=cfg.seed,
                      seed_points=seed_points, callback=attach,
                      known_depth=None if lift is None else lift.depth,
                      object_masks=ctx.run.masks if "0_refine" in ctx.inputs else None,
