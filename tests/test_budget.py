@@ -206,13 +206,13 @@ def test_standalone_steps_use_the_pipelines_rule():
 
 def test_refgs_count_from_its_first_steps_prices_the_growth_its_cap_allows():
     """Ref-GS's re-plan (`refgs_steps_from_rate`): a model at or over its size cap costs its first
-    steps' rate throughout; one that may grow k-fold ends at k^GROWTH_COST_EXPONENT of it, and its
-    mean step is halfway. More seconds or a faster step never give fewer steps; the floor is the
-    plan's minimum; bad rates are errors."""
+    steps' rate throughout; one that may grow k-fold costs k^GROWTH_COST_EXPONENT of it on average
+    (it grows early). More seconds or a faster step never give fewer steps; the floor is the plan's
+    minimum; bad rates are errors."""
     steps, mean = B.refgs_steps_from_rate(60.0, 0.2, 553_000, 97_000)
     assert mean == 0.2 and steps == 300
     steps, mean = B.refgs_steps_from_rate(60.0, 0.2, 50_000, 200_000)
-    assert mean == pytest.approx(0.2 * (1 + 4**B.GROWTH_COST_EXPONENT) / 2) and steps == int(60.0 / mean)
+    assert mean == pytest.approx(0.2 * 4**B.GROWTH_COST_EXPONENT) and steps == int(60.0 / mean)
     assert B.refgs_steps_from_rate(60.0, 0.2, 50_000, 0) == (300, 0.2)  # no cap known: no growth priced
     assert B.refgs_steps_from_rate(1.0, 0.2, 1, 1)[0] == costs.MIN_STEPS["refgs"]
     grid = [(s, r) for s in (10.0, 60.0, 600.0) for r in (0.05, 0.2, 1.0)]

@@ -68,6 +68,11 @@ def test_run_steps_reads_back_what_a_run_trains(tmp_path):
     got = S.run_steps(tmp_path)
     assert got == {**plan.steps, **S.ted_schedule(tmp_path, plan, 30).steps}
     assert got["ted_finetune"] < plan.steps["ted_finetune"] and got["refgs"] == plan.steps["refgs"]
+    # Ref-GS planned its count again from its first steps: the count it decided is the run's
+    decided = plan.steps["refgs"] + 17
+    _stage(tmp_path, "2_refgs", {"iters": decided, "steps": decided, "train_minutes": slow / 60}, slow)
+    ted = S.ted_schedule(tmp_path, plan, 30).steps
+    assert S.run_steps(tmp_path) == {**plan.steps, **ted, "refgs": decided}
     with pytest.raises(FileNotFoundError, match="plan.json"):
         S.run_steps(tmp_path / "nothing")
 

@@ -185,7 +185,10 @@ def refgs_step_seconds(out: Path) -> float | None:
 
 def run_steps(out: Path) -> dict[str, int]:
     """The step counts a run folder trains: its plan.json's, each GS stage's as re-planned when it
-    was reached (`stage_schedule`, as during the run, from the manifests the folder holds)."""
+    was reached (`stage_schedule`, as during the run, from the manifests the folder holds); Ref-GS's
+    as it planned it again from its first steps (its manifest's `result.iters`) once it has run."""
+    from coin_cl.pipeline.runner import read_manifest
+
     path = Path(out) / PLAN_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: not a CoIn run folder (coin-cl run writes it)")
@@ -193,6 +196,10 @@ def run_steps(out: Path) -> dict[str, int]:
     steps = dict(plan.steps)
     for stage in ("0_refine", "2_refgs", "4_ted"):
         steps.update(stage_schedule(out, plan, stage, plan.key["budget_minutes"]).steps)
+    man = read_manifest(Path(out) / "2_refgs")
+    decided = None if man is None else man["result"].get("iters")
+    if isinstance(decided, int) and not isinstance(decided, bool) and 1 <= decided <= MAX_STEPS:
+        steps["refgs"] = decided
     return steps
 
 
