@@ -21,7 +21,8 @@ rendered alpha > 0.5 (the margin rule `pk_margin_px` lives there too).
 Budget: `iters` wins; else `budget_minutes` of Ref-GS become steps by the pipeline's rule
 (`pipeline.budget.standalone_steps`: a timing probe on this machine and Ref-GS's measured step
 cost) and the trainer also stops when the budget's training time is spent; neither: the published
-30k steps.
+30k steps. With `replan_seconds` (a CoIn run passes the stage's planned seconds), `iters` is planned
+again from a few steps of Ref-GS's own model before it trains (`budget.refgs_steps_from_rate`).
 Schedules (learning rates, densification, attention start and lr) are compressed to `iters` the
 way `scaled_model_config` / `scaled_strategy` do. A rerun with the same `out_dir` continues from
 the checkpoint with the first run's `iters` (a different request is logged and ignored).
@@ -29,6 +30,7 @@ the checkpoint with the first run's `iters` (a different request is logged and i
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -330,6 +332,7 @@ def run_refgs(
 
     if replan_seconds is not None and replan is None and not (out / "gs" / "ckpt.pt").is_file():
         replan = _replan(trainer, n_iters, replan_seconds - (time.perf_counter() - t_start))
+        gc.collect()  # the timed copy's model, before the one that trains is built beside it
         n_iters = replan["steps"]
         write_text(out / STAGE_JSON, json.dumps({"iters": n_iters, "replan": replan}, indent=1))
     span = n_iters + extra
