@@ -277,6 +277,13 @@ def test_the_count_is_planned_again_from_the_first_steps_and_kept_on_a_rerun(roo
     again = run_refgs(scene, targets, tmp_path / "r", cfg, budget_minutes=None, iters=7, seed=0,
                       replan_seconds=1.5, schedule_iters=27)  # fmt: skip
     assert calls == [B.PROBE_STEPS] and again["iters"] == rp["steps"] and again["replan"] == rp
+    # a record that does not hold together (its steps are not the stage's count) is not trusted
+    planted = tmp_path / "p"
+    planted.mkdir()
+    (planted / stage.STAGE_JSON).write_text(json.dumps({"iters": 5, "replan": {**rp, "steps": 10**9}}))
+    res = run_refgs(scene, targets, planted, cfg, budget_minutes=None, iters=7, seed=0,
+                    replan_seconds=1.5, schedule_iters=27)  # fmt: skip
+    assert len(calls) == 2 and res["iters"] == res["replan"]["steps"] < 10**9
 
 
 def test_render_kwargs_clash_is_an_error():

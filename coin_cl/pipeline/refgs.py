@@ -235,10 +235,11 @@ def run_refgs(
     # the steps after Ref-GS's own that its schedule spans (TE-D's, when it continues it)
     extra = 0 if schedule_iters is None else max(0, int(schedule_iters) - n_iters)
     replan = (prev_stage or {}).get("replan")
-    if not (isinstance(replan, dict) and replan.get("request") == n_iters):
+    if not (isinstance(replan, dict) and replan.get("request") == n_iters and prev_stage is not None
+            and replan.get("steps") == prev_stage["iters"]):  # fmt: skip
         replan = None
-    if replan is not None:
-        n_iters = int(replan["steps"])  # the first call's decision (`replan_seconds`)
+    if replan is not None and prev_stage is not None:
+        n_iters = int(prev_stage["iters"])  # the first call's decision (`replan_seconds`), as checked
     elif (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
         log.warning("resuming a run planned for %d steps; ignoring the new request of %d",
                     prev_stage["iters"], n_iters)  # fmt: skip
