@@ -93,8 +93,7 @@ def run_point(scene: Path, run: Path, budget: float, args) -> dict:
         return point
     if not args.no_ghost:
         truth = truth_photos(scene, data_root() if args.data is None else args.data)
-        g = ghost_figures({"run": run}, run, run.parent, args.ghost_iters, truth)["run"]
-        point.update(g if isinstance(g, dict) else {"ghost": g, "ghost_ring": g})
+        point.update(ghost_figures({"run": run}, run, run.parent, args.ghost_iters, truth)["run"])
     point.update(at_capture(scene, run))
     write_text(done, json.dumps(point, indent=1))
     return point

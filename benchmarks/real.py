@@ -213,9 +213,15 @@ def truth_photos(scene_dir: Path, data: Path) -> Path | None:
     return image_dir(capture, None)
 
 
+def not_available(why: str) -> dict[str, float | str]:
+    """Both ghost figures of a row that has none, saying why."""
+    return dict.fromkeys(("ghost", "ghost_ring"), f"n/a ({why})")
+
+
 def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: int,
-                  truth: Path | None = None) -> dict[str, dict[str, float] | str]:  # fmt: skip
-    """{row: {"ghost", "ghost_ring"} (`ghost.ghost_of_model`), or "n/a (why)"}: each row's final model
+                  truth: Path | None = None) -> dict[str, dict[str, float | str]]:  # fmt: skip
+    """{row: {"ghost", "ghost_ring"}} (`ghost.ghost_of_model`; both "n/a (why)" where there is no
+    figure): each row's final model
     against a Scaffold-GS fitted to the object-absent views of the default row's working-resolution
     scene (`ghost.reference_depths`: the test views, or with `truth` (`truth_photos`) every view;
     `iters` steps at least, cached in out/ghost_reference/r<resolution>_i<iters>)."""
@@ -229,15 +235,15 @@ def ghost_figures(runs: dict[str, Path], default_run: Path, out: Path, iters: in
 
     scene = load_scene(default_run / "0_scene" / "scene")
     if not any(np.asarray(scene.masks[i]).any() for i in scene.test_idx):
-        return dict.fromkeys(runs, "n/a (no test view with a mask)")
+        return {r: not_available("no test view with a mask") for r in runs}
     res_key = json.loads((default_run / "plan.json").read_text())["key"]["resolution"]
     depths = reference_depths(scene, out / "ghost_reference" / f"r{res_key:g}_i{iters}", iters, truth)
-    res: dict[str, dict[str, float] | str] = {}
+    res: dict[str, dict[str, float | str]] = {}
     for name, run in runs.items():
         if name == "masked_recon":
             ckpts = sorted((run / "train").rglob(CKPT_NAME), key=lambda p: p.stat().st_mtime)
             if not ckpts:
-                res[name] = "n/a (no checkpoint)"
+                res[name] = not_available("no checkpoint")
                 continue
             model = model_from_state(load_checkpoint(ckpts[-1])["model"])
             with torch.no_grad():
@@ -287,12 +293,12 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
         )
     runs = {r: out / r for r in table if "na" not in table[r]}
     if args.no_ghost:
-        ghosts = dict.fromkeys(runs, "n/a (--no-ghost)")
+        ghosts = {r: not_available("--no-ghost") for r in runs}
     else:
         truth = truth_photos(scene, data_root() if args.data is None else args.data)
         ghosts = ghost_figures(runs, default_run, out, args.ghost_iters, truth)
     for r, g in ghosts.items():
-        table[r].update(g if isinstance(g, dict) else {"ghost": g, "ghost_ring": g})
+        table[r].update(g)
     from crop_grid import grid
 
     from coin_cl.scene.io import write_png

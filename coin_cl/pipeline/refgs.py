@@ -405,6 +405,7 @@ def _replan(
     model (`trainer(request, None, None)`, thrown away) and the growth its size cap allows
     (`budget.refgs_steps_from_rate`); logged. The record stage.json keeps: {"request", "steps",
     "first_seconds_per_step", "mean_seconds_per_step", "size", "size_limit", "seconds"}."""
+    seconds = max(0.0, seconds)  # the stage already spent its time: the floor's steps
     tr = trainer(request, None, None)
 
     def step() -> None:
@@ -414,7 +415,7 @@ def _replan(
     size = tr.model.n_primitives
     limit = int(tr.strategy.size_limit(tr.model).get("neural_gaussians", 0))
     first = median_step_seconds(step, PROBE_STEPS, PROBE_WARMUP)
-    steps, mean = refgs_steps_from_rate(max(0.0, seconds), first, size, limit)
+    steps, mean = refgs_steps_from_rate(seconds, first, size, limit)
     log.info("Ref-GS: %d steps in its %.1f min left (its first steps %.3f s each at %d primitives, "
              "growth to %d allowed: %.3f s/step on average; the plan's count was %d)", steps,
              seconds / 60, first, size, limit, mean, request)  # fmt: skip
