@@ -4,10 +4,13 @@ counts noise as texture), so every results table has one of these beside it. A f
 `eval/renders` is read from its `pred/` (the demo's masked-reconstruction row).
 
     python benchmarks/crop_grid.py RUN_DIR [RUN_DIR ...] --out docs/img/NAME.png [--cell 160]
-        [--views 0 2 4] [--transpose]
+        [--views 0 2 4] [--transpose] [--capture SCENE]
 
 The crop is the mask's bounding box plus 8 px (`coin_cl.metrics.bbox_crop`); the scene (masks, truth)
-comes from the first run's `0_scene/scene`. Prints the column order.
+comes from the first run's `0_scene/scene`. With `--capture SCENE` (the scene folder the runs were
+made from) the grid is drawn at the photos' size instead: each run's renders at that size
+(`eval/capture/renders`, which eval writes for a run below it, else `eval/renders` of a run at it),
+so runs at different working sizes sit side by side. Prints the column order.
 """
 
 import argparse
@@ -34,12 +37,16 @@ def tile_row(tiles: list[np.ndarray], cell: int) -> np.ndarray:
 
 
 def grid(
-    runs: list[Path], cell: int = 160, views: list[int] | None = None, transpose: bool = False
+    runs: list[Path],
+    cell: int = 160,
+    views: list[int] | None = None,
+    transpose: bool = False,
+    capture: Path | None = None,
 ) -> np.ndarray:
     """[rows * (cell + 4), (len(runs) + 1) * (cell + 4), 3] uint8; `views`: positions among the
     masked test views to keep (default all); `transpose`: one row per run (then the truth), one
-    column per view."""
-    scene = load_scene(runs[0] / "0_scene" / "scene")
+    column per view; `capture`: the runs' scene folder, to draw at its photos' size (module doc)."""
+    scene = load_scene(capture if capture is not None else runs[0] / "0_scene" / "scene")
     rows = []
     masked = [i for i in scene.test_idx if np.asarray(scene.masks[i], bool).any()]
     for i in masked if views is None else [masked[v] for v in views]:
@@ -48,7 +55,17 @@ def grid(
             continue
         crop = metrics.bbox_crop(mask, pad=8)
         stem = view_stem(scene.cameras[i].name, i)
-        tiles = [read_image(render_of(r, stem))[crop] for r in runs]
+        tiles = []
+        for r in runs:
+            path = render_of(r, stem, at_capture=capture is not None)
+            img = read_image(path)
+            if img.shape[:2] != mask.shape:
+                raise ValueError(
+                    f"{path} is {img.shape[1]}x{img.shape[0]} where view {stem} is {mask.shape[1]}x"
+                    f"{mask.shape[0]}: render the run at that size (`coin-cl render {r} --scale capture`)"
+                    + ("" if capture is not None else " and pass --capture SCENE")
+                )
+            tiles.append(img[crop])
         tiles.append(np.asarray(scene.images[i], np.float32)[crop])
         rows.append(tile_row(tiles, cell))
     if not rows:
@@ -61,16 +78,19 @@ def grid(
     return to_uint8(out)
 
 
-def render_dir(run: Path) -> Path:
-    """A run's test-view renders: a CoIn run's `eval/renders`, or `pred/` of the demo's
-    masked-reconstruction row (`coin_cl.demo.room_baseline`)."""
+def render_dir(run: Path, at_capture: bool = False) -> Path:
+    """A run's test-view renders: a CoIn run's `eval/renders` (with `at_capture`, its
+    `eval/capture/renders` where eval wrote them), or `pred/` of the demo's masked-reconstruction row
+    (`coin_cl.demo.room_baseline`)."""
+    if at_capture and (run / "eval" / "capture" / "renders").is_dir():
+        return run / "eval" / "capture" / "renders"
     return run / "eval" / "renders" if (run / "eval" / "renders").is_dir() else run / "pred"
 
 
-def render_of(run: Path, stem: str) -> Path:
+def render_of(run: Path, stem: str, at_capture: bool = False) -> Path:
     """The render of test view `stem` in `run` (`render_dir`), whatever its extension (masked
     reconstruction names its renders after the camera, e.g. a capture's .jpg)."""
-    d = render_dir(run)
+    d = render_dir(run, at_capture)
     found = [d / f"{stem}.png"] if (d / f"{stem}.png").is_file() else sorted(d.glob(f"{stem}.*"))
     if not found:
         raise FileNotFoundError(f"{d} has no render of test view {stem}")
@@ -82,11 +102,22 @@ def main() -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--cell", type=int, default=160)
-    ap.add_argument("--views", type=int, nargs="+", default=None,
-                    help="positions among the masked test views to show (default: every one)")
+    ap.add_argument(
+        "--views",
+        type=int,
+        nargs="+",
+        default=None,
+        help="positions among the masked test views to show (default: every one)",
+    )
     ap.add_argument("--transpose", action="store_true", help="one row per run, one column per view")
+    ap.add_argument(
+        "--capture",
+        type=Path,
+        default=None,
+        help="the runs' scene folder: draw at its photos' size (runs at any working size)",
+    )
     args = ap.parse_args()
-    write_png(args.out, grid(args.runs, args.cell, args.views, args.transpose))
+    write_png(args.out, grid(args.runs, args.cell, args.views, args.transpose, args.capture))
     what = "rows" if args.transpose else "columns"
     print(f"{what}:", " | ".join(r.name for r in args.runs), "| truth;", f"wrote {args.out}")
     return 0

@@ -1,6 +1,7 @@
 """The run's plan (coin_cl.pipeline.budget): working resolution, steps from the probe's rate, the plan
 recorded in OUT/plan.json and reused."""
 
+import doctest
 import itertools
 import json
 import math
@@ -33,6 +34,10 @@ def test_working_resolution_is_monotone_in_pixels():
     scales = [B.working_resolution(w, h) for w, h in sizes]
     assert all(a >= b for a, b in zip(scales, scales[1:]))  # larger captures are never scaled up
     assert max(work) <= 600
+
+
+def test_the_docstring_examples_hold():
+    assert doctest.testmod(B).failed == 0
 
 
 def test_steps_grow_with_budget_and_machine_speed():
@@ -294,10 +299,10 @@ _NONE = dict.fromkeys(("refgs", "ted_finetune", "ted_adversarial"))
 _REFINED = {**B.BUDGET_SHARES, "refine": B.REFINE_SHARE}
 
 
-def _plan(out, budget, spp=0.2, prior=0.9, views=_VIEWS, shares=_REFINED, wall=5.0):
+def _plan(out, budget, spp=0.2, prior=0.9, views=_VIEWS, shares=_REFINED, wall=5.0, pixels=None):
     return B.plan_run(out, {"budget_minutes": budget, "spp": spp, "prior": prior}, budget, _NONE, None,
                       lambda: spp, lambda: prior, lambda: 0.05, shares=shares, views=views,
-                      probe_wall_seconds=wall)  # fmt: skip
+                      probe_wall_seconds=wall, view_pixels=pixels)  # fmt: skip
 
 
 def test_the_budget_holds_every_stage_fixed_costs_off_then_gs_steps(tmp_path):
@@ -318,6 +323,11 @@ def test_the_budget_holds_every_stage_fixed_costs_off_then_gs_steps(tmp_path):
     assert all(crowded.steps[k] < plan.steps[k] for k in plan.steps)
     plain = _plan(tmp_path / "c", 20, shares=None)  # a run without the split: no refine share
     assert "refine" not in plain.steps and plain.steps["refgs"] > plan.steps["refgs"]
+    # larger views: the fixed stages' per-view work grows with their pixels, the GS pool shrinks
+    big = _plan(tmp_path / "d", 20, pixels=4 * costs.REFERENCE_PIXELS)
+    assert big.fixed_seconds["1_inpaint"] > 3 * plan.fixed_seconds["1_inpaint"] - 3 * 5.0
+    assert big.fixed_seconds["prior"] == plan.fixed_seconds["prior"]
+    assert all(big.steps[k] < plan.steps[k] for k in plan.steps)
 
 
 def test_steps_are_monotone_in_budget_and_machine_speed(tmp_path):

@@ -1,6 +1,8 @@
 """What the stages cost (coin_cl.pipeline.stage_costs): the fixed stages' estimates, the machine
 factor, the GS pool's split and the minimum budget."""
 
+import doctest
+
 import pytest
 
 from coin_cl.pipeline import stage_costs as C
@@ -17,6 +19,24 @@ def test_fixed_costs_grow_with_views_and_a_slower_machine():
     with_prior = C.fixed_costs(views, 1.0, prior_steps=133, prior_seconds_per_step=0.9)
     assert with_prior["prior"] == pytest.approx(133 * 0.9 * C.PRIOR_STEP_COST)
     assert "3_clg" not in C.fixed_costs({"0_scene": 20, "eval": 20}, 1.0)  # a stage left out costs nothing
+
+
+def test_per_view_seconds_follow_the_views_pixels_except_the_samplers():
+    views = {"0_scene": 20, "1_inpaint": 17, "3_clg": 17, "eval": 20}
+    ref = C.fixed_costs(views, 1.0)
+    assert C.fixed_costs(views, 1.0, view_pixels=C.REFERENCE_PIXELS) == ref
+    big = C.fixed_costs(views, 1.0, view_pixels=4 * C.REFERENCE_PIXELS)
+    for k, n in views.items():
+        base, per_view = C.FIXED_COSTS[k]
+        assert big[k] == pytest.approx(base + per_view * n * 4 ** C.PIXEL_EXPONENT[k])
+    # stage 1's fills measured 3.7x at 4x the pixels; the sampler's 64-px draws do not grow
+    assert big["1_inpaint"] > 3.5 * ref["1_inpaint"] - 3.5 * C.FIXED_COSTS["1_inpaint"][0]
+    assert big["3_clg"] == ref["3_clg"]
+    small = C.fixed_costs({"3_clg_propagate": 17}, 1.0, view_pixels=C.REFERENCE_PIXELS // 4)
+    assert small["3_clg"] < C.fixed_costs({"3_clg_propagate": 17}, 1.0)["3_clg"]
+    for bad in (0, -5):
+        with pytest.raises(ValueError, match="pixels"):
+            C.fixed_costs(views, 1.0, view_pixels=bad)
 
 
 def test_scoring_at_the_capture_size_is_part_of_evals_estimate():
@@ -66,3 +86,7 @@ def test_minimum_budget_is_the_smallest_that_leaves_the_minimum_pool():
     # large fixed costs: the prior's share is above its floor and still fits
     big = C.minimum_budget(3000.0, floor, share, pool)
     assert 60 * big == pytest.approx(3000.0 + share * 60 * big + pool)
+
+
+def test_the_docstring_examples_hold():
+    assert doctest.testmod(C).failed == 0

@@ -5,9 +5,11 @@ Ref-GS steps, 10k + 10k TE-D, paper supp. A) is far beyond 2 CPU cores, so a run
 `B` on the machine at hand:
 
 1. Working resolution (`working_resolution`): the image scale 1/n (n an integer) that brings a
-   view to at most `MAX_WORK_PIXELS` pixels (measured on the shared SPIn-NeRF scene at budget 30,
-   docs/RESULTS.md: at 1008x567 the budget buys ~280 Ref-GS steps and the result loses to the naive
-   baseline; at 504x284 it buys ~700 and wins). `--resolution` overrides.
+   view to at most `MAX_WORK_PIXELS` pixels, whatever the budget (measured on the shared SPIn-NeRF
+   scene at budget 30: at 1008x567 the budget buys ~280 Ref-GS steps and the result loses to the
+   naive baseline, at 504x284 it buys ~700 and wins; on the cup capture scored at its photos' 800x600,
+   400x300 beat 800x600 on every figure at budgets 10 and 30: docs/BENCHMARKS.md, "The working size
+   on the curve"). `--resolution` overrides.
 2. Probes: a plain Scaffold-GS trained on the scene's views for `PROBE_STEPS` steps, a few steps of
    the scene prior and of TE-D's discriminator measure this machine (~10-30 s; their own wall time
    is part of the budget and recorded).
@@ -363,6 +365,7 @@ def plan_run(
     views: dict[str, int] | None = None,
     probe_wall_seconds: float | None = None,
     prior_trained: bool = True,
+    view_pixels: int | None = None,
 ) -> Plan:
     """The run's plan: reused from `out/plan.json` when it was made for `key`, else made now (by
     calling `probe()` -> seconds per step unless every count is explicit) and written there.
@@ -378,6 +381,8 @@ def plan_run(
     that takes another's rates takes its figure too, so the same budget gives the same counts).
     prior_trained: False where no stage will train the scene prior (CLG skipped, stage 1 filling
     without it): its steps are still planned (stage 1's key holds them) but cost no time.
+    view_pixels: a working view's pixels, which the fixed stages' per-view seconds scale with
+    (`stage_costs.fixed_costs`; None: the size they were measured at).
     Raises `BudgetTooSmall` (nothing written) when the GS pool left cannot give every budgeted GS
     stage `stage_costs.MIN_STEPS`."""
     path = Path(out) / PLAN_FILE
@@ -421,7 +426,7 @@ def plan_run(
     draft = Plan({}, {}, secs, spp, "probe", {}, prior_steps, prior_spp, disc, shares)
     trained = (prior_steps, prior_spp) if prior_trained else (None, None)
     if views is not None:
-        fixed = costs.fixed_costs(views, costs.machine_factor(prior_spp), *trained)
+        fixed = costs.fixed_costs(views, costs.machine_factor(prior_spp), *trained, view_pixels=view_pixels)
     else:
         fixed = {"prior": secs} if prior_trained else {}
     given = {k: int(n) for k, n in explicit.items() if n is not None and k in gs_weights(shares)}

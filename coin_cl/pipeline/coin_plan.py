@@ -68,7 +68,7 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
         shares = None  # the default split: plans made before keep their file
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes, shares=shares,
                     views=fixed_views(scene, cfg, train), probe_wall_seconds=wall,
-                    prior_trained=prior_trained(scene, cfg))  # fmt: skip
+                    prior_trained=prior_trained(scene, cfg), view_pixels=cam.width * cam.height)  # fmt: skip
 
 
 def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:

@@ -37,6 +37,13 @@ FIXED_COSTS = {
 }
 # The stage an entry of FIXED_COSTS estimates, where the two names differ.
 STAGE_OF = {"3_clg_propagate": "3_clg"}
+# The view size the per-view figures above were measured at (cup_plain's 400x300). A view of P
+# pixels costs (P / REFERENCE_PIXELS) ** PIXEL_EXPONENT[stage] times its figure: the same scene at
+# 800x600 (4x the pixels, quiet 2-core AMD EPYC Zen 4) took 3.7x the seconds a view in stage 1's
+# exemplar fills (324 s against 91 s for 56 views), about 4x in CLG's propagation and eval's renders.
+# CLG with its sampler draws at the scene prior's own 64-px size, so its figure is left unscaled.
+REFERENCE_PIXELS = 400 * 300
+PIXEL_EXPONENT = {"0_scene": 1.0, "1_inpaint": 0.95, "3_clg": 0.0, "eval": 1.0, "3_clg_propagate": 1.0}
 # Eval's extra seconds per test view it also scores at the capture's size (renders at the photos'
 # size, the masked metrics; `eval_stage.score_at_capture`), on the reference machine: the SPIn-NeRF
 # scene's 5 views at 1008x567 added about 10 s besides their whole-image VGG distance, which that
@@ -82,22 +89,31 @@ def fixed_costs(
     factor: float,
     prior_steps: int | None = None,
     prior_seconds_per_step: float | None = None,
+    view_pixels: int | None = None,
 ) -> dict[str, float]:
     """{stage: estimated seconds} of the fixed stages. views: {stage: the views it works on} for the
     stages the run has (0_scene and eval: every view; 1_inpaint and 3_clg: the masked training
     views; a stage left out is absent; "eval_capture": the test views eval also scores at the
     capture's size, added to eval's estimate); factor: `machine_factor`. "prior": the scene prior's
     training, `prior_steps` at its measured rate x PRIOR_STEP_COST (absent without a probed prior).
+    view_pixels: a working view's pixels (the per-view figures scale with it, `PIXEL_EXPONENT`;
+    None: REFERENCE_PIXELS).
 
     >>> fixed_costs({"0_scene": 10, "eval": 10}, 2.0)
-    {'0_scene': 5.0, 'eval': 26.0}
+    {'0_scene': 2.4, 'eval': 24.0}
+    >>> fixed_costs({"0_scene": 10, "eval": 10}, 2.0, view_pixels=4 * REFERENCE_PIXELS)
+    {'0_scene': 3.6, 'eval': 36.0}
     """
+    pixels = REFERENCE_PIXELS if view_pixels is None else int(view_pixels)
+    if pixels < 1:
+        raise ValueError(f"a view's pixels must be positive, got {view_pixels}")
     out = {}
     for stage, n in views.items():
         if stage == "eval_capture":
             continue
         base, per_view = FIXED_COSTS[stage]
-        out[STAGE_OF.get(stage, stage)] = factor * (base + per_view * max(0, int(n)))
+        size = (pixels / REFERENCE_PIXELS) ** PIXEL_EXPONENT[stage]
+        out[STAGE_OF.get(stage, stage)] = factor * (base + per_view * size * max(0, int(n)))
     if "eval" in out:
         out["eval"] += factor * CAPTURE_SECONDS_PER_VIEW * max(0, int(views.get("eval_capture", 0)))
     if prior_steps is not None and prior_seconds_per_step is not None:
