@@ -63,8 +63,9 @@ class CoInConfig:
     prompt: str = ""
     # The run's wall-clock minutes (> 0), every stage included; the budget plan subtracts the fixed
     # stages' cost and turns the rest into step counts (`pipeline.budget`), recorded in OUT/plan.json.
-    # 10 (default): the knee of the measured curve (docs/BENCHMARKS.md, "The whole pipeline"): on both
-    # real scenes measured, twice the minutes scored no higher m-PSNR.
+    # 10 (default): the knee of the measured curve on SPIn-NeRF scene 1, where twice the minutes scored
+    # lower (TE-D's longer run draws needles); on the cup capture 20 scored higher (docs/BENCHMARKS.md,
+    # "The curve at today's code").
     budget_minutes: float = 10.0
     # Image scale (0.5 = half size, > 0). None (default): `budget.working_resolution` picks it from
     # the image size (logged).
