@@ -60,10 +60,14 @@ def grid(
             path = render_of(r, stem, at_capture=capture is not None)
             img = read_image(path)
             if img.shape[:2] != mask.shape:
+                fix = (
+                    "a run below the photos' size needs eval's renders at it (eval/capture/renders)"
+                    if capture is not None
+                    else "runs at different working sizes meet at the photos' size: pass --capture SCENE"
+                )
                 raise ValueError(
-                    f"{path} is {img.shape[1]}x{img.shape[0]} where view {stem} is {mask.shape[1]}x"
-                    f"{mask.shape[0]}: render the run at that size (`coin-cl render {r} --scale capture`)"
-                    + ("" if capture is not None else " and pass --capture SCENE")
+                    f"{path} is {img.shape[1]}x{img.shape[0]} where view {stem} is "
+                    f"{mask.shape[1]}x{mask.shape[0]}: {fix}"
                 )
             tiles.append(img[crop])
         tiles.append(np.asarray(scene.images[i], np.float32)[crop])

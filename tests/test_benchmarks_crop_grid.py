@@ -1,6 +1,7 @@
 """The crop grid (benchmarks/crop_grid.py): crops of each run's renders beside the truth, at the
 working size or, for runs at different working sizes, at the photos' size."""
 
+import shutil
 import sys
 from pathlib import Path
 
@@ -55,3 +56,12 @@ def test_mixed_sizes_without_the_capture_are_refused_with_the_way_out(capture):
     with pytest.raises(ValueError, match="--capture SCENE"):
         crop_grid.grid([runs["half"], runs["whole"]], cell=32)
     assert crop_grid.grid([runs["half"]], cell=32).shape[1] == 2 * 36  # one size: as before
+
+
+def test_a_run_without_renders_at_the_photos_size_is_named(capture, tmp_path):
+    scene, runs = capture
+    bare = tmp_path / "bare"
+    shutil.copytree(runs["half"], bare)
+    shutil.rmtree(bare / "eval" / "capture")  # eval at the working size only
+    with pytest.raises(ValueError, match=r"bare.*eval/capture/renders"):
+        crop_grid.grid([bare], cell=32, capture=scene.path)
