@@ -234,16 +234,21 @@ def run_refgs(
         n_iters = standalone_steps("refgs", budget_minutes, iters, probe)
     # the steps after Ref-GS's own that its schedule spans (TE-D's, when it continues it)
     extra = 0 if schedule_iters is None else max(0, int(schedule_iters) - n_iters)
-    replan = (prev_stage or {}).get("replan")
-    if not (isinstance(replan, dict) and replan.get("request") == n_iters and prev_stage is not None
-            and replan.get("steps") == prev_stage["iters"]):  # fmt: skip
+    prev = prev_stage or {}
+    replan = prev.get("replan")
+    # the first call's decision (`replan_seconds`), kept when its record holds together
+    if (
+        isinstance(replan, dict)
+        and replan.get("request") == n_iters
+        and replan.get("steps") == prev.get("iters")
+    ):
+        n_iters = int(prev["iters"])
+    else:
         replan = None
-    if replan is not None and prev_stage is not None:
-        n_iters = int(prev_stage["iters"])  # the first call's decision (`replan_seconds`), as checked
-    elif (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
-        log.warning("resuming a run planned for %d steps; ignoring the new request of %d",
-                    prev_stage["iters"], n_iters)  # fmt: skip
-        n_iters = int(prev_stage["iters"])
+        if (out / "gs" / "ckpt.pt").is_file() and prev_stage is not None and prev_stage["iters"] != n_iters:
+            log.warning("resuming a run planned for %d steps; ignoring the new request of %d",
+                        prev_stage["iters"], n_iters)  # fmt: skip
+            n_iters = int(prev_stage["iters"])
     # Write the plan before training so an interrupted run resumes with the same schedule.
     write_text(out / STAGE_JSON, json.dumps({**(prev_stage or {}), "iters": n_iters}, indent=1))
 

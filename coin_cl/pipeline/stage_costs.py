@@ -20,30 +20,30 @@ from __future__ import annotations
 
 import math
 
-# {stage: (seconds, seconds per view)} on the reference machine, without the scene prior's training.
-# Measured at budget 10 on the cup_plain virtual-object scene (65 views of 400x300, 56 masked
-# training views; scene prior probe 1.31 s/step, so these are its figures / 1.46): 0_scene 2.4 s,
-# CLG's sampling 48 s of its 144 s (the rest the prior's 133 steps and the features), eval 34 s; a
-# 71-view orbit capture's CLG took 2.4-4.4 min. Stage 1's exemplar fills on a quiet machine (prior
-# probe 0.65-0.72 s/step): 76-90 s for the 56 views, about 2.2 s a view here; views filled from
-# files (the dataset's own inpaints) are not counted (`coin_plan.fixed_views`).
+# The view size the per-view figures below were measured at (cup_plain's 400x300). A view of P
+# pixels costs (P / REFERENCE_PIXELS) ** exponent times its figure: the same scene at 800x600 (4x the
+# pixels, quiet 2-core AMD EPYC Zen 4) took 3.7x the seconds a view in stage 1's exemplar fills (324 s
+# against 91 s for 56 views), about 4x in CLG's propagation and eval's renders. CLG with its sampler
+# draws at the scene prior's own 64-px size, so its figure is left unscaled (exponent 0).
+REFERENCE_PIXELS = 400 * 300
+# {stage: (seconds, seconds per view, the per-view figure's exponent of the view's pixels)} on the
+# reference machine, without the scene prior's training. Measured at budget 10 on the cup_plain
+# virtual-object scene (65 views of 400x300, 56 masked training views; scene prior probe 1.31 s/step,
+# so these are its figures / 1.46): 0_scene 2.4 s, CLG's sampling 48 s of its 144 s (the rest the
+# prior's 133 steps and the features), eval 34 s; a 71-view orbit capture's CLG took 2.4-4.4 min.
+# Stage 1's exemplar fills on a quiet machine (prior probe 0.65-0.72 s/step): 76-90 s for the 56
+# views, about 2.2 s a view here; views filled from files (the dataset's own inpaints) are not
+# counted (`coin_plan.fixed_views`).
 FIXED_COSTS = {
-    "0_scene": (1.0, 0.02),
-    "1_inpaint": (5.0, 2.2),
-    "3_clg": (10.0, 0.8),
-    "eval": (10.0, 0.2),
+    "0_scene": (1.0, 0.02, 1.0),
+    "1_inpaint": (5.0, 2.2, 0.95),
+    "3_clg": (10.0, 0.8, 0.0),
+    "eval": (10.0, 0.2, 1.0),
     # CLG without a sampler (the reference warped and blended per view): 4.7 s for the 55 views
-    "3_clg_propagate": (2.0, 0.1),
+    "3_clg_propagate": (2.0, 0.1, 1.0),
 }
 # The stage an entry of FIXED_COSTS estimates, where the two names differ.
 STAGE_OF = {"3_clg_propagate": "3_clg"}
-# The view size the per-view figures above were measured at (cup_plain's 400x300). A view of P
-# pixels costs (P / REFERENCE_PIXELS) ** PIXEL_EXPONENT[stage] times its figure: the same scene at
-# 800x600 (4x the pixels, quiet 2-core AMD EPYC Zen 4) took 3.7x the seconds a view in stage 1's
-# exemplar fills (324 s against 91 s for 56 views), about 4x in CLG's propagation and eval's renders.
-# CLG with its sampler draws at the scene prior's own 64-px size, so its figure is left unscaled.
-REFERENCE_PIXELS = 400 * 300
-PIXEL_EXPONENT = {"0_scene": 1.0, "1_inpaint": 0.95, "3_clg": 0.0, "eval": 1.0, "3_clg_propagate": 1.0}
 # Eval's extra seconds per test view it also scores at the capture's size (renders at the photos'
 # size, the masked metrics; `eval_stage.score_at_capture`), on the reference machine: the SPIn-NeRF
 # scene's 5 views at 1008x567 added about 10 s besides their whole-image VGG distance, which that
@@ -96,7 +96,7 @@ def fixed_costs(
     views; a stage left out is absent; "eval_capture": the test views eval also scores at the
     capture's size, added to eval's estimate); factor: `machine_factor`. "prior": the scene prior's
     training, `prior_steps` at its measured rate x PRIOR_STEP_COST (absent without a probed prior).
-    view_pixels: a working view's pixels (the per-view figures scale with it, `PIXEL_EXPONENT`;
+    view_pixels: a working view's pixels (the per-view figures scale with it, FIXED_COSTS' exponent;
     None: REFERENCE_PIXELS).
 
     >>> fixed_costs({"0_scene": 10, "eval": 10}, 2.0)
@@ -111,8 +111,8 @@ def fixed_costs(
     for stage, n in views.items():
         if stage == "eval_capture":
             continue
-        base, per_view = FIXED_COSTS[stage]
-        size = (pixels / REFERENCE_PIXELS) ** PIXEL_EXPONENT[stage]
+        base, per_view, exponent = FIXED_COSTS[stage]
+        size = (pixels / REFERENCE_PIXELS) ** exponent
         out[STAGE_OF.get(stage, stage)] = factor * (base + per_view * size * max(0, int(n)))
     if "eval" in out:
         out["eval"] += factor * CAPTURE_SECONDS_PER_VIEW * max(0, int(views.get("eval_capture", 0)))
