@@ -153,6 +153,7 @@ def room_cases(n_views: int = 8) -> list[dict]:
 
 
 def methods(lama_path: str | None) -> dict:
+    from coin_cl.diffusion.directional import DirectionalConfig
     from coin_cl.diffusion.exemplar import ExemplarConfig, exemplar_inpaint, smooth_fill
     from coin_cl.diffusion.inpaint2d import opencv_inpaint
 
@@ -165,6 +166,10 @@ def methods(lama_path: str | None) -> dict:
         "harmonic (Laplace)": lambda c: smooth_fill(c["truth"], c["mask"], "harmonic"),
         "embedded (exemplar, default)": ex(ExemplarConfig()),
         "exemplar, FSR structure": ex(ExemplarConfig(structure="fsr_fast")),
+        "exemplar + grain": ex(ExemplarConfig(grain=DirectionalConfig())),
+        "exemplar + grain on harmonic": ex(
+            ExemplarConfig(grain=DirectionalConfig(), grain_structure="harmonic")
+        ),
         "exemplar, harmonic structure": ex(ExemplarConfig(structure="harmonic")),
         "exemplar full synthesis": ex(ExemplarConfig(mode="full")),
         "exemplar hf, gain 1.0": ex(ExemplarConfig(mode="hf", hf_gain=1.0)),
@@ -277,7 +282,8 @@ def main() -> None:
     outs: dict[str, dict[str, list]] = {k: {} for k in sets}
     big = ("OpenCV TELEA", "OpenCV FSR_FAST", "harmonic (Laplace)", "embedded (exemplar, default)",
            "exemplar, FSR structure", "exemplar, harmonic structure", "exemplar full synthesis",
-           "exemplar mean vote (default before)")  # fmt: skip
+           "exemplar mean vote (default before)", "exemplar + grain",
+           "exemplar + grain on harmonic")  # fmt: skip
     rows = methods(args.lama_path)
     if args.rows:
         rows = {n: fn for n, fn in rows.items() if any(t in n for t in args.rows)}
