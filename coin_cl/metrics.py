@@ -461,8 +461,14 @@ def jsonable(v):
     return v
 
 
-def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, tol: float = 0.1,
-                   ring: tuple[int, int] | None = None) -> float:  # fmt: skip
+def ghost_fraction(
+    depth: np.ndarray,
+    reference: np.ndarray,
+    mask: np.ndarray,
+    tol: float = 0.1,
+    ring: tuple[int, int] | None = None,
+    region: np.ndarray | None = None,
+) -> float:
     """The ghost figure of a removal: the share of `mask` [H, W] bool pixels whose
     rendered `depth` [H, W] (camera z) lies more than `tol` of the `reference` depth in front of
     it: something still stands where the object was. Pixels without a finite positive reference are
@@ -472,10 +478,17 @@ def ghost_fraction(depth: np.ndarray, reference: np.ndarray, mask: np.ndarray, t
     pixels between `inner` and `outer` px outside the mask (both finite there), so that a reference
     fitted separately (a GS of the object-absent photos) and the render may disagree about the
     surroundings' depth without that counting as ghost: what is left is the object's volume in front
-    of the surface the render itself continues. NaN when the ring has no such pixel."""
+    of the surface the render itself continues. NaN when the ring has no such pixel.
+
+    region [H, W] bool: count these pixels instead of the mask's (the ring stays the mask's): on a
+    band outside the mask, where nothing was removed, the figure is the render's and reference's own
+    disagreement, the floor the mask's figure is read against."""
     d, r = np.asarray(depth, np.float64), np.asarray(reference, np.float64)
     given = np.asarray(mask, bool)
-    m = given & np.isfinite(r) & (r > 0)
+    counted = given if region is None else np.asarray(region, bool)
+    if counted.shape != given.shape:
+        raise ValueError(f"region {counted.shape} and mask {given.shape} must have one shape")
+    m = counted & np.isfinite(r) & (r > 0)
     if d.shape != r.shape or d.shape != m.shape:
         raise ValueError(f"depth {d.shape}, reference {r.shape} and mask {m.shape} must have one shape")
     if not m.any():

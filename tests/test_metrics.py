@@ -395,6 +395,19 @@ def test_ring_relative_ghost_ignores_a_reference_that_disagrees_everywhere_alike
     assert M.ghost_fraction(ref, far_ref, mask, ring=(3, 15)) == 0.0
 
 
+def test_ghost_counted_on_a_region_outside_the_mask_is_the_floor():
+    render, ref, mask = _ghost_scene()
+    outside = np.zeros_like(mask)
+    outside[50:60, 10:54] = True  # a band where nothing was removed
+    assert M.ghost_fraction(render, ref, mask, ring=(3, 15), region=outside) == 0.0
+    noisy = render.copy()
+    noisy[50:55, 10:54] = 0.8 * ref[50:55, 10:54]  # the surface itself 20 % in front there
+    assert M.ghost_fraction(noisy, ref, mask, ring=(3, 15), region=outside) == pytest.approx(0.5)
+    assert M.ghost_fraction(noisy, ref, mask, ring=(3, 15)) == pytest.approx(120 / 400)  # the mask's
+    with pytest.raises(ValueError, match="region"):
+        M.ghost_fraction(render, ref, mask, region=outside[:10])
+
+
 def test_ring_relative_ghost_without_a_ring_is_nan_and_a_bad_ring_an_error():
     render, ref, mask = _ghost_scene()
     render[:] = np.nan  # nothing rendered anywhere: no ring to calibrate against
