@@ -32,7 +32,12 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from coin_cl.diffusion.directional import DirectionalConfig, known_band, ring_orientation  # noqa: E402
+from coin_cl.diffusion.directional import (  # noqa: E402
+    DirectionalConfig,
+    known_band,
+    ring_orientation,
+    ring_reach,
+)
 from coin_cl.diffusion.exemplar import exemplar_inpaint  # noqa: E402
 from common import cpu_model, git_commit  # noqa: E402
 from crop_grid import tile_row  # noqa: E402
@@ -67,8 +72,7 @@ def along_line_correlation(image: np.ndarray, hole: np.ndarray, cfg: Directional
         orient = ring_orientation(image, hole, comp, cfg)
         if orient is None:
             continue
-        ys, xs = np.nonzero(comp)
-        lag = max(8.0, 0.5 * min(np.ptp(ys) + 1, np.ptp(xs) + 1))
+        lag = ring_reach(comp)
         near = cv2.distanceTransform((~comp).astype(np.uint8), cv2.DIST_L2, 5) <= 2 * lag
         py, px = np.nonzero(known & near)
         a_all, b_all = [], []

@@ -99,15 +99,21 @@ class RingOrientation:
     spread: np.ndarray
 
 
+def ring_reach(component: np.ndarray) -> float:
+    """How far (px) around a hole's part its ring reaches: half the part's shorter side, at least 8;
+    also the distance the transport bridges from the ring to the part's middle."""
+    ys, xs = np.nonzero(component)
+    return max(8.0, 0.5 * min(np.ptp(ys) + 1, np.ptp(xs) + 1))
+
+
 def ring_orientation(
     image: np.ndarray, hole: np.ndarray, component: np.ndarray, cfg: DirectionalConfig
 ) -> RingOrientation | None:
     """The dominant orientation of the known pixels around `component` (a part of `hole`, both
-    (H, W) bool), within the component's half short side (at least 8 px) beyond the guard and the
-    tensor's reach (module docstring). None when fewer than 16 known pixels lie that far from every
-    hole (a thin strip between holes, a hole covering nearly everything): too little to judge."""
-    ys, xs = np.nonzero(component)
-    reach = max(8.0, 0.5 * min(np.ptp(ys) + 1, np.ptp(xs) + 1))
+    (H, W) bool), within `ring_reach` beyond the guard and the tensor's reach (module docstring).
+    None when fewer than 16 known pixels lie that far from every hole (a thin strip between holes, a
+    hole covering nearly everything): too little to judge."""
+    reach = ring_reach(component)
     dist = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 5)
     to_comp = cv2.distanceTransform((~component).astype(np.uint8), cv2.DIST_L2, 5)
     margin = cfg.guard_px + 2 * cfg.rho  # the tensor there is mostly the known pixels'

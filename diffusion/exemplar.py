@@ -92,8 +92,8 @@ class ExemplarConfig:
     the hole along it (`diffusion.directional`) in place of the synthesis's, over the structure
     fill's low band (below `hf_sigma`); parts of the hole whose ring is not oriented keep the
     synthesis. Measured (docs/BENCHMARKS.md, "Grain transport"): on cup_plain's wood grain closer to
-    the photos behind the virtual box (56 training holes, m-PSNR 25.54 -> 26.19 dB, masked VGG
-    distance 1.294 -> 1.164), on SPIn-NeRF's holes streaks that are not there (HF ratio 0.89 -> 0.60
+    the photos behind the virtual box (56 training holes, m-PSNR 25.55 -> 26.20 dB, masked VGG
+    distance 1.285 -> 1.162), on SPIn-NeRF's holes streaks that are not there (HF ratio 0.89 -> 0.60
     on 16 scene holes), so it is an option for surfaces known to be grained.
     grain_structure: with `grain`, the smooth solver under the grain band (from STRUCTURES; None:
     `structure`)."""
@@ -122,11 +122,11 @@ class ExemplarConfig:
     def __post_init__(self) -> None:
         if self.patch < 3 or self.patch % 2 == 0:
             raise ValueError(f"ExemplarConfig.patch must be odd and >= 3, got {self.patch}")
-        for name, value in (("structure", self.structure), ("grain_structure", self.grain_structure)):
-            if value not in STRUCTURES and not (name == "grain_structure" and value is None):
-                raise ValueError(
-                    f"ExemplarConfig.{name} must be one of {', '.join(STRUCTURES)}, got {value!r}"
-                )
+        grain_solver = self.grain_structure or self.structure  # None: the structure's own
+        for name, value in (("structure", self.structure), ("grain_structure", grain_solver)):
+            if value not in STRUCTURES:
+                raise ValueError(f"ExemplarConfig.{name} must be one of {', '.join(STRUCTURES)}, "
+                                 f"got {value!r}")  # fmt: skip
         if self.mode not in ("full", "hf"):
             raise ValueError(f"ExemplarConfig.mode must be 'full' or 'hf', got {self.mode!r}")
         if self.min_coarse < 2 or self.em_iters < 1 or self.pm_iters < 0 or self.context < 0:
@@ -471,8 +471,8 @@ def exemplar_inpaint(
                   [None if o is None else round(o.coherence, 2) for o in orients],
                   int(oriented.sum()), int(work.sum()))  # fmt: skip
     if oriented.any():  # the grain band replaces the structure's own high band there, not adds to it
-        under = structure if cfg.grain_structure in (None, cfg.structure) else smooth_fill(
-            image, work, cfg.grain_structure)  # fmt: skip
+        solver = cfg.grain_structure or cfg.structure
+        under = structure if solver == cfg.structure else smooth_fill(image, work, solver)
         low = cv2.GaussianBlur(under, (0, 0), cfg.hf_sigma)
         structure = np.where(oriented[..., None], low, structure)
     fill = structure.copy()
