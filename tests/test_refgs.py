@@ -15,7 +15,8 @@ def test_config_defaults_and_validation():
     assert not RefGSConfig(feature_attention=False, attn_from=0.0).attention_active(10, 100)
     assert c.attn_lr(100)(0) == pytest.approx(0.01) and c.attn_lr(100)(100) == pytest.approx(1e-5)
     for bad in ({"lambda_r": 0}, {"lambda_r": float("nan")}, {"prune_min_fraction": 0},
-                {"attn_mix": 0}, {"attn_heads": 0}, {"lambda_depth": -1}, {"attn_from": 2}):  # fmt: skip
+                {"attn_mix": 0}, {"attn_heads": 0}, {"lambda_depth": -1}, {"attn_from": 2},
+                {"aux_grad_ratio": -0.1}, {"aux_grad_ratio": float("inf")}):  # fmt: skip
         with pytest.raises(ValueError):
             RefGSConfig(**bad)
 
@@ -37,6 +38,8 @@ def test_builders_and_terms_follow_the_config():
     assert att.start_step == 25.0 and (att.ring_frac, att.ring_min_px, att.write_back) == (0.3, 2, False)
     assert att.lr(0) == pytest.approx(0.01) and att.lr(100) == pytest.approx(1e-5)
     assert any(t.name == "ref_depth" for t in terms) and adaptive_weights_of(terms).lambda_r == 80.0
+    # the depth priors are the auxiliary terms the trainer caps; the photometric loss is not
+    assert {t.name for t in terms if t.auxiliary} == {"ref_depth"}
     plain = refgs_terms(RefGSConfig(depth_loss=False, feature_attention=False), 0, masks, 10)
     assert [t.name for t in plain] == [t.name for t in terms[:2]]  # photometric loss and scale reg only
     with pytest.raises(ValueError, match="depth prior"):

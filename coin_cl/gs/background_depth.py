@@ -186,6 +186,7 @@ class BackgroundDepthTerm(LossTerm):
     """
 
     name = "bg_depth"
+    auxiliary = True  # its gradient is capped against the photometric's (coin_cl.gs.balance)
 
     def __init__(self, depths: Sequence[np.ndarray | None], masks: Sequence[np.ndarray], weight: float = 1.0,
                  margin: float = 0.05, behind_weight: float = 0.5, min_alpha: float = 0.5,

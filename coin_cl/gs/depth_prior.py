@@ -206,6 +206,7 @@ class ReferenceDepthTerm(LossTerm):
     """
 
     name = "ref_depth"
+    auxiliary = True  # its gradient is capped against the photometric's (coin_cl.gs.balance)
 
     def __init__(
         self,

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from coin_cl.gs import balance
 from coin_cl.gs.anchor_attention import AnchorAttention, AnchorAttentionTerm
 from coin_cl.gs.background_depth import BackgroundDepthTerm
 from coin_cl.gs.depth_prior import ReferenceDepthTerm
@@ -92,6 +93,12 @@ class RefGSConfig:
     # D_bg continues the planes around each mask (`coin_cl.gs.surface_planes`) where they pass in
     # front of its 2D fill; False: the 2D fill alone (the code before 2026-11-25)
     bg_depth_planes: bool = True
+    # The depth terms' (reference depth, background depth) root-mean-square gradient held to at
+    # most this times the photometric's, in Ref-GS and TE-D (`coin_cl.gs.balance`): each term then
+    # holds at most ratio^2 (9 %) of Adam's second moment. Uncapped, on the cup_plain capture they
+    # filled it and blurred the whole view (Ref-GS alone, 1,375 steps: PSNR outside the masks 27.27
+    # uncapped, 27.95 at 1.0, 28.88 at 0.3; docs/BENCHMARKS.md "The depth terms' share"). 0: uncapped.
+    aux_grad_ratio: float = balance.RATIO
     # RNG seed of Ref-GS (model init, training, attention). None (default): the run's seed (`seed` of
     # `run_refgs`, `CoInConfig.seed` in a CoIn run; the resolved value is in log.json's 2_refgs settings).
     seed: int | None = None
@@ -117,6 +124,10 @@ class RefGSConfig:
             raise ValueError("ring_frac must be >= 0 and ring_min_px >= 1")
         if self.lambda_bg_depth < 0 or self.bg_depth_margin < 0 or self.bg_depth_behind < 0:
             raise ValueError("lambda_bg_depth, bg_depth_margin and bg_depth_behind must be >= 0")
+        if not (math.isfinite(self.aux_grad_ratio) and self.aux_grad_ratio >= 0):
+            raise ValueError(
+                f"aux_grad_ratio must be a finite number >= 0 (0: uncapped), got {self.aux_grad_ratio}"
+            )
         if self.lambda_depth < 0:
             raise ValueError(f"lambda_depth must be >= 0, got {self.lambda_depth}")
         if not 0.0 <= self.attn_from <= 1.0:

@@ -9,6 +9,8 @@ The protocol (duck-typed; `LossTerm` gives the defaults):
 - `name: str` — unique among a trainer's terms; keys the term's logged value and its checkpoint
   state;
 - `weight: float` — multiplies the term's value (its lambda);
+- `auxiliary: bool` — a prior on the geometry whose gradient the trainer caps against the
+  photometric part's (`coin_cl.gs.balance`); default False;
 - `__call__(ctx) -> Tensor` — a scalar, differentiable with respect to the model's parameters
   through `ctx.out`; it may add logged scalars to `ctx.log`;
 - `before_render(view, index, step, model) -> dict` — optional; extra keyword arguments for
@@ -66,6 +68,9 @@ class LossTerm:
 
     name: str = "term"
     weight: float = 1.0
+    # A prior on the geometry (a depth term) rather than the images: the trainer holds its gradient
+    # below the photometric part's (`TrainConfig.aux_grad_ratio`, `coin_cl.gs.balance`).
+    auxiliary: bool = False
 
     def __call__(self, ctx: LossContext) -> Tensor:
         raise NotImplementedError

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from coin_cl.checkpoint import CheckpointError, load_checkpoint, malformed
+from coin_cl.gs import balance
 from coin_cl.gs.base import Model
 from coin_cl.gs.data import Camera, View, init_points, scene_extent
 from coin_cl.gs.losses import LossConfig
@@ -86,6 +87,11 @@ class TrainConfig:
     # The fused training path (index-gather decode, fused Adam); False: the earlier unfused path,
     # kept so that benchmarks/train.py --throughput measures both in one run. See docs/BENCHMARKS.md.
     fused: bool = True
+    # Each auxiliary loss term's (`LossTerm.auxiliary`: the depth priors) root-mean-square gradient
+    # is held to at most this times the photometric part's (`coin_cl.gs.balance`); 0: no cap.
+    aux_grad_ratio: float = balance.RATIO
+    # Steps between two measurements of one auxiliary term's gradient (each costs a backward pass).
+    aux_measure_every: int = balance.EVERY
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
@@ -139,9 +145,10 @@ class Trainer:
 
     One step: `sampler.next()` picks a view; every term's `before_render` may add keyword
     arguments to the render (`return_depth`, a `features` override); the model renders it;
-    `strategy.step_pre_backward`;
-    total = sum(term.weight * term(ctx)); backward; NaN guard; the model's optimiser step; every
-    term's `step_after(ctx)`; `strategy.step_post_backward` (statistics, densification).
+    `strategy.step_pre_backward`; total = sum(term.weight * term(ctx)), the auxiliary terms
+    scaled by `AuxBalance` (`coin_cl.gs.balance`); backward; NaN guard; the model's optimiser
+    step; every term's `step_after(ctx)`; `strategy.step_post_backward` (statistics,
+    densification).
 
     Args:
         strategy: densification (default: `default_strategy(model.kind)`, the published
@@ -196,6 +203,7 @@ class Trainer:
                                 "train_pixels": self.train_pixels,
                                 "size_limit": self.strategy.size_limit(model)}  # fmt: skip
         self.log["terms"] = {t.name: t.weight for t in self.terms}
+        self.balance = balance.AuxBalance(cfg.aux_grad_ratio, cfg.aux_measure_every)
         self._evals_done: set[float] = set()
         self._acc: dict[str, float] = {}  # loss sums of the current log interval
         self._n_acc = 0
@@ -234,6 +242,7 @@ class Trainer:
                 # the running means of the current log interval, so a resumed log is the same
                 "acc": dict(self._acc),
                 "n_acc": self._n_acc,
+                "balance": self.balance.state_dict(),
             },
         }
         atomic_write(self.out / CKPT_NAME, lambda tmp: torch.save(state, tmp))
@@ -276,6 +285,7 @@ class Trainer:
         self.log = t["log"]
         self._evals_done = set(t["evals_done"])
         self._acc, self._n_acc = dict(t.get("acc", {})), int(t.get("n_acc", 0))
+        self.balance.load_state_dict(t.get("balance", {}))
 
     def save_log(self) -> None:
         if self.out is not None:
@@ -334,10 +344,21 @@ class Trainer:
         self.strategy.step_pre_backward(m, self.step, out)
         ctx = LossContext(view=view, index=idx, out=out, step=self.step, model=m)
         values: dict[str, float] = {}
-        total: Tensor | None = None
+        main: Tensor | None = None
+        aux: dict[str, Tensor] = {}
         for term in self.terms:
             v = term.weight * term(ctx)
             values[term.name] = float(v.detach())
+            if getattr(term, "auxiliary", False):
+                aux[term.name] = v
+            else:
+                main = v if main is None else main + v
+        params = [p for p in m.optimizer.params.values() if p.requires_grad]
+        total = main
+        m2d = out.meta.get("means2d")
+        retained = [m2d] if isinstance(m2d, Tensor) and m2d.requires_grad else []
+        for name, v in self.balance.weigh(self.step, main, aux, params, retained).items():
+            values[f"{name}_scale"] = self.balance.scale.get(name, 1.0)
             total = v if total is None else total + v
         assert total is not None  # __init__ requires a term
         t1 = time.perf_counter()

@@ -330,7 +330,7 @@ def run_refgs(
                             bg_depths=bg)  # fmt: skip
         tcfg = TrainConfig(model="scaffold", iters=n, backend=backend, seed=seed, ckpt_every=ckpt_every,
                            max_seconds=cap_seconds, progress=folder is not None,
-                           log_every=max(1, min(50, n // 20)))  # fmt: skip
+                           log_every=max(1, min(50, n // 20)), aux_grad_ratio=cfg.aux_grad_ratio)  # fmt: skip
         strategy = scaled_strategy("scaffold", n + extra)
         if gaussians_per_pixel is not None:
             strategy = replace(strategy, gaussians_per_pixel=float(gaussians_per_pixel))

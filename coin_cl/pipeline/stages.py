@@ -336,7 +336,9 @@ def stage_ted(ctx: StageContext[RunInputs]) -> dict:
         [],
         ctx.out,
         tcfg,
-        TrainConfig(model=model.kind, seed=cfg.seed, export_ply=True),
+        TrainConfig(
+            model=model.kind, seed=cfg.seed, export_ply=True, aux_grad_ratio=ctx.run.refgs_cfg.aux_grad_ratio
+        ),
         extra_terms=extra,
         max_seconds=caps,
         steps_before=refgs_rate(ctx.run.out)[0],
