@@ -144,16 +144,21 @@ def write_grid(path: Path, runs: list[Path], scene, cell: int = 200) -> None:
     """Every other test view whole (the blur outside the masks), then every test view's mask box
     (`crop_grid.grid`), one column per run and the truth; written as JPEG or PNG by suffix."""
     import cv2
-    from crop_grid import grid, tile_row
+    from crop_grid import grid
 
     whole = []
     for i in list(scene.test_idx)[::2]:
         stem = view_stem(scene.cameras[i].name, i)
         tiles = [read_image(r / "eval" / "renders" / f"{stem}.png") for r in runs]
-        whole.append(tile_row([*tiles, np.asarray(scene.images[i], np.float32)[..., :3]], cell))
+        tiles.append(np.asarray(scene.images[i], np.float32)[..., :3])
+        h, w = tiles[0].shape[:2]
+        size = (cell, max(1, round(h * cell / w)))  # the whole view at the cells' width, no padding
+        tiles = [np.pad(cv2.resize(t, size, interpolation=cv2.INTER_AREA), ((0, 4), (0, 4), (0, 0)),
+                        constant_values=1) for t in tiles]  # fmt: skip
+        whole.append(np.concatenate(tiles, axis=1))
     top = (np.clip(np.concatenate(whole, axis=0), 0, 1) * 255).round().astype(np.uint8)
     boxes = grid(runs, cell)
-    img = np.concatenate([top, boxes[:, : top.shape[1]]], axis=0)
+    img = np.concatenate([top, boxes], axis=0)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
 
