@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from coin_cl.engine import kernel_cache
 from coin_cl.engine.errors import NoDeviceError
 from coin_cl.engine.icd import register_platforms
 from coin_cl.engine.limits import min_raster_gpu_local_bytes
@@ -145,7 +146,7 @@ def probe_device(device) -> Probe:
         queue = cl.CommandQueue(ctx)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", cl.CompilerWarning)
-            prg = cl.Program(ctx, _PROBE_SOURCE).build()
+            prg = kernel_cache.build(ctx, _PROBE_SOURCE)
         n = 64
         out = np.full(n, np.nan, np.float32)
         buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
@@ -175,7 +176,7 @@ def _adds_exactly(device, source: str, options: list[str], what: str) -> bool:
         queue = cl.CommandQueue(ctx)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", cl.CompilerWarning)
-            prg = cl.Program(ctx, source).build(options=options)
+            prg = kernel_cache.build(ctx, source, options)
         out = np.zeros(1, np.float32)
         buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=out)
         prg.probe(queue, (256,), None, buf)

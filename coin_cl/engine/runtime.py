@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from coin_cl.engine import devices
+from coin_cl.engine import devices, kernel_cache
 from coin_cl.engine.errors import DeviceLimitError
 from coin_cl.engine.limits import DeviceLimits, describe, query_limits
 from coin_cl.engine.transfers import TransferStats
@@ -177,7 +177,7 @@ class Runtime:
                     with warnings.catch_warnings():
                         # Some compilers (Intel's) always print a build log; it is not a problem.
                         warnings.simplefilter("ignore", cl.CompilerWarning)
-                        prg = cl.Program(self.context, src).build(options=opts)
+                        prg = kernel_cache.build(self.context, src, opts)
                 except cl.RuntimeError as exc:
                     raise RuntimeError(f"OpenCL build of {filename} failed on {self.name}: {exc}") from exc
                 self.programs[key] = prg
