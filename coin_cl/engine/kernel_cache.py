@@ -9,7 +9,9 @@ coin-cl therefore keeps its own cache folder (`cache_dir`) and builds under an a
 (`fcntl.flock` on a file beside the folder) that the operating system releases when its holder
 dies. Every coin-cl build takes it first, so while one holds it no other coin-cl process is inside
 pyopencl's window, and a pyopencl lock file found then was left by a killed process: it is removed
-(logged). Where `fcntl` does not exist (Windows) builds go through pyopencl's own locking.
+(logged). The lock is held for the whole build, so two coin-cl processes compiling at once take
+turns (a cache hit takes milliseconds; a cold build, one per kernel variant, seconds). Where `fcntl`
+does not exist (Windows) builds go through pyopencl's own locking.
 """
 
 from __future__ import annotations

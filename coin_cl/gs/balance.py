@@ -46,6 +46,13 @@ EVERY = 25
 EMA = 0.75
 
 
+def check_ratio(ratio: float) -> float:
+    """`ratio` as a float, or a ValueError naming `aux_grad_ratio` (finite, >= 0; 0: no cap)."""
+    if not (math.isfinite(ratio) and ratio >= 0):
+        raise ValueError(f"aux_grad_ratio must be a finite number >= 0 (0: no cap), got {ratio}")
+    return float(ratio)
+
+
 def grad_norm(value: Tensor, params: Sequence[Tensor]) -> float:
     """The norm of d value / d params over all of `params` (the graph is kept for the step)."""
     grads = torch.autograd.grad(value, list(params), retain_graph=True, allow_unused=True)
@@ -63,11 +70,9 @@ class AuxBalance:
     """
 
     def __init__(self, ratio: float = RATIO, every: int = EVERY) -> None:
-        if not (math.isfinite(ratio) and ratio >= 0):
-            raise ValueError(f"aux_grad_ratio must be a finite number >= 0 (0: no cap), got {ratio}")
         if every < 1:
             raise ValueError(f"aux_measure_every must be >= 1, got {every}")
-        self.ratio, self.every = float(ratio), int(every)
+        self.ratio, self.every = check_ratio(ratio), int(every)
         self.scale: dict[str, float] = {}
         self.active: dict[str, int] = {}  # steps the term was active on
         self.measured_at: dict[str, int] = {}

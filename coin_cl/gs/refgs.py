@@ -124,10 +124,7 @@ class RefGSConfig:
             raise ValueError("ring_frac must be >= 0 and ring_min_px >= 1")
         if self.lambda_bg_depth < 0 or self.bg_depth_margin < 0 or self.bg_depth_behind < 0:
             raise ValueError("lambda_bg_depth, bg_depth_margin and bg_depth_behind must be >= 0")
-        if not (math.isfinite(self.aux_grad_ratio) and self.aux_grad_ratio >= 0):
-            raise ValueError(
-                f"aux_grad_ratio must be a finite number >= 0 (0: uncapped), got {self.aux_grad_ratio}"
-            )
+        balance.check_ratio(self.aux_grad_ratio)
         if self.lambda_depth < 0:
             raise ValueError(f"lambda_depth must be >= 0, got {self.lambda_depth}")
         if not 0.0 <= self.attn_from <= 1.0:

@@ -353,13 +353,14 @@ class Trainer:
                 aux[term.name] = v
             else:
                 main = v if main is None else main + v
-        params = [p for p in m.optimizer.params.values() if p.requires_grad]
         total = main
-        m2d = out.meta.get("means2d")
-        retained = [m2d] if isinstance(m2d, Tensor) and m2d.requires_grad else []
-        for name, v in self.balance.weigh(self.step, main, aux, params, retained).items():
-            values[f"{name}_scale"] = self.balance.scale.get(name, 1.0)
-            total = v if total is None else total + v
+        if aux:  # the parameters and retained gradients a measurement needs, only where one may come
+            params = [p for p in m.optimizer.params.values() if p.requires_grad]
+            m2d = out.meta.get("means2d")
+            retained = [m2d] if isinstance(m2d, Tensor) and m2d.requires_grad else []
+            for name, v in self.balance.weigh(self.step, main, aux, params, retained).items():
+                values[f"{name}_scale"] = self.balance.scale.get(name, 1.0)
+                total = v if total is None else total + v
         assert total is not None  # __init__ requires a term
         t1 = time.perf_counter()
         m.optimizer.zero_grad()
