@@ -67,6 +67,15 @@ def test_a_lock_left_by_a_killed_build_is_removed(context, tmp_path, monkeypatch
     assert "killed" in caplog.text
 
 
+def test_a_file_named_lock_that_is_not_pyopencls_is_left_alone(tmp_path):
+    folder = tmp_path / "kernels"
+    folder.mkdir()
+    (folder / kernel_cache.PYOPENCL_LOCK).write_text("a user's notes")
+    with kernel_cache.exclusive(folder):
+        pass
+    assert (folder / kernel_cache.PYOPENCL_LOCK).read_text() == "a user's notes"
+
+
 @pytest.mark.skipif(sys.platform == "win32", reason="fcntl locks: POSIX")
 def test_a_build_killed_while_it_holds_the_lock_releases_it(tmp_path):
     """A process killed while it holds coin-cl's build lock does not block the next one."""

@@ -56,7 +56,8 @@ def exclusive(folder: Path) -> Iterator[None]:
         fcntl.flock(held, fcntl.LOCK_EX)
         try:
             stale = folder / PYOPENCL_LOCK
-            if stale.exists():
+            # pyopencl's lock is an empty regular file; anything else by that name is not ours to remove
+            if stale.is_file() and not stale.is_symlink() and stale.stat().st_size == 0:
                 log.warning(
                     "removing %s: a kernel build killed while it held pyopencl's cache lock left it", stale
                 )
