@@ -3,18 +3,23 @@
 #   bash benchmarks/gpu_session.sh prepare   # HERE, on the development machine: wheels and data
 #   bash benchmarks/gpu_session.sh check     # on the GPU machine: driver, ICD, OpenCL devices, limits
 #   bash benchmarks/gpu_session.sh suite     # ... the kernel test suite through NVIDIA's OpenCL
-#   bash benchmarks/gpu_session.sh raster    # ... benchmarks/raster.py (10k, 100k, 500k + knob tables)
+#   bash benchmarks/gpu_session.sh raster    # ... benchmarks/raster.py (100k to 1M at 1008x567 and 1080p)
+#   bash benchmarks/gpu_session.sh raster_direct  # ... the same without page-locked staging
 #   bash benchmarks/gpu_session.sh gsplat    # ... gsplat (CUDA) on the same scenes (JIT build first)
 #   bash benchmarks/gpu_session.sh warp      # ... benchmarks/warp.py --quick
 #   bash benchmarks/gpu_session.sh train     # ... training throughput, SPIn-NeRF at 504x284
+#   bash benchmarks/gpu_session.sh split     # ... where one rasterizer fwd+bwd's time goes
+#   bash benchmarks/gpu_session.sh demo      # ... a tiny end-to-end `coin-cl demo` on the GPU
 #   bash benchmarks/gpu_session.sh session   # ... all of the above in one call of at most ~9 minutes
 # Several steps may follow each other in one call: `... check suite`. Every step's log goes to
-# $OUT/<step>.log (the device tool brings $OUT back). The GPU machine has no network: everything it
+# $LOG/<step>.log ($OUT unless set; `session` packs its logs into $OUT/logs.tgz after every step,
+# since the device tool brings back at most 8 files). The GPU machine has no network: everything it
 # lacks (pyopencl and its needs, plyfile, gsplat) travels as wheels in .whl/, the data in .gpudata/.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/coin-cl-gpu-out}
-mkdir -p "$OUT"
+LOG=${LOG:-$OUT}
+mkdir -p "$OUT" "$LOG"
 export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
 
 # The wheels the GPU machine lacks (its package list: the device tool's KINDS.md), pinned to the
@@ -129,6 +134,24 @@ EOF
 # shellcheck disable=SC2086
 raster() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" ${RASTER_ARGS:-}); }
 
+# The same without the page-locked staging (COIN_CL_PINNED=0): copies straight from torch's memory.
+raster_direct() { COIN_CL_PINNED=0 RASTER_ARGS="--quick --scenes 100k,500k,1M-1080p --runs 5" raster; }
+
+# The whole program on the GPU, once, tiny: the package installed as a user gets it (the
+# coin_cl.diffusion and coin_cl.kernels mappings of setup.cfg, the `coin-cl` entry point), then the
+# demo's synthetic room at 96x64 with a few steps per stage, its report copied back.
+demo() {
+  python3 -m pip install -q --no-deps --no-build-isolation --no-index --target /tmp/coin-site . ||
+    { echo "demo: the package did not install"; return 1; }
+  local t=$SECONDS
+  PYTHONPATH=/tmp/coin-site:$PYTHONPATH /tmp/coin-site/bin/coin-cl demo --out /tmp/coin-cl-demo \
+    --device "$COIN_CL_DEVICE" ${DEMO_ARGS:---room-size 96 64 --room-views 12 --iters 40 --prior-seconds 15 --frames 4}
+  local rc=$?
+  echo "demo: exit $rc after $((SECONDS - t)) s"
+  find /tmp/coin-cl-demo -maxdepth 2 \( -name '*.json' -o -name '*.md' \) -size -2M -exec cp --parents {} "$LOG" \; 2>/dev/null
+  return $rc
+}
+
 gsplat() {
   # gsplat's wheel compiles its CUDA code at its first call, the benchmark's first warm-up (minutes on
   # 16 cores; built for Hopper only, the card here).
@@ -139,12 +162,12 @@ gsplat() {
 
 warp() { (cd benchmarks && python3 warp.py --quick); }
 
-split() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" --split --scenes 100k,500k --runs 3); }
+split() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" --split --scenes 100k,500k,1M-1080p --runs 3); }
 
 train() {
   (cd benchmarks && python3 train.py --throughput --data "$COIN_DATA/scene_half" --resolution 1.0 \
     --steps "${STEPS:-50}" --warmup 5 --models scaffold,3dgs --paths new --out /tmp/coin-cl-train) &&
-    cp /tmp/coin-cl-train/throughput.json "$OUT/train.json"
+    cp /tmp/coin-cl-train/throughput.json "$LOG/train.json"
 }
 
 gsplat_build() {
@@ -155,36 +178,47 @@ gsplat_build() {
 }
 
 # One device call of the whole GPU part, for a session lent ~15 minutes of device time in all:
-# the build of gsplat runs in the background (8 of the 16 cores) beside `check` and the kernel
+# the build of gsplat runs in the background (14 of the 16 cores) beside `check` and the kernel
 # suite (correctness only: no timing then); the timed steps run after the build has ended or been
-# given up, each under a cap, and every log lands in $OUT as it goes, so a call cut short still
-# brings back what it did. Caps in seconds: SUITE_S, RASTER_S, WARP_S, TRAIN_S, BUILD_S, GSPLAT_S.
+# given up, each under a cap, and the logs are packed into $OUT/logs.tgz after every step, so a
+# call cut short still brings back what it did. Caps in seconds: SUITE_S, RASTER_S, WARP_S,
+# TRAIN_S, BUILD_S, GSPLAT_S, SPLIT_S, DEMO_S.
 session() {
   local t0=$SECONDS
+  export LOG=/tmp/coin-cl-gpu-logs
+  mkdir -p "$LOG"
+  pack() { tar czf "$OUT/logs.tgz" -C "$LOG" . 2>/dev/null; }
   MAX_JOBS=${MAX_JOBS:-14} timeout "${BUILD_S:-270}" bash "$0" gsplat_build >/dev/null 2>&1 &
   local build=$!
   if [ -n "${NO_OPENCL:-}" ]; then
     # No NVIDIA OpenCL here (setup said why): the CUDA peer alone, against the card's limits.
-    wait "$build"; echo "== build exit $?: $(tail -n 1 "$OUT/gsplat_build.log")"
+    wait "$build"; echo "== build exit $?: $(tail -n 1 "$LOG/gsplat_build.log")"
     GSPLAT_ARGS="--scenes 10k,100k,500k --runs 5 --no-compare" timeout "${GSPLAT_S:-60}" bash "$0" gsplat \
       >/dev/null 2>&1
     echo "== gsplat exit $? (+$((SECONDS - t0)) s)"
+    pack
     return
   fi
   for step in check suite; do
     echo "== $step (+$((SECONDS - t0)) s)"
     timeout "${SUITE_S:-200}" bash "$0" "$step" >/dev/null 2>&1
-    echo "   exit $?; tail: $(tail -n 1 "$OUT/$step.log")"
+    echo "   exit $?; tail: $(tail -n 1 "$LOG/$step.log")"
+    pack
   done
   echo "== waiting for the gsplat build (+$((SECONDS - t0)) s)"
-  wait "$build"; echo "   build exit $? (124: not done in ${BUILD_S:-270} s): $(tail -n 1 "$OUT/gsplat_build.log")"
-  RASTER_ARGS=${RASTER_ARGS:---scenes 100k,500k --runs 5} timeout "${RASTER_S:-100}" bash "$0" raster >/dev/null 2>&1
-  echo "== raster exit $? (+$((SECONDS - t0)) s)"
-  timeout "${WARP_S:-40}" bash "$0" warp >/dev/null 2>&1; echo "== warp exit $? (+$((SECONDS - t0)) s)"
+  wait "$build"; echo "   build exit $? (124: not done in ${BUILD_S:-270} s): $(tail -n 1 "$LOG/gsplat_build.log")"
+  local scenes=100k,500k,1M,500k-1080p,1M-1080p
+  RASTER_ARGS=${RASTER_ARGS:---scenes $scenes --runs 5} timeout "${RASTER_S:-150}" bash "$0" raster >/dev/null 2>&1
+  echo "== raster exit $? (+$((SECONDS - t0)) s)"; pack
+  timeout "${RASTER_S:-150}" bash "$0" raster_direct >/dev/null 2>&1
+  echo "== raster_direct exit $? (+$((SECONDS - t0)) s)"; pack
+  GSPLAT_ARGS=${GSPLAT_ARGS:---scenes $scenes --runs 5} timeout "${GSPLAT_S:-90}" bash "$0" gsplat >/dev/null 2>&1
+  echo "== gsplat exit $? (+$((SECONDS - t0)) s)"; pack
+  timeout "${SPLIT_S:-60}" bash "$0" split >/dev/null 2>&1; echo "== split exit $? (+$((SECONDS - t0)) s)"; pack
+  timeout "${WARP_S:-40}" bash "$0" warp >/dev/null 2>&1; echo "== warp exit $? (+$((SECONDS - t0)) s)"; pack
   STEPS=${STEPS:-20} timeout "${TRAIN_S:-90}" bash "$0" train >/dev/null 2>&1
-  echo "== train exit $? (+$((SECONDS - t0)) s)"
-  GSPLAT_ARGS=${GSPLAT_ARGS:---scenes 100k,500k --runs 5} timeout "${GSPLAT_S:-60}" bash "$0" gsplat >/dev/null 2>&1
-  echo "== gsplat exit $? (+$((SECONDS - t0)) s)"
+  echo "== train exit $? (+$((SECONDS - t0)) s)"; pack
+  timeout "${DEMO_S:-120}" bash "$0" demo >/dev/null 2>&1; echo "== demo exit $? (+$((SECONDS - t0)) s)"; pack
 }
 
 [ $# -ge 1 ] || { sed -n 2,12p "$0"; exit 2; }
@@ -197,10 +231,10 @@ for step in "$@"; do
     case $? in 0) ;; 3) export NO_OPENCL=1 ;; *) exit 1 ;; esac
     session
     ;;
-  check | suite | raster | gsplat | gsplat_build | warp | train | kernel_info | split)
+  check | suite | raster | raster_direct | gsplat | gsplat_build | warp | train | kernel_info | split | demo)
     setup || exit $?
     echo "== $step ($(date -u +%H:%M:%S))"
-    "$step" 2>&1 | tee "$OUT/$step.log" || status=1
+    "$step" 2>&1 | tee "$LOG/$step.log" || status=1
     ;;
   *) echo "unknown step $step"; exit 2 ;;
   esac

@@ -45,6 +45,20 @@ from coin_cl.scene.ply import read_points_ply  # noqa: E402
 from coin_cl.testing import garden_like  # noqa: E402
 
 SCENES = [("10k", 10_000, 256, 256), ("100k", 100_000, 512, 512), ("500k", 500_000, 1008, 567)]
+# Only by name (--scenes): sizes for a GPU, minutes per run on a 2-core CPU.
+LARGE_SCENES = [
+    ("1M", 1_000_000, 1008, 567), ("100k-1080p", 100_000, 1920, 1080), ("500k-1080p", 500_000, 1920, 1080),
+    ("1M-1080p", 1_000_000, 1920, 1080),
+]  # fmt: skip
+
+
+def named_scenes(names: str) -> list[tuple[str, int, int, int]]:
+    """The scenes of SCENES and LARGE_SCENES named in a comma-separated list, in that order."""
+    wanted = names.split(",")
+    unknown = set(wanted) - {s[0] for s in SCENES + LARGE_SCENES}
+    if unknown:
+        raise SystemExit(f"--scenes: unknown {sorted(unknown)}; known: {[s[0] for s in SCENES + LARGE_SCENES]}")
+    return [s for s in SCENES + LARGE_SCENES if s[0] in wanted]
 KNOBS = [
     ("default", {}),
     ("alpha_thr=1/128", {"ALPHA_THRESHOLD": "(1.0f/128.0f)"}),
@@ -229,7 +243,7 @@ def split_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) ->
     path = "discrete" if rt.discrete else "unified"
     print(f"\n## {rt.name}: where one fwd+bwd goes ({path} memory path)\n")
     out: dict = {"device": rt.name}
-    scenes = [s for s in SCENES if not args.scenes or s[0] in args.scenes.split(",")]
+    scenes = named_scenes(args.scenes) if args.scenes else SCENES
     for name, n, W, H in scenes:
         case = Case(n, W, H, points, rt)
         case.fwd_bwd()
@@ -285,7 +299,7 @@ def run_device(rt: Runtime, args: argparse.Namespace, points: torch.Tensor) -> d
     cases = {}
     scenes = SCENES if not args.quick else SCENES[:2]
     if args.scenes:
-        scenes = [s for s in SCENES if s[0] in args.scenes.split(",")]
+        scenes = named_scenes(args.scenes)
     for name, n, W, H in scenes:
         case = cases[name] = Case(n, W, H, points, rt)
         t_f = median_time(case.forward, args.runs)

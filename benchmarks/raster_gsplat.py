@@ -29,7 +29,7 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 from common import cpu_model, git_commit  # noqa: E402
-from raster import SCENES, Case, data_dir  # noqa: E402
+from raster import Case, data_dir, named_scenes  # noqa: E402
 
 from coin_cl.engine import constants as cst  # noqa: E402
 from coin_cl.scene.ply import read_points_ply  # noqa: E402
@@ -111,8 +111,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|")
     summary: dict = {"gpu": gpu, "gsplat": gsplat.__version__, "torch": torch.__version__}
     summary["commit"] = git_commit()
-    wanted = args.scenes.split(",")
-    for name, n, W, H in (s for s in SCENES if s[0] in wanted):
+    for name, n, W, H in named_scenes(args.scenes):
         case = Case(n, W, H, points, rt)
         peer = Peer(case)
         t_f = cuda_median(peer.forward, args.runs)

@@ -171,9 +171,9 @@ def test_stable_depth_order_is_a_stable_argsort_with_ties_signed_zeros_and_nan()
         np.zeros(0, np.float32),
     ]
     for d in cases:
-        got = stable_depth_order(d)
-        assert got.dtype == np.int64
-        assert np.array_equal(got, np.argsort(d, kind="stable"))
+        got = stable_depth_order(torch.from_numpy(d))
+        assert got.dtype == torch.int64
+        assert np.array_equal(got.numpy(), np.argsort(d, kind="stable"))
 
 
 @pytest.mark.parametrize("seed", [13, 14])

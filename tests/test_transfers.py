@@ -23,17 +23,22 @@ W, H = (36, 20) if SMALL else (100, 67)
 
 @pytest.fixture(scope="module")
 def runtimes():
-    """(unified, discrete) runtimes on the default device, outputs poisoned (NaN / INT32_MIN):
-    on the discrete path too, an element a kernel leaves unwritten shows."""
+    """(unified, discrete, discrete with page-locked staging) runtimes on the default device,
+    outputs poisoned (NaN / INT32_MIN): on the discrete paths too, an element a kernel leaves
+    unwritten shows."""
     from coin_cl.engine.devices import host_unified
 
     dev = get_runtime().device
     if not host_unified(dev):  # a discrete GPU: every other kernel test runs the discrete path
         pytest.skip(f"{get_runtime().name} has no host-unified memory: no aliasing path to compare with")
-    pair = Runtime(dev, discrete=False), Runtime(dev, discrete=True)
-    for r in pair:
+    trio = (
+        Runtime(dev, discrete=False),
+        Runtime(dev, discrete=True, pinned=False),
+        Runtime(dev, discrete=True, pinned=True),
+    )
+    for r in trio:
         r.poison = True
-    return pair
+    return trio
 
 
 def _project(rt):
@@ -114,8 +119,23 @@ def _ssim(rt):
     return [s, grad]
 
 
+def _chain(rt):
+    """project -> bin -> rasterize and back: the ops read what the one before left on the device."""
+    gs = random_gaussians(N, seed=7, spread=1.2)
+    viewmat, K = look_at_camera(W, H, fov_deg=55)
+    leaves = [
+        t.float().requires_grad_(True) for t in (gs.means, gs.quats, gs.scales, gs.opacities, gs.colors)
+    ]
+    m2, con, dep, rad = ops.project(*leaves[:3], viewmat, K, W, H, device=rt)
+    img, alpha = ops.rasterize_to_pixels(m2, con, leaves[3], leaves[4], dep, rad, W, H, device=rt)
+    g = torch.Generator().manual_seed(8)
+    cot = [torch.randn(img.shape, generator=g), torch.randn(alpha.shape, generator=g)]
+    return [img, alpha, *torch.autograd.grad([img, alpha], leaves, cot)]
+
+
 OPS = {
     "project fwd+bwd": _project,
+    "project, bin, rasterize fwd+bwd": _chain,
     "bin": _bin,
     "rasterize cpu fwd+bwd (deterministic)": lambda rt: _rasterize(rt, "cpu", True),
     "rasterize gpu fwd+bwd (deterministic)": lambda rt: _rasterize(rt, "gpu", True),
@@ -134,21 +154,25 @@ def test_every_op_gives_the_same_result_on_both_paths_and_counts_copies_only_whe
         before = rt.transfers.snapshot()
         results.append([t.detach() for t in OPS[op](rt)])
         crossed.append(TransferStats.delta(rt.transfers.snapshot(), before))
-    unified, discrete = results
-    for i, (u, d) in enumerate(zip(unified, discrete, strict=True)):
-        assert u.shape == d.shape and u.dtype == d.dtype, f"{op} output {i}"
-        if u.dtype.is_floating_point:
-            assert torch.isfinite(d).all(), f"{op} output {i}: non-finite on the discrete path"
-        if "atomics" in op:  # the order of the atomic adds differs run to run
-            torch.testing.assert_close(d, u, rtol=1e-5, atol=1e-6, msg=f"{op} output {i}")
-        else:
-            assert torch.equal(d, u), f"{op} output {i} differs between the unified and discrete paths"
-    on_unified, on_discrete = crossed
+    unified = results[0]
+    for path, discrete in zip(("discrete", "pinned"), results[1:], strict=True):
+        for i, (u, d) in enumerate(zip(unified, discrete, strict=True)):
+            assert u.shape == d.shape and u.dtype == d.dtype, f"{op} output {i}"
+            if u.dtype.is_floating_point:
+                assert torch.isfinite(d).all(), f"{op} output {i}: non-finite on the {path} path"
+            if "atomics" in op:  # the order of the atomic adds differs run to run
+                torch.testing.assert_close(d, u, rtol=1e-5, atol=1e-6, msg=f"{op} output {i}")
+            else:
+                assert torch.equal(d, u), f"{op} output {i} differs between the unified and {path} paths"
+    on_unified = crossed[0]
     assert on_unified == {k: 0 for k in on_unified}, f"{op}: the unified path copied {on_unified}"
-    assert on_discrete["bytes_in"] > 0 and on_discrete["bytes_out"] > 0 and on_discrete["copies"] > 0
-    assert not runtimes[1].transfers._pending  # every copy's event was timed at the finish
-    if "oclgrind" not in runtimes[1].name.lower():  # the simulator's clock may not move in a copy
-        assert on_discrete["seconds"] > 0.0, "copy time not measured on the discrete path"
+    assert crossed[1] == crossed[2] | {"seconds": crossed[1]["seconds"]}, "staging changed what crosses"
+    for rt, on_discrete in zip(runtimes[1:], crossed[1:], strict=True):
+        assert on_discrete["bytes_in"] > 0 and on_discrete["bytes_out"] > 0 and on_discrete["copies"] > 0
+        assert not rt.transfers._pending  # every copy's event was timed at the finish
+        if "oclgrind" not in rt.name.lower():  # the simulator's clock may not move in a copy
+            assert on_discrete["seconds"] > 0.0, "copy time not measured on the discrete path"
+    assert not runtimes[2]._blocks and runtimes[2]._pool.held > 0  # staged, and every block returned
 
 
 def test_discrete_path_is_chosen_without_host_unified_memory_or_when_forced(monkeypatch):
@@ -181,6 +205,67 @@ def test_bytes_counted_are_the_tensors_that_cross():
     assert rt.transfers.bytes_in == 4 * (2 * n + 2 * window)
     assert rt.transfers.bytes_out == 4 * (n + 3 * n)
     assert rt.bytes_transferred == rt.transfers.bytes
+
+
+def test_outputs_left_on_the_device_are_read_again_without_a_copy():
+    """Binning and rasterizing what `project` returned read its buffers: of the splats only the
+    opacities (an input, not an output) cross again."""
+    rt = Runtime(get_runtime().device, discrete=True)
+    gs = random_gaussians(N, seed=2, spread=1.2)
+    viewmat, K = look_at_camera(W, H, fov_deg=55)
+    m2, con, dep, rad = ops.project(
+        *[t.float() for t in (gs.means, gs.quats, gs.scales)], viewmat, K, W, H, device=rt
+    )
+    before = rt.transfers.snapshot()
+    bins = ops.bin_tiles(m2, con, gs.opacities.float(), dep, rad, W, H, device=rt)
+    crossed = TransferStats.delta(rt.transfers.snapshot(), before)
+    assert crossed["reused"] == 4 * (m2.numel() + con.numel() + rad.numel())
+    # in: the opacities, the depth order of the visible splats and the pair offsets
+    assert crossed["bytes_in"] == 4 * (N + bins.n_visible + N + 1)
+    fresh = ops.bin_tiles(m2.clone(), con.clone(), gs.opacities.float(), dep, rad.clone(), W, H, device=rt)
+    for name in ("tile_start", "tile_end", "ids", "pair_slot", "extents"):
+        assert torch.equal(getattr(bins, name), getattr(fresh, name)), name
+
+
+def test_a_remembered_tensor_changed_since_is_copied_again():
+    """An in-place change (torch advances the version counter) or a kernel writing into the
+    tensor again makes the device copy stale: the next op copies the tensor in again."""
+    rt = Runtime(get_runtime().device, discrete=True)
+    gs = random_gaussians(N, seed=3, spread=1.2)
+    viewmat, K = look_at_camera(W, H, fov_deg=55)
+    m2, con, dep, rad = ops.project(
+        *[t.float() for t in (gs.means, gs.quats, gs.scales)], viewmat, K, W, H, device=rt
+    )
+    m2 += 5.0  # every splat moves 5 px
+    bins = ops.bin_tiles(m2, con, gs.opacities.float(), dep, rad, W, H, device=rt)
+    fresh = ops.bin_tiles(m2.clone(), con.clone(), gs.opacities.float(), dep, rad.clone(), W, H, device=rt)
+    assert torch.equal(bins.ids, fresh.ids) and torch.equal(bins.tile_start, fresh.tile_start)
+    before = rt.transfers.reused
+    assert rt.input(con).buf is not None and rt.transfers.reused == before + 4 * con.numel()
+    rt.array(con, "out")  # a launch is about to write it: the remembered buffer is forgotten
+    before = rt.transfers.bytes_in
+    rt.input(con)
+    assert rt.transfers.bytes_in == before + 4 * con.numel()
+
+
+def test_page_locked_blocks_are_reused_and_a_full_pool_copies_directly():
+    from coin_cl.engine.pinned import MIN_BLOCK
+
+    rt = Runtime(get_runtime().device, discrete=True, pinned=True)
+    from coin_cl.engine.devices import host_unified
+
+    if host_unified(rt.device):  # the aliasing path copies nothing, so it stages nothing
+        assert Runtime(rt.device, discrete=False, pinned=True).pinned is False
+    a, b = torch.rand(1, 8, 9, 1), torch.rand(1, 8, 9, 1)
+    first = ops.ssim_map(a, b, device=rt)
+    held = rt._pool.held
+    assert held >= MIN_BLOCK and held % MIN_BLOCK == 0
+    assert torch.equal(ops.ssim_map(a, b, device=rt), first) and rt._pool.held == held  # reused
+    rt._pool.max_bytes = held  # no room for the larger blocks of a larger image: direct copies
+    a2, b2 = torch.rand(1, 300, 200, 1), torch.rand(1, 300, 200, 1)
+    ref = Runtime(get_runtime().device, discrete=True, pinned=False)
+    assert torch.equal(ops.ssim_map(a2, b2, device=rt), ops.ssim_map(a2, b2, device=ref))
+    assert rt._pool.held == held
 
 
 def test_an_accumulator_must_start_at_zero():

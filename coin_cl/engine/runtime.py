@@ -7,7 +7,10 @@ Buffers: on a host-unified-memory device (the CPU implementations) a `cl.Buffer`
 the torch tensor's own memory (USE_HOST_PTR), so nothing is copied and `queue.finish()` is the
 hand-over point. Elsewhere (a discrete GPU; forced on any device by COIN_CL_DISCRETE=1, so CI runs
 this path) inputs are copied into device-only buffers and outputs copied back, and every copy's
-bytes and device time are counted in `Runtime.transfers` (`coin_cl.engine.transfers`).
+bytes and device time are counted in `Runtime.transfers` (`coin_cl.engine.transfers`). An output
+a kernel wrote stays on the device beside its tensor (`remember`): a later op handed that same,
+unchanged tensor (`input`) reads the buffer instead of copying it in again, so a view's projected
+splats and its gradients cross once per step, not once per op.
 
 Limits: every launch is checked against the device's and the kernel's work-group size, every
 buffer against the device's largest allocation (`coin_cl.engine.limits`).
@@ -21,11 +24,12 @@ import os
 import re
 import threading
 import warnings
+import weakref
 from dataclasses import dataclass, field
 
 import torch
 
-from coin_cl.engine import devices, kernel_cache
+from coin_cl.engine import devices, kernel_cache, pinned
 from coin_cl.engine.errors import DeviceLimitError
 from coin_cl.engine.limits import DeviceLimits, describe, query_limits
 from coin_cl.engine.transfers import TransferStats
@@ -60,6 +64,9 @@ class Runtime:
     # COIN_CL_DETERMINISTIC=0 switches it off.
     deterministic: bool = field(default_factory=lambda: os.environ.get("COIN_CL_DETERMINISTIC", "1") != "0")
     poison: bool = False  # tests: fill outputs with NaN / INT32_MIN so unwritten elements show
+    # Copies of the discrete path through page-locked staging (`coin_cl.engine.pinned`); None: from
+    # COIN_CL_PINNED (0 or 1), else on for a discrete GPU and off for a CPU device run discretely.
+    pinned: bool | None = None
     extensions: frozenset = frozenset()
 
     def __post_init__(self):
@@ -75,6 +82,10 @@ class Runtime:
             # USE_HOST_PTR needs map/unmap around every host access, which this runtime never does.
             raise ValueError(f"{self.name} has no host-unified memory: it runs the discrete path only")
         self.unified = not self.discrete
+        if self.pinned is None:
+            env = os.environ.get("COIN_CL_PINNED", "")
+            self.pinned = _env_flag("COIN_CL_PINNED") if env else not (self.device.type & cl.device_type.CPU)
+        self.pinned = bool(self.pinned and self.discrete)
         # Profiling times the copies of the discrete path (and the kernels with COIN_CL_PROFILE).
         props = cl.command_queue_properties.PROFILING_ENABLE if self.profile or self.discrete else 0
         self.queue = cl.CommandQueue(self.context, properties=props)
@@ -86,6 +97,11 @@ class Runtime:
         self.n_finish = 0  # host waits, counted (the benchmark reports them per frame)
         self._in_flight: list = []  # arguments of launches not yet waited for
         self._kernel_info: dict = {}
+        # Tensors whose content a device buffer already holds (`remember`), by data pointer:
+        # data_ptr -> (weak reference to the tensor, its version then, bytes, buffer).
+        self._resident: dict[int, tuple] = {}
+        self._pool = pinned.PinnedPool(self.context, self.queue) if self.pinned else None
+        self._blocks: list = []  # page-locked blocks of copies not yet waited for
         log.debug("OpenCL device: %s (unified memory: %s)", self.name, self.unified)
 
     @property
@@ -256,16 +272,17 @@ class Runtime:
         mode says what crosses when memory is not unified: "in" (the kernel reads it), "out" (the
         kernel writes every element; copied back by `finish`), "inout" (read-modify-write; both
         ways), "acc" (an accumulator the kernel adds into: the tensor holds zeros, the device
-        buffer is zero-filled there rather than copied in; copied back) or "scratch" (device-only
-        working memory; neither way).
+        buffer is zero-filled there rather than copied in; copied back), "scratch" (device-only
+        working memory; neither way) or "zeros" (device-only working memory starting at zero: the
+        tensor holds zeros; neither way).
         """
         import numpy as np
         import pyopencl as cl
 
-        if mode not in ("in", "out", "inout", "acc", "scratch"):
+        if mode not in ("in", "out", "inout", "acc", "scratch", "zeros"):
             raise ValueError(f"unknown buffer mode {mode!r}")
-        if mode == "acc" and self.poison and bool(tensor.any()):  # tests check the promise
-            raise ValueError("runtime.array(mode='acc') needs a tensor of zeros")
+        if mode in ("acc", "zeros") and self.poison and bool(tensor.any()):  # tests check the promise
+            raise ValueError(f"runtime.array(mode={mode!r}) needs a tensor of zeros")
         if not tensor.is_contiguous() or tensor.device.type != "cpu":
             raise ValueError("runtime.array needs a contiguous CPU tensor")
         mf = cl.mem_flags
@@ -285,12 +302,49 @@ class Runtime:
         buf = cl.Buffer(self.context, mf.READ_WRITE, nbytes)
         # Poisoned outputs cross too, so an element a kernel leaves unwritten shows on this path.
         if mode in ("in", "inout") or (mode == "out" and self.poison):
+            block = self._pool.take(nbytes) if self._pool is not None else None
+            if block is not None:
+                self._blocks.append(block)
+                host = pinned.fill(block, tensor)
             ev = cl.enqueue_copy(self.queue, buf, host, is_blocking=False)
             self.transfers.add(nbytes, ev, inbound=True)
             self._in_flight.append(host)  # the copy reads it until the next finish
-        elif mode == "acc":
+        elif mode in ("acc", "zeros"):
             cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint8), 0, nbytes)
-        return DeviceArray(tensor, buf, copy_back=mode in ("out", "inout", "acc"))
+        copy_back = mode in ("out", "inout", "acc")
+        if copy_back:
+            self._forget(tensor)  # its memory is about to change behind its version counter
+        return DeviceArray(tensor, buf, copy_back=copy_back)
+
+    def input(self, tensor: torch.Tensor, dtype: torch.dtype = torch.float32) -> DeviceArray:
+        """`tensor` as a kernel input of `dtype`: the buffer an earlier launch wrote it into when it
+        is the very tensor `remember` was given and has not been modified since (its version
+        counter, which in-place torch ops advance); otherwise a contiguous `dtype` copy, uploaded.
+        """
+        if not self.unified and self._resident and tensor.dtype == dtype:
+            hit = self._resident.get(tensor.data_ptr())
+            if hit is not None and hit[0]() is tensor and hit[1] == _version(tensor):
+                self.transfers.reused += hit[2]
+                return DeviceArray(tensor.detach(), hit[3])
+        return self.array(tensor.detach().to(dtype).contiguous())
+
+    def remember(self, tensor: torch.Tensor, arr: DeviceArray) -> None:
+        """Record that `arr`'s buffer holds `tensor`'s content (call after the launch that wrote it
+        has finished and been copied back): `input(tensor)` then reuses the buffer for as long as
+        both live and the tensor is unchanged. Nothing to do on host-unified memory."""
+        if self.unified or arr.tensor.data_ptr() != tensor.data_ptr() or arr.tensor.dtype != tensor.dtype:
+            return
+        version = _version(tensor)
+        if version is None or not tensor.is_contiguous():
+            return
+        ptr, nbytes = tensor.data_ptr(), tensor.numel() * tensor.element_size()
+        ref = weakref.ref(tensor, functools.partial(_drop_entry, self._resident, ptr))
+        self._resident[ptr] = (ref, version, nbytes, arr.buf)
+
+    def _forget(self, tensor: torch.Tensor) -> None:
+        """Drop the remembered buffer of any tensor whose memory starts where `tensor`'s does."""
+        if self._resident:
+            self._resident.pop(tensor.data_ptr(), None)
 
     def reuse(self, tensor: torch.Tensor, buf) -> DeviceArray:
         """The buffer an earlier launch filled for `tensor`, read again by a later one (the
@@ -311,14 +365,25 @@ class Runtime:
 
         self.n_finish += 1
         in_flight, self._in_flight = self._in_flight, []
+        blocks, self._blocks = self._blocks, []
+        drains = []  # (page-locked block, the tensor it is copied into once the queue has drained)
         for a in arrays:
             if a.copy_back and a.tensor.numel():
                 host = a.tensor.detach().numpy()
+                block = self._pool.take(host.nbytes) if self._pool is not None else None
+                if block is not None:
+                    blocks.append(block)
+                    drains.append((block, a.tensor))
+                    host = block.view(host.nbytes)
                 ev = cl.enqueue_copy(self.queue, host, a.buf, is_blocking=False)
                 self.transfers.add(host.nbytes, ev, inbound=False)
                 in_flight.append(host)
         self.queue.finish()
         self.transfers.settle()
+        for block, tensor in drains:
+            pinned.drain(block, tensor)
+        for block in blocks:
+            self._pool.give(block)
         del in_flight  # released only once the queue has drained
 
 
@@ -348,6 +413,21 @@ def group_bound(filename: str) -> bool:
         if (d / inc).is_file():
             src += (d / inc).read_text()
     return bool(_GROUP_BOUND.search(src))
+
+
+def _version(tensor: torch.Tensor) -> int | None:
+    """The tensor's version counter (None for inference-mode tensors, which have none)."""
+    try:
+        return tensor._version
+    except RuntimeError:
+        return None
+
+
+def _drop_entry(table: dict, ptr: int, ref: weakref.ref) -> None:
+    """Weak-reference callback: the tensor is gone, and with it the need for its buffer."""
+    entry = table.get(ptr)
+    if entry is not None and entry[0] is ref:
+        del table[ptr]
 
 
 def _env_flag(name: str) -> bool:

@@ -20,6 +20,7 @@ class TransferStats:
     bytes_in: int = 0  # host -> device
     bytes_out: int = 0  # device -> host
     copies: int = 0
+    reused: int = 0  # bytes an op read from a buffer already on the device instead of copying in
     seconds: float = 0.0  # device time of the copies whose events have completed
     _pending: list = field(default_factory=list, repr=False)  # events not yet timed
 

@@ -5,14 +5,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from coin_cl.engine import constants as cst
 from coin_cl.engine.errors import PairOverflowError
 from coin_cl.engine.ops._util import groups, i32
-from coin_cl.engine.runtime import DeviceArray, Runtime, as_f32, resolve_device
+from coin_cl.engine.runtime import DeviceArray, Runtime, resolve_device
 
 
 @dataclass
@@ -62,22 +61,22 @@ class TileBins:
         return self.ids[int(self.tile_start[t]) : int(self.tile_end[t])].long()
 
 
-def stable_depth_order(depths: np.ndarray) -> np.ndarray:
+def stable_depth_order(depths: Tensor) -> Tensor:
     """[N] int64 permutation sorting float32 `depths` ascending, ties in index order (a stable
     argsort, NaN last).
 
-    Each depth's bits become an order-preserving unsigned key with its index in the low 32 bits,
-    so the keys are unique and numpy's SIMD sort of plain integers gives the stable order: 5-7x
-    faster than `np.argsort(kind="stable")` on floats (35 ms at 300k splats on the 2-core machine,
-    the largest part of binning).
+    Each depth's bits become an order-preserving signed 32-bit key (IEEE-754 total order) with the
+    index in the low 32 bits of an int64, so the keys are unique and any sort of plain integers
+    gives the stable order: torch sorts those 4-5x faster than numpy sorts them, and 10x faster
+    than a stable argsort of the floats (4 ms at 410k splats on the 2-core machine).
     """
-    d = np.asarray(depths, dtype=np.float32) + np.float32(0.0)  # -0.0 -> +0.0 (they tie)
-    d[np.isnan(d)] = np.nan  # one NaN pattern (sign bit clear), so every NaN sorts last
-    bits = d.view(np.uint32)
-    # Negative floats: flip every bit; non-negative: flip the sign bit (IEEE-754 total order).
-    key = np.where(bits >> 31 != 0, ~bits, bits | np.uint32(0x80000000)).astype(np.uint64)
-    key = (key << np.uint64(32)) | np.arange(bits.size, dtype=np.uint64)
-    return (np.sort(key) & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    d = torch.as_tensor(depths, dtype=torch.float32).flatten() + 0.0  # a copy; -0.0 -> +0.0 (they tie)
+    d[torch.isnan(d)] = float("nan")  # one NaN pattern (sign bit clear), so every NaN sorts last
+    bits = d.view(torch.int32)
+    # Negative floats: flip the 31 bits below the sign (larger magnitude, smaller key).
+    key = torch.where(bits < 0, bits ^ 0x7FFFFFFF, bits).to(torch.int64)
+    key = (key << 32) | torch.arange(key.numel(), dtype=torch.int64)
+    return torch.sort(key).values & 0xFFFFFFFF
 
 
 def empty_bins(n: int, width: int, height: int, extents: Tensor | None = None) -> TileBins:
@@ -116,21 +115,20 @@ def bin_tiles(
     """
     rt = resolve_device(device)
     width, height = int(width), int(height)
-    m2, con, op = as_f32(means2d), as_f32(conics), as_f32(opacities)
-    radii = radii.to(torch.int32).contiguous()
-    n = m2.shape[0]
+    n = means2d.shape[0]
     bins = empty_bins(n, width, height, rt.empty(n, 2))
     if n == 0:
         return bins
     n_tiles = bins.n_tiles
-    rects = rt.empty(n, 4, dtype=torch.int32)
-    a_ext = rt.array(bins.extents, "out")
+    rects, area = rt.empty(n, 4, dtype=torch.int32), rt.empty(n, dtype=torch.int32)
+    a_rects, a_ext, a_area = rt.array(rects, "scratch"), rt.array(bins.extents, "out"), rt.array(area, "out")
     rt.run(
         "bin.cl", "bin_rects", (groups(n),), (64,),
-        [i32(n), m2, con, op, radii, i32(bins.tiles_x), i32(bins.tiles_y), (rects, "out"), a_ext],
+        [i32(n), rt.input(means2d), rt.input(conics), rt.input(opacities), rt.input(radii, torch.int32),
+         i32(bins.tiles_x), i32(bins.tiles_y), a_rects, a_ext, a_area],
     )  # fmt: skip
     bins.keep(rt, "extents", a_ext)
-    area = (rects[:, 2] - rects[:, 0]).to(torch.int64) * (rects[:, 3] - rects[:, 1])
+    area = area.to(torch.int64)
     n_pairs = int(area.sum())
     if n_pairs > max_pairs:
         raise PairOverflowError(n_pairs, max_pairs)
@@ -140,35 +138,40 @@ def bin_tiles(
     bins.pair_start[1:] = torch.cumsum(area, 0)
     # One stable depth sort of the splats that reach a tile; every tile list inherits it.
     vis = (area > 0).nonzero().squeeze(1)
-    order = vis[torch.from_numpy(stable_depth_order(depths.detach()[vis].numpy()))].to(torch.int32)
+    order = vis[stable_depth_order(depths.detach()[vis])].to(torch.int32)
     n_vis = bins.n_visible = int(order.numel())
-    rects = rects[order.long()]  # gathered once, so the passes below read sequentially
     # Enough chunks to keep every compute unit busy with some balance, few enough that the
     # [chunks, tiles] histogram stays small.
     n_chunks = int(min(n_vis, max(1, min(1024, (1 << 22) // n_tiles, n_vis // 256 + 1))))
     chunk = (n_vis + n_chunks - 1) // n_chunks
     n_chunks = (n_vis + chunk - 1) // chunk
-    hist = torch.zeros(n_chunks, n_tiles, dtype=torch.int32)
-    a_rects = rt.array(rects)  # read by both passes below: crosses once
+    # From here on nothing crosses but the order in and the lists out, read once at the end.
+    a_order = rt.array(order)
+    a_sorted = rt.array(rt.empty(n_vis, 4, dtype=torch.int32), "scratch")
+    rt.run("bin.cl", "bin_gather", (groups(n_vis),), (64,), [i32(n_vis), a_rects, a_order, a_sorted],
+           wait=False)  # fmt: skip
+    a_hist = rt.array(torch.zeros(n_chunks, n_tiles, dtype=torch.int32), "zeros")
     rt.run(
         "bin.cl", "bin_count", (n_chunks,), None,
-        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), a_rects, (hist, "acc")],
+        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), a_sorted, a_hist], wait=False,
     )  # fmt: skip
-    counts = hist.t().reshape(-1)  # tile-major
-    offsets = (torch.cumsum(counts, 0, dtype=torch.int32) - counts).contiguous()
-    per_tile = offsets.view(n_tiles, n_chunks)[:, 0].clone()
-    bins.tile_start = per_tile
-    bins.tile_end = torch.cat([per_tile[1:], torch.tensor([n_pairs], dtype=torch.int32)])
+    bins.tile_start = rt.empty(n_tiles, dtype=torch.int32)
+    bins.tile_end = rt.empty(n_tiles, dtype=torch.int32)
+    a_start, a_end = rt.array(bins.tile_start, "out"), rt.array(bins.tile_end, "out")
+    rt.run(
+        "bin.cl", "bin_scan_tiles", (groups(n_tiles),), (64,),
+        [i32(n_tiles), i32(n_chunks), a_hist, a_end], wait=False,
+    )  # fmt: skip
+    rt.run("bin.cl", "bin_tile_ranges", (1,), None, [i32(n_tiles), a_start, a_end], wait=False)
     bins.ids = rt.empty(n_pairs, dtype=torch.int32)
     bins.pair_slot = rt.empty(n_pairs, dtype=torch.int32)
-    # `offsets` goes in as the scan and is advanced in place as the kernel's write cursor; nobody
-    # reads it afterwards, so it is not copied back.
     a_ids, a_slot = rt.array(bins.ids, "out"), rt.array(bins.pair_slot, "out")
     rt.run(
         "bin.cl", "bin_scatter", (n_chunks,), None,
-        [i32(n_vis), i32(chunk), i32(n_chunks), i32(bins.tiles_x), a_rects, order, offsets,
-         *bins.arrays(rt, "pair_start"), a_ids, a_slot],
+        [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), a_sorted, a_order, a_hist, a_start,
+         *bins.arrays(rt, "pair_start"), a_ids, a_slot], wait=False,
     )  # fmt: skip
-    bins.keep(rt, "ids", a_ids)
-    bins.keep(rt, "pair_slot", a_slot)
+    rt.finish(a_start, a_end, a_ids, a_slot)
+    for name, arr in (("tile_start", a_start), ("tile_end", a_end), ("ids", a_ids), ("pair_slot", a_slot)):
+        bins.keep(rt, name, arr)
     return bins

@@ -17,10 +17,13 @@ class _Decode(torch.autograd.Function):
         ins = [as_f32(t) for t in (anchors, offsets, scaling, opacity, cov, color)]
         outs = [rt.empty(n, 3), rt.empty(n, 4), rt.empty(n, 3), rt.empty(n), rt.empty(n, 3)]
         if n:
+            a_outs = [rt.array(t, "out") for t in outs]
             rt.run(
                 "decode.cl", "decode_fwd", (groups(n),), (64,),
-                [i32(n), i32(k), vi, si, *ins, *[(t, "out") for t in outs]],
+                [i32(n), i32(k), vi, si, *ins, *a_outs],
             )  # fmt: skip
+            for t, a in zip(outs, a_outs, strict=True):  # the projection and rasterizer read them next
+                rt.remember(t, a)
         ctx.save_for_backward(vi, si, ins[1], ins[2], ins[4])
         ctx.meta = (rt, anchors.shape[0], opacity.shape[0], cov.dtype)
         return tuple(o.to(cov.dtype) for o in outs)
@@ -31,7 +34,7 @@ class _Decode(torch.autograd.Function):
         rt, n_anchors, n_off, dtype = ctx.meta
         n, n_vis, k = si.shape[0], vi.shape[0], offsets.shape[1]
         grads = [
-            as_f32(torch.zeros(shape) if g is None else g)
+            rt.input(torch.zeros(shape) if g is None else g)
             for g, shape in ((v_means, (n, 3)), (v_quats, (n, 4)), (v_scales, (n, 3)), (v_opac, (n,)),
                              (v_col, (n, 3)))
         ]  # fmt: skip

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from coin_cl.engine import constants as cst
 from coin_cl.engine.ops._util import f32, groups, i32
-from coin_cl.engine.runtime import Runtime, as_f32, resolve_device
+from coin_cl.engine.runtime import Runtime, resolve_device
 
 
 def _cam(viewmat: Tensor, K: Tensor) -> Tensor:
@@ -21,19 +21,22 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, viewmat, K, width, height, near, far, rt):
         n = means.shape[0]
-        cam = _cam(viewmat, K)
-        ins = [as_f32(means), as_f32(quats), as_f32(scales), cam]
         means2d, conics, depths = rt.empty(n, 2), rt.empty(n, 3), rt.empty(n)
         radii = rt.empty(n, dtype=torch.int32)
         # Kept for the backward, which reads them again without another copy (discrete memory).
-        kept = [rt.array(t) for t in ins] + [rt.array(t, "out") for t in (radii, conics)]
+        kept = [rt.input(t) for t in (means, quats, scales)] + [rt.array(_cam(viewmat, K))]
+        kept += [rt.array(t, "out") for t in (radii, conics)]
+        a_m2, a_depths = rt.array(means2d, "out"), rt.array(depths, "out")
         if n:
             rt.run(
                 "project.cl", "project_fwd", (groups(n),), (64,),
                 [i32(n), *kept[:4], i32(width), i32(height), f32(near), f32(far),
-                 (means2d, "out"), kept[5], (depths, "out"), kept[4]],
+                 a_m2, kept[5], a_depths, kept[4]],
             )  # fmt: skip
-        ctx.save_for_backward(*ins, radii, conics)
+            # The binning and the rasterizer read these next: they stay on the device.
+            for a in (a_m2, a_depths, *kept[4:]):
+                rt.remember(a.tensor, a)
+        ctx.save_for_backward(*[a.tensor for a in kept[:4]], radii, conics)
         ctx.bufs = [a.buf for a in kept]  # buffers only: a tensor here could make a reference cycle
         ctx.meta = (width, height, near, far, rt, means.dtype)
         ctx.mark_non_differentiable(radii)
@@ -47,15 +50,17 @@ class _Project(torch.autograd.Function):
         outs = [rt.empty(n, 3), rt.empty(n, 4), rt.empty(n, 3)]
         if n:
             grads = [
-                as_f32(torch.zeros(shape) if g is None else g)
+                rt.input(torch.zeros(shape) if g is None else g)
                 for g, shape in ((v_means2d, (n, 2)), (v_conics, (n, 3)), (v_depths, (n,)))
             ]
             a = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
+            a_outs = [rt.array(t, "out") for t in outs]
             rt.run(
                 "project.cl", "project_bwd", (groups(n),), (64,),
-                [i32(n), *a[:4], i32(width), i32(height), f32(near), f32(far),
-                 *a[4:], *grads, *[(t, "out") for t in outs]],
+                [i32(n), *a[:4], i32(width), i32(height), f32(near), f32(far), *a[4:], *grads, *a_outs],
             )  # fmt: skip
+            for t, arr in zip(outs, a_outs, strict=True):  # the decode's backward may read them next
+                rt.remember(t, arr)
         v_means, v_quats, v_scales = (o.to(dtype) for o in outs)
         return v_means, v_quats, v_scales, None, None, None, None, None, None, None
 

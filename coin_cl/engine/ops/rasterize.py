@@ -82,7 +82,6 @@ class _Rasterize(torch.autograd.Function):
         ctx, means2d, conics, opacities, features, bins, width, height, background, stats, rt, defines
     ):
         C = features.shape[1]
-        m2, con, op, ft = (as_f32(t) for t in (means2d, conics, opacities, features))
         bg = torch.zeros(C) if background is None else as_f32(background)
         ts = cst.TILE_SIZE
         stride, rows = bins.tiles_x * ts, bins.tiles_y * ts
@@ -92,8 +91,12 @@ class _Rasterize(torch.autograd.Function):
         src, _ = raster_variant(rt)
         local, variant = fit_variant(rt, src, "rasterize_fwd", kernel_variant(C, defines))
         # Kept for the backward, which reads them again without another copy (discrete memory).
-        kept = [rt.array(t, mode) for t, mode in ((m2, "in"), (con, "in"), (op, "in"), (ft, "in"),
-                                                  (bg, "in"), (t_final, "out"), (last, "out"))]  # fmt: skip
+        # The splats usually are already there: `project` (and `decode`) left their outputs.
+        kept = [rt.input(t) for t in (means2d, conics, opacities, features)]
+        # `last` (where each pixel's backward starts) crosses only when the caller asks for stats.
+        kept += [rt.array(bg), rt.array(t_final, "out"),
+                 rt.array(last, "scratch" if stats is None else "out")]  # fmt: skip
+        m2, con, op, ft = (a.tensor for a in kept[:4])
         a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
         rt.run(
             src, "rasterize_fwd", (bins.n_tiles * local,), (local,),
@@ -140,6 +143,7 @@ class _Rasterize(torch.autograd.Function):
             torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]  # fmt: skip
         contrib = rt.array(rt.empty(bins.ids.numel() if det else 1, 6 + C), mode="scratch")
         if bins.ids.numel():
+            a_outs = [rt.array(t, "scratch" if det else "acc") for t in outs]
             kept = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
             a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
             a_bins = bins.arrays(rt, "tile_start", "tile_end", "ids")
@@ -149,10 +153,13 @@ class _Rasterize(torch.autograd.Function):
                  a_m2, a_con, a_op, *bins.arrays(rt, "extents"), a_ft, a_bg, a_t, a_last, g_img, g_alpha,
                  (torch.empty(C, rows, stride), "scratch"), contrib,
                  # deterministic: the kernel writes `contrib`, not these (reduce.cl does)
-                 *[(t, "scratch" if det else "acc") for t in outs]],
+                 *a_outs],
                 defines=variant,
                 wait=not det,  # the reduction reads `contrib` next on the same in-order queue
             )  # fmt: skip
+            if not det:  # the projection's backward reads them next
+                for t, a in zip(outs, a_outs, strict=True):
+                    rt.remember(t, a)
         if det:
             reduce_pair_grads(rt, bins, contrib, outs, C)
         v_bg = None

@@ -28,8 +28,11 @@ def reduce_pair_grads(
     n = bins.pair_start.numel() - 1
     if n <= 0:
         return
+    a_outs = [rt.array(t, "out") for t in outs]
     rt.run(
         "reduce.cl", "reduce_grads", (groups(n),), (64,),
-        [i32(n), *bins.arrays(rt, "pair_start", "pair_slot"), contrib, *[(t, "out") for t in outs]],
+        [i32(n), *bins.arrays(rt, "pair_start", "pair_slot"), contrib, *a_outs],
         defines={"NUM_CHANNELS": channels},
     )  # fmt: skip
+    for t, a in zip(outs, a_outs, strict=True):  # the projection's backward reads them next
+        rt.remember(t, a)
