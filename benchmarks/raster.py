@@ -54,11 +54,12 @@ LARGE_SCENES = [
 
 def named_scenes(names: str) -> list[tuple[str, int, int, int]]:
     """The scenes of SCENES and LARGE_SCENES named in a comma-separated list, in that order."""
-    wanted = names.split(",")
-    unknown = set(wanted) - {s[0] for s in SCENES + LARGE_SCENES}
-    if unknown:
-        raise SystemExit(f"--scenes: unknown {sorted(unknown)}; known: {[s[0] for s in SCENES + LARGE_SCENES]}")
+    wanted, known = names.split(","), [s[0] for s in SCENES + LARGE_SCENES]
+    if set(wanted) - set(known):
+        raise SystemExit(f"--scenes: unknown {sorted(set(wanted) - set(known))}; known: {known}")
     return [s for s in SCENES + LARGE_SCENES if s[0] in wanted]
+
+
 KNOBS = [
     ("default", {}),
     ("alpha_thr=1/128", {"ALPHA_THRESHOLD": "(1.0f/128.0f)"}),

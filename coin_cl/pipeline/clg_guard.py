@@ -86,8 +86,12 @@ def pick(
         rec.update(status="kept input", kept_because=verdicts[0], residual_written=rec.get("residual_before"))
     if len(candidates) > 1:
         rec["candidates"] = [
-            {"status": r.get("status"), "colour_match": r.get("colour_match"),
-             "residual_after": r.get("residual_after"), "worse": why}
+            {
+                "status": r.get("status"),
+                "colour_match": r.get("colour_match"),
+                "residual_after": r.get("residual_after"),
+                "worse": why,
+            }
             for (_, r), why in zip(candidates, verdicts)
         ]
     return out, rec
