@@ -9,7 +9,7 @@
 #   bash benchmarks/gpu_session.sh warp      # ... benchmarks/warp.py --quick
 #   bash benchmarks/gpu_session.sh train     # ... training throughput, SPIn-NeRF at 504x284
 #   bash benchmarks/gpu_session.sh split     # ... where one rasterizer fwd+bwd's time goes
-#   bash benchmarks/gpu_session.sh demo      # ... a tiny end-to-end `coin-cl demo` on the GPU
+#   bash benchmarks/gpu_session.sh demo      # ... a small end-to-end `coin-cl run` on the GPU
 #   bash benchmarks/gpu_session.sh session   # ... all of the above in one call of at most ~9 minutes
 # Several steps may follow each other in one call: `... check suite`. Every step's log goes to
 # $LOG/<step>.log ($OUT unless set; `session` packs its logs into $OUT/logs.tgz after every step,
@@ -137,18 +137,23 @@ raster() { (cd benchmarks && python3 raster.py --device "$COIN_CL_DEVICE" ${RAST
 # The same without the page-locked staging (COIN_CL_PINNED=0): copies straight from torch's memory.
 raster_direct() { COIN_CL_PINNED=0 RASTER_ARGS="--quick --scenes 100k,500k,1M-1080p --runs 5" raster; }
 
-# The whole program on the GPU, once, tiny: the package installed as a user gets it (the
-# coin_cl.diffusion and coin_cl.kernels mappings of setup.cfg, the `coin-cl` entry point), then the
-# demo's synthetic room at 96x64 with a few steps per stage, its report copied back.
+# The whole program on the GPU, once, small: the package installed as a user gets it (the
+# coin_cl.diffusion and coin_cl.kernels mappings of setup.cfg, the `coin-cl` entry point), then
+# `coin-cl run` on the half-size scene of `prepare` at half its size (252x142; a COLMAP-free
+# scene, since pycolmap's 38 MB wheel does not fit the device tool's carry) with 30 steps per
+# stage; its log and report come back.
 demo() {
   python3 -m pip install -q --no-deps --no-build-isolation --no-index --target /tmp/coin-site . ||
     { echo "demo: the package did not install"; return 1; }
   local t=$SECONDS
-  PYTHONPATH=/tmp/coin-site:$PYTHONPATH /tmp/coin-site/bin/coin-cl demo --out /tmp/coin-cl-demo \
-    --device "$COIN_CL_DEVICE" ${DEMO_ARGS:---room-size 96 64 --room-views 12 --iters 40 --prior-seconds 15 --frames 4}
+  # shellcheck disable=SC2086
+  PYTHONPATH=/tmp/coin-site:$PYTHONPATH /tmp/coin-site/bin/coin-cl run "$COIN_DATA/scene_half" \
+    --out /tmp/coin-cl-e2e --device "$COIN_CL_DEVICE" ${DEMO_ARGS:---iters 30 --resolution 0.5}
   local rc=$?
   echo "demo: exit $rc after $((SECONDS - t)) s"
-  find /tmp/coin-cl-demo -maxdepth 2 \( -name '*.json' -o -name '*.md' \) -size -2M -exec cp --parents {} "$LOG" \; 2>/dev/null
+  for f in log.json report.md eval/metrics.json; do
+    [ -f "/tmp/coin-cl-e2e/$f" ] && cp "/tmp/coin-cl-e2e/$f" "$LOG/e2e_${f//\//_}"
+  done
   return $rc
 }
 

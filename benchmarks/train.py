@@ -186,7 +186,7 @@ def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: s
     pt.patch(ops_project._Project, "forward", "project fwd")
     pt.patch(ops_project._Project, "backward", "project bwd")
     pt.patch(ops_raster, "bin_tiles", "bin")
-    pt.patch(gs_terms, "photometric_loss", "loss fwd")
+    pt.patch(gs_terms, "photometric_map", "loss fwd")
     pt.patch(rendering, "finite_rows", "finite check")
     pt.patch(m.optimizer, "step", "optimizer")
     pt.patch(tr.strategy, "step_pre_backward", "densification")
