@@ -141,14 +141,15 @@ raster_direct() { COIN_CL_PINNED=0 RASTER_ARGS="--quick --scenes 100k,500k,1M-10
 # coin_cl.diffusion and coin_cl.kernels mappings of setup.cfg, the `coin-cl` entry point), then
 # `coin-cl run` on the half-size scene of `prepare` at half its size (252x142; a COLMAP-free
 # scene, since pycolmap's 38 MB wheel does not fit the device tool's carry) with 30 steps per
-# stage; its log and report come back.
+# stage and stage 1's `--inpainter telea` (the machine's OpenCV lacks the contrib module whose FSR
+# the embedded inpainter's structure pass uses); its log and report come back.
 demo() {
   python3 -m pip install -q --no-deps --no-build-isolation --no-index --target /tmp/coin-site . ||
     { echo "demo: the package did not install"; return 1; }
   local t=$SECONDS
   # shellcheck disable=SC2086
   PYTHONPATH=/tmp/coin-site:$PYTHONPATH /tmp/coin-site/bin/coin-cl run "$COIN_DATA/scene_half" \
-    --out /tmp/coin-cl-e2e --device "$COIN_CL_DEVICE" ${DEMO_ARGS:---iters 30 --resolution 0.5}
+    --out /tmp/coin-cl-e2e --device "$COIN_CL_DEVICE" ${DEMO_ARGS:---iters 30 --resolution 0.5 --inpainter telea}
   local rc=$?
   echo "demo: exit $rc after $((SECONDS - t)) s"
   for f in log.json report.md eval/metrics.json; do
