@@ -26,13 +26,16 @@ def cpu_model() -> str:
 
 
 def git_commit() -> str:
-    """The repository's short HEAD commit, or "uncommitted" outside a git checkout."""
+    """The repository's short HEAD commit, "+changes" appended when tracked files differ from it
+    (a copy of a working tree, say), or "uncommitted" outside a git checkout."""
     try:
-        return subprocess.check_output(
+        head = subprocess.check_output(
             ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], stderr=subprocess.DEVNULL, text=True
         ).strip()
     except (subprocess.CalledProcessError, FileNotFoundError):
         return "uncommitted"
+    clean = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD"], capture_output=True)
+    return head if clean.returncode == 0 else f"{head}+changes"
 
 
 def default_data() -> Path:

@@ -100,6 +100,13 @@ def run_doctor(args: argparse.Namespace) -> int:
             print(f"  {pkg} {metadata.version(pkg)}")
         except metadata.PackageNotFoundError:
             print(f"  {pkg}: not installed")
+    from coin_cl.opencv_contrib import FIX, missing_contrib
+
+    missing = missing_contrib()
+    if missing:
+        print(
+            f"  cv2 lacks the contrib modules {', '.join(missing)} (a plain OpenCV wheel shadows it): {FIX}"
+        )
     print(f"OCL_ICD_VENDORS={os.environ.get('OCL_ICD_VENDORS', '(unset)')}")
     visible = [d for _, d in devices.all_devices()]
     if not visible:

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from coin_cl.opencv_contrib import require_contrib
 from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_resolution
 from coin_cl.pipeline.coin_plan import plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
@@ -257,6 +258,7 @@ def inpaint(
             "(give masks, e.g. a label/ or masks/ folder)"
         )
     check_points(scene)
+    require_contrib()  # before minutes of work, not at the first call of a missing module
     from coin_cl.pipeline.memory import check_memory
 
     # check_memory refuses a scene that cannot fit, before any stage runs
