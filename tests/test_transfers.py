@@ -258,9 +258,13 @@ def test_page_locked_blocks_are_reused_and_a_full_pool_copies_directly():
         assert Runtime(rt.device, discrete=False, pinned=True).pinned is False
     a, b = torch.rand(1, 8, 9, 1), torch.rand(1, 8, 9, 1)
     first = ops.ssim_map(a, b, device=rt)
+    assert first.data_ptr() in rt._pinned_ptrs  # the output itself lives in a page-locked block
+    expected = first.clone()
+    del first  # its block goes back to the pool
     held = rt._pool.held
     assert held >= MIN_BLOCK and held % MIN_BLOCK == 0
-    assert torch.equal(ops.ssim_map(a, b, device=rt), first) and rt._pool.held == held  # reused
+    again = ops.ssim_map(a, b, device=rt)
+    assert torch.equal(again, expected) and rt._pool.held == held  # the blocks were reused
     rt._pool.max_bytes = held  # no room for the larger blocks of a larger image: direct copies
     a2, b2 = torch.rand(1, 300, 200, 1), torch.rand(1, 300, 200, 1)
     ref = Runtime(get_runtime().device, discrete=True, pinned=False)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 import re
 import threading
@@ -102,6 +103,7 @@ class Runtime:
         self._resident: dict[int, tuple] = {}
         self._pool = pinned.PinnedPool(self.context, self.queue) if self.pinned else None
         self._blocks: list = []  # page-locked blocks of copies not yet waited for
+        self._pinned_ptrs: set[int] = set()  # data pointers of live `empty` tensors in pinned blocks
         log.debug("OpenCL device: %s (unified memory: %s)", self.name, self.unified)
 
     @property
@@ -302,7 +304,7 @@ class Runtime:
         buf = cl.Buffer(self.context, mf.READ_WRITE, nbytes)
         # Poisoned outputs cross too, so an element a kernel leaves unwritten shows on this path.
         if mode in ("in", "inout") or (mode == "out" and self.poison):
-            block = self._pool.take(nbytes) if self._pool is not None else None
+            block = self._staging(tensor)
             if block is not None:
                 self._blocks.append(block)
                 host = pinned.fill(block, tensor)
@@ -343,8 +345,18 @@ class Runtime:
 
     def _forget(self, tensor: torch.Tensor) -> None:
         """Drop the remembered buffer of any tensor whose memory starts where `tensor`'s does."""
+        self._forget_ptr(tensor.data_ptr())
+
+    def _forget_ptr(self, ptr: int) -> None:
         if self._resident:
-            self._resident.pop(tensor.data_ptr(), None)
+            self._resident.pop(ptr, None)
+
+    def _staging(self, tensor: torch.Tensor) -> pinned.PinnedBlock | None:
+        """A page-locked block to copy `tensor` through, or None: no staging, no room in the pool,
+        or the tensor already in page-locked memory (`empty`), which the copy then uses directly."""
+        if self._pool is None or tensor.data_ptr() in self._pinned_ptrs:
+            return None
+        return self._pool.take(tensor.numel() * tensor.element_size())
 
     def reuse(self, tensor: torch.Tensor, buf) -> DeviceArray:
         """The buffer an earlier launch filled for `tensor`, read again by a later one (the
@@ -353,11 +365,41 @@ class Runtime:
         return DeviceArray(tensor, buf)
 
     def empty(self, *shape: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """An output tensor; filled with NaN (floats) or INT32_MIN (ints) when poisoning."""
-        if not self.poison:
-            return torch.empty(shape, dtype=dtype)
-        fill = float("nan") if dtype.is_floating_point else torch.iinfo(dtype).min
-        return torch.full(shape, fill, dtype=dtype)
+        """An output tensor; filled with NaN (floats) or INT32_MIN (ints) when poisoning. With
+        page-locked staging it lives in a page-locked block (while the pool has room), so that the
+        copy back is one DMA transfer straight into it."""
+        if self.poison:
+            fill = float("nan") if dtype.is_floating_point else torch.iinfo(dtype).min
+            return torch.full(shape, fill, dtype=dtype)
+        if self._pool is not None:
+            t = self._pinned_empty(shape, dtype)
+            if t is not None:
+                return t
+        return torch.empty(shape, dtype=dtype)
+
+    def scratch(self, *shape: int, dtype: torch.dtype = torch.float32) -> DeviceArray:
+        """Working memory one kernel writes and a later one reads: device-only (nothing crosses);
+        on host-unified memory, an uninitialised tensor's."""
+        return self.array(torch.empty(shape, dtype=dtype), "scratch")
+
+    def _pinned_empty(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor | None:
+        nbytes = math.prod(shape) * dtype.itemsize
+        block = self._pool.take(nbytes) if nbytes else None
+        if block is None:
+            return None
+        # A fresh array object over the block: the tensor's storage holds it, so it dies with the
+        # last view of the tensor, and only then does the block go back to the pool.
+        host = block.host[:nbytes]
+        t = torch.from_numpy(host).view(dtype).view(shape)
+        ptr = t.data_ptr()
+        self._pinned_ptrs.add(ptr)
+        weakref.finalize(host, self._release_pinned, block, ptr)
+        return t
+
+    def _release_pinned(self, block: pinned.PinnedBlock, ptr: int) -> None:
+        self._pinned_ptrs.discard(ptr)
+        self._forget_ptr(ptr)
+        self._pool.give(block)
 
     def finish(self, *arrays: DeviceArray) -> None:
         """Wait for the queue and bring outputs back to their tensors (a no-op copy when unified)."""
@@ -366,22 +408,24 @@ class Runtime:
         self.n_finish += 1
         in_flight, self._in_flight = self._in_flight, []
         blocks, self._blocks = self._blocks, []
-        drains = []  # (page-locked block, the tensor it is copied into once the queue has drained)
+        drains = []  # (copy event, page-locked block, the tensor it is copied into after the event)
         for a in arrays:
             if a.copy_back and a.tensor.numel():
                 host = a.tensor.detach().numpy()
-                block = self._pool.take(host.nbytes) if self._pool is not None else None
+                block = self._staging(a.tensor)
                 if block is not None:
                     blocks.append(block)
-                    drains.append((block, a.tensor))
                     host = block.view(host.nbytes)
                 ev = cl.enqueue_copy(self.queue, host, a.buf, is_blocking=False)
                 self.transfers.add(host.nbytes, ev, inbound=False)
                 in_flight.append(host)
+                if block is not None:
+                    drains.append((ev, block, a.tensor))
+        for ev, block, tensor in drains:  # each drains while the later copies still run
+            ev.wait()
+            pinned.drain(block, tensor)
         self.queue.finish()
         self.transfers.settle()
-        for block, tensor in drains:
-            pinned.drain(block, tensor)
         for block in blocks:
             self._pool.give(block)
         del in_flight  # released only once the queue has drained

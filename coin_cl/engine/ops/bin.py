@@ -120,8 +120,12 @@ def bin_tiles(
     if n == 0:
         return bins
     n_tiles = bins.n_tiles
-    rects, area = rt.empty(n, 4, dtype=torch.int32), rt.empty(n, dtype=torch.int32)
-    a_rects, a_ext, a_area = rt.array(rects, "scratch"), rt.array(bins.extents, "out"), rt.array(area, "out")
+    area = rt.empty(n, dtype=torch.int32)
+    a_rects, a_ext, a_area = (
+        rt.scratch(n, 4, dtype=torch.int32),
+        rt.array(bins.extents, "out"),
+        rt.array(area, "out"),
+    )
     rt.run(
         "bin.cl", "bin_rects", (groups(n),), (64,),
         [i32(n), rt.input(means2d), rt.input(conics), rt.input(opacities), rt.input(radii, torch.int32),
@@ -147,7 +151,7 @@ def bin_tiles(
     n_chunks = (n_vis + chunk - 1) // chunk
     # From here on nothing crosses but the order in and the lists out, read once at the end.
     a_order = rt.array(order)
-    a_sorted = rt.array(rt.empty(n_vis, 4, dtype=torch.int32), "scratch")
+    a_sorted = rt.scratch(n_vis, 4, dtype=torch.int32)
     rt.run("bin.cl", "bin_gather", (groups(n_vis),), (64,), [i32(n_vis), a_rects, a_order, a_sorted],
            wait=False)  # fmt: skip
     a_hist = rt.array(torch.zeros(n_chunks, n_tiles, dtype=torch.int32), "zeros")

@@ -87,13 +87,13 @@ class _Rasterize(torch.autograd.Function):
         stride, rows = bins.tiles_x * ts, bins.tiles_y * ts
         plane = stride * rows
         img, t_final = rt.empty(C, rows, stride), rt.empty(rows, stride)
-        last = rt.empty(rows, stride, dtype=torch.int32)
+        # `last` (where each pixel's backward starts) crosses only when the caller asks for stats.
+        last = (rt.empty if stats is not None else torch.empty)(rows, stride, dtype=torch.int32)
         src, _ = raster_variant(rt)
         local, variant = fit_variant(rt, src, "rasterize_fwd", kernel_variant(C, defines))
         # Kept for the backward, which reads them again without another copy (discrete memory).
         # The splats usually are already there: `project` (and `decode`) left their outputs.
         kept = [rt.input(t) for t in (means2d, conics, opacities, features)]
-        # `last` (where each pixel's backward starts) crosses only when the caller asks for stats.
         kept += [rt.array(bg), rt.array(t_final, "out"),
                  rt.array(last, "scratch" if stats is None else "out")]  # fmt: skip
         m2, con, op, ft = (a.tensor for a in kept[:4])
@@ -141,7 +141,7 @@ class _Rasterize(torch.autograd.Function):
         # slot, then reduce.cl sums the slots in a fixed order. Otherwise atomics add into zeros.
         outs = [rt.empty(n, 2), rt.empty(n, 3), rt.empty(n), rt.empty(n, C)] if det else [
             torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]  # fmt: skip
-        contrib = rt.array(rt.empty(bins.ids.numel() if det else 1, 6 + C), mode="scratch")
+        contrib = rt.scratch(bins.ids.numel() if det else 1, 6 + C)
         if bins.ids.numel():
             a_outs = [rt.array(t, "scratch" if det else "acc") for t in outs]
             kept = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]

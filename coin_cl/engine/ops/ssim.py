@@ -23,7 +23,7 @@ class _SSIM(torch.autograd.Function):
         defines = {"NUM_CHANNELS": C, "WIN": window}
         out, part = rt.empty(B, H, W), rt.empty(3 * C, B, H, W)  # planar (kernels/ssim.cl)
         if n:
-            vstat = rt.array(rt.empty(5 * C, n), mode="scratch")
+            vstat = rt.scratch(5 * C, n)
             rt.run(
                 "ssim.cl", "ssim_fwd_v", (groups(n),), (64,),
                 [i32(n), i32(H), i32(W), x, y, gw, vstat], defines=defines, wait=False,
@@ -45,7 +45,7 @@ class _SSIM(torch.autograd.Function):
         n = B * H * W
         v_a = rt.empty(B, H, W, C)
         if n:
-            hgrad = rt.array(rt.empty(3 * C, n), mode="scratch")
+            hgrad = rt.scratch(3 * C, n)
             rt.run(
                 "ssim.cl", "ssim_bwd_h", (groups(n),), (64,),
                 [i32(n), i32(H), i32(W), as_f32(v_out), part, gw, hgrad], defines=defines, wait=False,
