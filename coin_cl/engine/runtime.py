@@ -7,10 +7,11 @@ Buffers: on a host-unified-memory device (the CPU implementations) a `cl.Buffer`
 the torch tensor's own memory (USE_HOST_PTR), so nothing is copied and `queue.finish()` is the
 hand-over point. Elsewhere (a discrete GPU; forced on any device by COIN_CL_DISCRETE=1, so CI runs
 this path) inputs are copied into device-only buffers and outputs copied back, and every copy's
-bytes and device time are counted in `Runtime.transfers` (`coin_cl.engine.transfers`). An output
-a kernel wrote stays on the device beside its tensor (`remember`): a later op handed that same,
-unchanged tensor (`input`) reads the buffer instead of copying it in again, so a view's projected
-splats and its gradients cross once per step, not once per op.
+bytes and device time are counted in `Runtime.transfers` (`coin_cl.engine.transfers`); on a GPU
+the copies go through page-locked memory (`coin_cl.engine.pinned`), where outputs are allocated.
+An output a kernel wrote stays on the device beside its tensor (`remember`): a later op handed
+that same, unchanged tensor (`input`) reads the buffer instead of copying it in again, so a view's
+projected splats and its gradients cross once per step, not once per op.
 
 Limits: every launch is checked against the device's and the kernel's work-group size, every
 buffer against the device's largest allocation (`coin_cl.engine.limits`).
