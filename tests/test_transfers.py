@@ -273,14 +273,15 @@ def test_page_locked_blocks_are_reused_and_a_full_pool_copies_directly():
 
 
 def test_an_accumulator_must_start_at_zero():
-    """mode="acc" promises zeros (the discrete path fills the device buffer instead of copying
-    them); with poisoning on, as in the tests, the promise is checked."""
+    """mode="acc" and mode="zeros" promise zeros (the discrete path fills the device buffer
+    instead of copying them); with poisoning on, as in the tests, the promise is checked."""
     rt = Runtime(get_runtime().device, discrete=True)
     rt.poison = True
-    with pytest.raises(ValueError, match="mode='acc'.*zeros"):
-        rt.array(torch.ones(4), mode="acc")
-    acc = rt.array(torch.zeros(4), mode="acc")
-    assert acc.copy_back and rt.transfers.bytes_in == 0  # nothing crossed to zero it
+    for mode in ("acc", "zeros"):
+        with pytest.raises(ValueError, match=f"mode='{mode}'.*zeros"):
+            rt.array(torch.ones(4), mode=mode)
+    acc, work = rt.array(torch.zeros(4), mode="acc"), rt.array(torch.zeros(4), mode="zeros")
+    assert acc.copy_back and not work.copy_back and rt.transfers.bytes_in == 0  # nothing crossed
 
 
 def test_the_aliasing_path_is_refused_without_host_unified_memory(monkeypatch):
