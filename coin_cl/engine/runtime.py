@@ -46,6 +46,7 @@ class DeviceArray:
     tensor: torch.Tensor
     buf: object
     copy_back: bool = False
+    keep: bool = False  # remembered beside its tensor once copied back (`Runtime.remember`)
 
 
 @dataclass
@@ -269,7 +270,7 @@ class Runtime:
             self._in_flight.append((args, bufs))
 
     # -- shared buffers ---------------------------------------------------------------------
-    def array(self, tensor: torch.Tensor, mode: str = "in") -> DeviceArray:
+    def array(self, tensor: torch.Tensor, mode: str = "in", keep: bool = False) -> DeviceArray:
         """Wrap a contiguous CPU tensor as a device buffer (aliased when memory is unified).
 
         mode says what crosses when memory is not unified: "in" (the kernel reads it), "out" (the
@@ -277,7 +278,8 @@ class Runtime:
         ways), "acc" (an accumulator the kernel adds into: the tensor holds zeros, the device
         buffer is zero-filled there rather than copied in; copied back), "scratch" (device-only
         working memory; neither way) or "zeros" (device-only working memory starting at zero: the
-        tensor holds zeros; neither way).
+        tensor holds zeros; neither way). `keep` (an output the next op reads): once `finish` has
+        copied it back, the buffer is remembered beside the tensor (`remember`).
         """
         import numpy as np
         import pyopencl as cl
@@ -316,8 +318,8 @@ class Runtime:
             cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint8), 0, nbytes)
         copy_back = mode in ("out", "inout", "acc")
         if copy_back:
-            self._forget(tensor)  # its memory is about to change behind its version counter
-        return DeviceArray(tensor, buf, copy_back=copy_back)
+            self._forget(tensor.data_ptr())  # its memory is about to change behind its version counter
+        return DeviceArray(tensor, buf, copy_back=copy_back, keep=keep and copy_back)
 
     def input(self, tensor: torch.Tensor, dtype: torch.dtype = torch.float32) -> DeviceArray:
         """`tensor` as a kernel input of `dtype`: the buffer an earlier launch wrote it into when it
@@ -344,11 +346,8 @@ class Runtime:
         ref = weakref.ref(tensor, functools.partial(_drop_entry, self._resident, ptr))
         self._resident[ptr] = (ref, version, nbytes, arr.buf)
 
-    def _forget(self, tensor: torch.Tensor) -> None:
-        """Drop the remembered buffer of any tensor whose memory starts where `tensor`'s does."""
-        self._forget_ptr(tensor.data_ptr())
-
-    def _forget_ptr(self, ptr: int) -> None:
+    def _forget(self, ptr: int) -> None:
+        """Drop the remembered buffer of any tensor whose memory starts at `ptr`."""
         if self._resident:
             self._resident.pop(ptr, None)
 
@@ -399,7 +398,7 @@ class Runtime:
 
     def _release_pinned(self, block: pinned.PinnedBlock, ptr: int) -> None:
         self._pinned_ptrs.discard(ptr)
-        self._forget_ptr(ptr)
+        self._forget(ptr)
         self._pool.give(block)
 
     def finish(self, *arrays: DeviceArray) -> None:
@@ -429,6 +428,9 @@ class Runtime:
         self.transfers.settle()
         for block in blocks:
             self._pool.give(block)
+        for a in arrays:
+            if a.keep:
+                self.remember(a.tensor, a)
         del in_flight  # released only once the queue has drained
 
 

@@ -17,13 +17,11 @@ class _Decode(torch.autograd.Function):
         ins = [as_f32(t) for t in (anchors, offsets, scaling, opacity, cov, color)]
         outs = [rt.empty(n, 3), rt.empty(n, 4), rt.empty(n, 3), rt.empty(n), rt.empty(n, 3)]
         if n:
-            a_outs = [rt.array(t, "out") for t in outs]
             rt.run(
                 "decode.cl", "decode_fwd", (groups(n),), (64,),
-                [i32(n), i32(k), vi, si, *ins, *a_outs],
+                # kept on the device: the projection and the rasterizer read them next
+                [i32(n), i32(k), vi, si, *ins, *[rt.array(t, "out", keep=True) for t in outs]],
             )  # fmt: skip
-            for t, a in zip(outs, a_outs, strict=True):  # the projection and rasterizer read them next
-                rt.remember(t, a)
         ctx.save_for_backward(vi, si, ins[1], ins[2], ins[4])
         ctx.meta = (rt, anchors.shape[0], opacity.shape[0], cov.dtype)
         return tuple(o.to(cov.dtype) for o in outs)

@@ -25,17 +25,15 @@ class _Project(torch.autograd.Function):
         radii = rt.empty(n, dtype=torch.int32)
         # Kept for the backward, which reads them again without another copy (discrete memory).
         kept = [rt.input(t) for t in (means, quats, scales)] + [rt.array(_cam(viewmat, K))]
-        kept += [rt.array(t, "out") for t in (radii, conics)]
-        a_m2, a_depths = rt.array(means2d, "out"), rt.array(depths, "out")
+        # The outputs stay on the device too: the binning and the rasterizer read them next.
+        kept += [rt.array(t, "out", keep=True) for t in (radii, conics)]
+        a_m2, a_depths = rt.array(means2d, "out", keep=True), rt.array(depths, "out", keep=True)
         if n:
             rt.run(
                 "project.cl", "project_fwd", (groups(n),), (64,),
                 [i32(n), *kept[:4], i32(width), i32(height), f32(near), f32(far),
                  a_m2, kept[5], a_depths, kept[4]],
             )  # fmt: skip
-            # The binning and the rasterizer read these next: they stay on the device.
-            for a in (a_m2, a_depths, *kept[4:]):
-                rt.remember(a.tensor, a)
         ctx.save_for_backward(*[a.tensor for a in kept[:4]], radii, conics)
         ctx.bufs = [a.buf for a in kept]  # buffers only: a tensor here could make a reference cycle
         ctx.meta = (width, height, near, far, rt, means.dtype)
@@ -54,13 +52,11 @@ class _Project(torch.autograd.Function):
                 for g, shape in ((v_means2d, (n, 2)), (v_conics, (n, 3)), (v_depths, (n,)))
             ]
             a = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
-            a_outs = [rt.array(t, "out") for t in outs]
+            a_outs = [rt.array(t, "out", keep=True) for t in outs]  # the decode's backward may read them
             rt.run(
                 "project.cl", "project_bwd", (groups(n),), (64,),
                 [i32(n), *a[:4], i32(width), i32(height), f32(near), f32(far), *a[4:], *grads, *a_outs],
             )  # fmt: skip
-            for t, arr in zip(outs, a_outs, strict=True):  # the decode's backward may read them next
-                rt.remember(t, arr)
         v_means, v_quats, v_scales = (o.to(dtype) for o in outs)
         return v_means, v_quats, v_scales, None, None, None, None, None, None, None
 

@@ -143,7 +143,8 @@ class _Rasterize(torch.autograd.Function):
             torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, C)]  # fmt: skip
         contrib = rt.scratch(bins.ids.numel() if det else 1, 6 + C)
         if bins.ids.numel():
-            a_outs = [rt.array(t, "scratch" if det else "acc") for t in outs]
+            # atomics: the projection's backward reads the sums next (deterministic: reduce.cl's)
+            a_outs = [rt.array(t, "scratch" if det else "acc", keep=True) for t in outs]
             kept = [rt.reuse(t, b) for t, b in zip(ctx.saved_tensors, ctx.bufs, strict=True)]
             a_m2, a_con, a_op, a_ft, a_bg, a_t, a_last = kept
             a_bins = bins.arrays(rt, "tile_start", "tile_end", "ids")
@@ -157,9 +158,6 @@ class _Rasterize(torch.autograd.Function):
                 defines=variant,
                 wait=not det,  # the reduction reads `contrib` next on the same in-order queue
             )  # fmt: skip
-            if not det:  # the projection's backward reads them next
-                for t, a in zip(outs, a_outs, strict=True):
-                    rt.remember(t, a)
         if det:
             reduce_pair_grads(rt, bins, contrib, outs, C)
         v_bg = None

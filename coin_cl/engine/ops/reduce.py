@@ -28,11 +28,10 @@ def reduce_pair_grads(
     n = bins.pair_start.numel() - 1
     if n <= 0:
         return
-    a_outs = [rt.array(t, "out") for t in outs]
     rt.run(
         "reduce.cl", "reduce_grads", (groups(n),), (64,),
-        [i32(n), *bins.arrays(rt, "pair_start", "pair_slot"), contrib, *a_outs],
+        # kept on the device: the projection's backward reads them next
+        [i32(n), *bins.arrays(rt, "pair_start", "pair_slot"), contrib,
+         *[rt.array(t, "out", keep=True) for t in outs]],
         defines={"NUM_CHANNELS": channels},
     )  # fmt: skip
-    for t, a in zip(outs, a_outs, strict=True):  # the projection's backward reads them next
-        rt.remember(t, a)
