@@ -174,6 +174,12 @@ def test_stable_depth_order_is_a_stable_argsort_with_ties_signed_zeros_and_nan()
         got = stable_depth_order(torch.from_numpy(d))
         assert got.dtype == torch.int64
         assert np.array_equal(got.numpy(), np.argsort(d, kind="stable"))
+        # Only the kept ones, mostly kept (cut after the sort) and mostly dropped (gathered first).
+        for frac in (0.8, 0.3, 0.0, 1.0):
+            keep = rng.random(d.size) < frac
+            kept = np.flatnonzero(keep)
+            got = stable_depth_order(torch.from_numpy(d), keep=torch.from_numpy(keep))
+            assert np.array_equal(got.numpy(), kept[np.argsort(d[kept], kind="stable")]), frac
 
 
 @pytest.mark.parametrize("seed", [13, 14])

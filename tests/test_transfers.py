@@ -3,6 +3,7 @@ with explicit copies in and out, as on a discrete GPU, forced here on the CPU de
 the same result as on the unified (aliasing) path, and the copy counters are non-zero exactly on
 the discrete path."""
 
+import numpy as np
 import pytest
 import torch
 from conftest import small_mode
@@ -282,6 +283,19 @@ def test_an_accumulator_must_start_at_zero():
             rt.array(torch.ones(4), mode=mode)
     acc, work = rt.array(torch.zeros(4), mode="acc"), rt.array(torch.zeros(4), mode="zeros")
     assert acc.copy_back and not work.copy_back and rt.transfers.bytes_in == 0  # nothing crossed
+
+
+def test_zeros_are_filled_on_the_device_whatever_the_host_tensor_holds():
+    """`Runtime.zeros` on the discrete path writes no host tensor: the device buffer is zero even
+    when the tensor beside it holds garbage, and nothing crosses."""
+    import pyopencl as cl
+
+    rt = Runtime(get_runtime().device, discrete=True)
+    work = rt.zeros(1000, dtype=torch.int32)
+    work.tensor.fill_(7)  # what an uninitialised tensor could hold; the buffer must not care
+    back = np.full(1000, -1, np.int32)
+    cl.enqueue_copy(rt.queue, back, work.buf, is_blocking=True)
+    assert not back.any() and rt.transfers.bytes_in == 0
 
 
 def test_the_aliasing_path_is_refused_without_host_unified_memory(monkeypatch):

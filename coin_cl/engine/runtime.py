@@ -382,6 +382,13 @@ class Runtime:
         on host-unified memory, an uninitialised tensor's."""
         return self.array(torch.empty(shape, dtype=dtype), "scratch")
 
+    def zeros(self, *shape: int, dtype: torch.dtype = torch.float32) -> DeviceArray:
+        """Working memory starting at zero, device-only (mode "zeros"): on the discrete path the
+        device fills it and no host tensor of its size is written; on host-unified memory it is a
+        zeroed tensor's."""
+        zeroed = self.unified or self.poison  # poisoning checks the "zeros" promise on the tensor
+        return self.array((torch.zeros if zeroed else torch.empty)(shape, dtype=dtype), "zeros")
+
     def _pinned_empty(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor | None:
         nbytes = math.prod(shape) * dtype.itemsize
         block = self._pool.take(nbytes) if nbytes else None

@@ -61,22 +61,36 @@ class TileBins:
         return self.ids[int(self.tile_start[t]) : int(self.tile_end[t])].long()
 
 
-def stable_depth_order(depths: Tensor) -> Tensor:
-    """[N] int64 permutation sorting float32 `depths` ascending, ties in index order (a stable
-    argsort, NaN last).
-
-    Each depth's bits become an order-preserving signed 32-bit key (IEEE-754 total order) with the
-    index in the low 32 bits of an int64, so the keys are unique and any sort of plain integers
-    gives the stable order: torch sorts those 4-5x faster than numpy sorts them, and 10x faster
-    than a stable argsort of the floats (4 ms at 410k splats on the 2-core machine).
-    """
+def depth_keys(depths: Tensor) -> Tensor:
+    """[N] int32 keys whose signed order is float32 `depths`' ascending order (IEEE-754 total
+    order; -0.0 and +0.0 tie, every NaN sorts after +inf)."""
     d = torch.as_tensor(depths, dtype=torch.float32).flatten() + 0.0  # a copy; -0.0 -> +0.0 (they tie)
     d[torch.isnan(d)] = float("nan")  # one NaN pattern (sign bit clear), so every NaN sorts last
     bits = d.view(torch.int32)
     # Negative floats: flip the 31 bits below the sign (larger magnitude, smaller key).
-    key = torch.where(bits < 0, bits ^ 0x7FFFFFFF, bits).to(torch.int64)
-    key = (key << 32) | torch.arange(key.numel(), dtype=torch.int64)
-    return torch.sort(key).values & 0xFFFFFFFF
+    return torch.where(bits < 0, bits ^ 0x7FFFFFFF, bits)
+
+
+def stable_depth_order(depths: Tensor, keep: Tensor | None = None) -> Tensor:
+    """[K] int64: the indices of float32 `depths` [N] (only those where the bool mask `keep` [N]
+    is set, when given) sorted by depth ascending, ties in index order (a stable argsort, NaN last).
+
+    A stable sort of 32-bit integer keys (`depth_keys`): torch sorts those 2.6x faster than 64-bit
+    keys with the index in their low bits and 10x faster than it argsorts the floats (5 ms at 410k
+    splats on a 2-core AMD EPYC). With `keep` mostly set, the others are given the largest key and
+    cut off after the sort, which is cheaper than gathering the kept ones first; mostly unset,
+    gathering is cheaper (measured at 30 % and 80 % kept, 500k splats).
+    """
+    key = depth_keys(depths)
+    if keep is None:
+        return torch.sort(key, stable=True).indices
+    n_keep = int(keep.sum())
+    if 2 * n_keep >= key.numel():
+        # The largest key is a NaN pattern `depth_keys` never produces: dropped ones sort last.
+        key.masked_fill_(~keep, 0x7FFFFFFF)
+        return torch.sort(key, stable=True).indices[:n_keep]
+    kept = keep.nonzero().squeeze(1)
+    return kept[torch.sort(key[kept], stable=True).indices]
 
 
 def empty_bins(n: int, width: int, height: int, extents: Tensor | None = None) -> TileBins:
@@ -141,8 +155,7 @@ def bin_tiles(
         return bins
     bins.pair_start[1:] = torch.cumsum(area, 0)
     # One stable depth sort of the splats that reach a tile; every tile list inherits it.
-    vis = (area > 0).nonzero().squeeze(1)
-    order = vis[stable_depth_order(depths.detach()[vis])].to(torch.int32)
+    order = stable_depth_order(depths.detach(), keep=area > 0).to(torch.int32)
     n_vis = bins.n_visible = int(order.numel())
     # Enough chunks to keep every compute unit busy with some balance, few enough that the
     # [chunks, tiles] histogram stays small.
@@ -154,7 +167,7 @@ def bin_tiles(
     a_sorted = rt.scratch(n_vis, 4, dtype=torch.int32)
     rt.run("bin.cl", "bin_gather", (groups(n_vis),), (64,), [i32(n_vis), a_rects, a_order, a_sorted],
            wait=False)  # fmt: skip
-    a_hist = rt.array(torch.zeros(n_chunks, n_tiles, dtype=torch.int32), "zeros")
+    a_hist = rt.zeros(n_chunks, n_tiles, dtype=torch.int32)
     rt.run(
         "bin.cl", "bin_count", (n_chunks,), None,
         [i32(n_vis), i32(chunk), i32(n_tiles), i32(bins.tiles_x), a_sorted, a_hist], wait=False,
