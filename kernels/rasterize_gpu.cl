@@ -1,7 +1,9 @@
 /* Tile rasterizer for GPUs: one work-group per tile, one work-item per pixel.
  * Splats are staged through local memory in batches of one per work-item. The backward pass
- * reduces each splat's gradient over the tile in local memory (ROWS quantities at a time) and
- * then issues one atomic add per quantity per splat per tile.
+ * reduces each splat's gradient over the tile in local memory (ROWS quantities at a time, in two
+ * steps of fixed order: GROUP / ROWS partial sums of ROWS values, then their sum, so three
+ * barriers per ROWS quantities rather than a tree's log2(GROUP) + 2) and then issues one atomic
+ * add per quantity per splat per tile.
  *
  * GROUP (a build-time define, default 16x16 = one work-item per pixel of the tile) is the
  * work-group width. A device whose work-group or local-memory limit is below what 256 needs gets a
@@ -22,6 +24,7 @@
 #error "GROUP must be a multiple of TILE_SIZE dividing TILE_SIZE * TILE_SIZE"
 #endif
 #define ROWS 8 /* quantities reduced per pass: local memory = ROWS * GROUP floats */
+#define PARTS (GROUP / ROWS) /* partial sums per quantity, each of ROWS values */
 #define NQ GRAD_QUANTITIES(NUM_CHANNELS)
 
 inline void load_batch(int k0, int k1, __global const int *ids, __global const float *means2d,
@@ -118,6 +121,7 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
     __local float4 s_geo[GROUP], s_con[GROUP];
     __local int s_id[GROUP];
     __local float s_red[ROWS * GROUP];
+    __local float s_part[ROWS * (PARTS + 1)]; /* padded: the final sums read it in strides */
     __local int s_max_last, s_any[2];
     const int tile = get_group_id(0), lid = get_local_id(0);
     const int start = tile_start[tile];
@@ -212,18 +216,23 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
                     continue;
                 }
                 for (int q0 = 0; q0 < NQ; q0 += ROWS) {
+                    /* The previous round's final sums read s_part only: s_red is free to write. */
                     for (int r = 0; r < ROWS; ++r)
                         s_red[r * GROUP + lid] = q0 + r < NQ ? q[q0 + r] : 0.0f;
                     barrier(CLK_LOCAL_MEM_FENCE);
-                    for (int h = GROUP / 2; h > 0; h >>= 1) {
-                        if (lid < h)
-                            for (int r = 0; r < ROWS; ++r)
-                                s_red[r * GROUP + lid] += s_red[r * GROUP + lid + h];
-                        barrier(CLK_LOCAL_MEM_FENCE);
+                    { /* work-item lid: part j of row r, the ROWS values j, j + PARTS, ... */
+                        const int r = lid / PARTS, j = lid % PARTS;
+                        float acc = 0.0f;
+                        for (int m = 0; m < ROWS; ++m)
+                            acc += s_red[r * GROUP + j + m * PARTS];
+                        s_part[r * (PARTS + 1) + j] = acc;
                     }
+                    barrier(CLK_LOCAL_MEM_FENCE);
                     if (lid < ROWS && q0 + lid < NQ) {
                         const int qi = q0 + lid;
-                        const float v = s_red[lid * GROUP];
+                        float v = 0.0f;
+                        for (int j = 0; j < PARTS; ++j)
+                            v += s_part[lid * (PARTS + 1) + j];
 #ifdef DETERMINISTIC
                         const long slot = (long)k * NQ + qi;
                         contrib[slot] = pass == 0 ? v : contrib[slot] + v;
@@ -232,7 +241,6 @@ void rasterize_bwd(const int tiles_x, const int stride, const int plane,
                             atomic_add_float(grad_ptr(qi, g, NUM_CHANNELS, v_means2d, v_conics, v_opac, v_feats), v);
 #endif
                     }
-                    barrier(CLK_LOCAL_MEM_FENCE);
                 }
             }
         }

@@ -53,12 +53,13 @@ def raster_gpu_local_bytes(kernel: str, group: int) -> int:
     """Bytes of __local memory that `kernel` ("rasterize_fwd" or "rasterize_bwd") of
     rasterize_gpu.cl declares at work-group width `group` (the batch of splats: a float4 of
     position and opacity, a float4 conic and an int id per work-item; the backward adds the
-    ROWS x group reduction rows and three ints, the forward one int)."""
+    ROWS x group reduction rows, group + ROWS partial sums and three ints, the forward one
+    int)."""
     batch = group * (16 + 16 + 4)
     if kernel == "rasterize_fwd":
         return batch + 4
     if kernel == "rasterize_bwd":
-        return batch + RASTER_GPU_ROWS * group * 4 + 3 * 4
+        return batch + RASTER_GPU_ROWS * group * 4 + (group + RASTER_GPU_ROWS) * 4 + 3 * 4
     raise ValueError(f"unknown rasterize kernel {kernel!r}")
 
 
