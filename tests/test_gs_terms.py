@@ -16,6 +16,7 @@ from coin_cl.gs.synthetic import tiny_scene
 from coin_cl.gs.terms import (
     LossContext,
     LossTerm,
+    NeedleReg,
     PhotometricLoss,
     ScaleVolumeReg,
     ViewWeights,
@@ -226,6 +227,73 @@ def test_scale_regulariser_is_the_mean_volume():
     assert math.isclose(float(term.weight * term(ctx).detach()), expected, rel_tol=1e-5)
     sc.views[0].weight = 0.0  # a switched-off view gets no regulariser either
     assert float(term(ctx)) == 0.0 and not term(ctx).requires_grad
+
+
+def _scales_ctx(scales: Tensor, weight: float = 1.0, means2d=None, mask=None) -> LossContext:
+    from types import SimpleNamespace
+
+    out = SimpleNamespace(image=torch.zeros(2, 2, 3), meta={"scales": scales, "means2d": means2d})
+    view = SimpleNamespace(weight=weight, meta={} if mask is None else {"mask": mask})
+    return LossContext(view=view, index=0, out=out, step=0, model=None)
+
+
+def test_needle_regulariser_in_the_mask_counts_only_the_gaussians_centred_there():
+    needle = torch.tensor([[1.0, 0.01, 0.01]] * 4)
+    # centres: inside the mask, outside it, off the image left, below it
+    means2d = torch.tensor([[2.5, 1.5], [0.5, 0.5], [-3.0, 1.0], [2.0, 9.0]])
+    mask = np.zeros((4, 5), bool)
+    mask[1:3, 2:4] = True
+    term = NeedleReg(max_ratio=4.0, in_mask=True)
+    got = term(_scales_ctx(needle, means2d=means2d, mask=mask))
+    assert math.isclose(float(got), math.log(25.0), rel_tol=1e-5)  # the mean over the one inside
+    sphere_inside = torch.cat([torch.ones(1, 3), needle[1:]])
+    assert float(term(_scales_ctx(sphere_inside, means2d=means2d, mask=mask))) == 0.0  # outside ones free
+    assert float(term(_scales_ctx(needle, means2d=means2d))) == 0.0  # a view without a mask
+    everywhere = NeedleReg(max_ratio=4.0)(_scales_ctx(needle, means2d=means2d, mask=mask))
+    assert math.isclose(float(everywhere), math.log(25.0), rel_tol=1e-5)
+
+
+def test_needle_regulariser_pulls_needles_only():
+    """A sphere and a disk (a surface) cost nothing and get no gradient; a needle whose longest
+    axis is 100x its middle one costs log(100 / 4) and pulls only those two axes together."""
+    log_s = torch.log(torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.01, 1.0], [0.01, 1.0, 0.01]])).requires_grad_(
+        True
+    )
+    term = NeedleReg(max_ratio=4.0)
+    value = term(_scales_ctx(log_s.exp()))
+    assert math.isclose(float(value.detach()), math.log(25.0) / 3, rel_tol=1e-5)
+    (g,) = torch.autograd.grad(value, log_s)
+    assert torch.equal(g[:2], torch.zeros(2, 3))  # sphere and disk: untouched
+    assert math.isclose(float(g[2, 1]), 1 / 3, rel_tol=1e-5)  # the long axis shrinks
+    assert float(g[2, 0]) < 0 or float(g[2, 2]) < 0  # a middle axis grows (topk picks one of the tie)
+    assert float(g[2].sum()) == pytest.approx(0.0, abs=1e-7)
+    assert float(term(_scales_ctx(log_s.exp(), weight=0.0))) == 0.0  # a switched-off view
+    assert float(term(_scales_ctx(torch.zeros(0, 3)))) == 0.0  # nothing drawn
+    assert math.isfinite(float(term(_scales_ctx(torch.tensor([[1.0, 0.0, 0.0]])))))  # a degenerate splat
+
+
+def test_needle_regulariser_minimised_leaves_no_needle():
+    """Descending the term alone brings every Gaussian's longest axis within max_ratio of its middle
+    one and then stops (zero gradient): the answer is known."""
+    g = torch.Generator().manual_seed(0)
+    log_s = (torch.randn(200, 3, generator=g) * 2.0).requires_grad_(True)
+    term = NeedleReg(max_ratio=3.0)
+    opt = torch.optim.SGD([log_s], lr=20.0)
+    for _ in range(300):
+        opt.zero_grad()
+        term(_scales_ctx(log_s.exp())).backward()
+        opt.step()
+    top2 = log_s.detach().exp().topk(2, dim=1).values
+    assert float((top2[:, 0] / top2[:, 1]).max()) <= 3.0 * 1.01
+    assert float(term(_scales_ctx(log_s.detach().exp()))) < 1e-3
+
+
+@pytest.mark.parametrize(
+    "kw", [{"max_ratio": 0.5}, {"max_ratio": float("inf")}, {"weight": float("nan")}, {"weight": -1.0}]
+)
+def test_needle_regulariser_refuses_bad_settings(kw):
+    with pytest.raises(ValueError, match="NeedleReg"):
+        NeedleReg(**kw)
 
 
 def test_default_terms_and_unique_names(scene):

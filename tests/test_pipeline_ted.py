@@ -145,3 +145,25 @@ def test_discriminator_probe_measures_a_positive_cost_that_grows_with_the_patch(
     small = probe_discriminator_seconds(TEDConfig(patch=32, n_patches=1), 48, 48, steps=2)
     large = probe_discriminator_seconds(TEDConfig(patch=64, n_patches=8), 144, 192, steps=2)
     assert np.isfinite(small) and 0 < small < large < 30
+
+
+def test_needle_term_runs_in_both_phases_when_asked(scene, tmp_path):
+    """needle_ratio > 0 adds NeedleReg (inside the masks) to both phases' losses; 0 leaves the
+    plain fine-tune bit-exact; ratios below 1 are refused."""
+    views = _views(scene)
+    tc = TrainConfig(model="3dgs", progress=False, export_ply=False, ckpt_every=0, log_every=1)
+    res, _ = run_ted(_model(scene), views, [], tmp_path / "needle",
+                     TEDConfig(iters_finetune=2, iters_adversarial=2, needle_ratio=1.5), tc)  # fmt: skip
+    for phase in ("finetune", "adversarial"):
+        logged = (tmp_path / "needle" / phase / "log.json").read_text()
+        assert "needle_reg" in logged, phase
+    _, off = run_ted(
+        _model(scene), views, [], tmp_path / "off", TEDConfig(iters_finetune=3, iters_adversarial=0), tc
+    )
+    zero = TEDConfig(iters_finetune=3, iters_adversarial=0, needle_ratio=2.0, needle_weight=0.0)
+    _, zero_w = run_ted(_model(scene), views, [], tmp_path / "zero_w", zero, tc)
+    for k, v in _params(off).items():
+        assert torch.equal(v, _params(zero_w)[k]), k
+    for bad in ({"needle_ratio": 0.5}, {"needle_ratio": float("inf")}, {"needle_weight": -1.0}):
+        with pytest.raises(ValueError, match=f"TEDConfig.{next(iter(bad))}"):
+            TEDConfig(**bad)

@@ -3,7 +3,7 @@
 - `GaussianModel` (vanilla 3DGS) and `ScaffoldModel` (Scaffold-GS): parameters, render, export;
 - `DefaultStrategy` / `ScaffoldStrategy` (densification, gsplat's strategy pattern);
 - loss terms: `PhotometricLoss` ((1 - 0.2) L1 + 0.2 (1 - SSIM), per-view weights from a
-  `ViewWeights` source, exclusion masks), `ScaleVolumeReg`; the protocol in `coin_cl.gs.terms`;
+  `ViewWeights` source, exclusion masks), `ScaleVolumeReg`, `NeedleReg`; the protocol in `coin_cl.gs.terms`;
 - `ShuffledEpochs` (view sampler);
 - `ParamOptimizer` / `ExpSchedule` (per-tensor Adam with schedules and row surgery);
 - `build_model`, `scaled_model_config`, `scaled_strategy`, `model_from_state` (the model kinds by name);
@@ -21,6 +21,7 @@ from coin_cl.gs.strategy import DefaultStrategy, ScaffoldStrategy, Strategy, def
 from coin_cl.gs.terms import (
     LossContext,
     LossTerm,
+    NeedleReg,
     PhotometricLoss,
     ScaleVolumeReg,
     StaticViewWeights,
@@ -38,6 +39,7 @@ __all__ = [
     "LossConfig",
     "LossContext",
     "LossTerm",
+    "NeedleReg",
     "ParamOptimizer",
     "PhotometricLoss",
     "ScaffoldConfig",

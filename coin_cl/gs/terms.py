@@ -181,6 +181,54 @@ class ScaleVolumeReg(LossTerm):
         return scales.prod(dim=1).mean()
 
 
+@dataclass
+class NeedleReg(LossTerm):
+    """Mean over the drawn Gaussians (`out.meta['scales']` [M, 3]) of
+    max(0, log(s_max / s_mid) - log(max_ratio)), s_max >= s_mid >= s_min their sorted scales.
+
+    A needle (one axis many times both others) draws a streak across every view it crosses; a disk
+    (two large axes, one small: a surface) is left alone, since only the two largest axes are
+    compared. Zero, with a zero gradient, for every Gaussian whose longest axis is at most
+    `max_ratio` times its middle one; in log space, so a needle's pull does not grow with its
+    length. With `in_mask`, the mean is over the Gaussians whose centre falls inside the view's
+    `meta['mask']` ([H, W] bool: the region no photo constrains), so that the weight means the same
+    whatever share of the view the mask is; elsewhere the photos constrain the shape (a model whose
+    scales come from one shared network, Scaffold-GS's, is pulled everywhere a little). A view whose
+    static weight is 0, or without a mask (or with no Gaussian centred in it) when `in_mask` is
+    set, adds nothing.
+    """
+
+    weight: float = 0.1
+    max_ratio: float = 4.0
+    in_mask: bool = False
+    name: str = "needle_reg"
+
+    def __post_init__(self) -> None:
+        if not (self.max_ratio >= 1.0 and np.isfinite(self.max_ratio)):
+            raise ValueError(f"NeedleReg.max_ratio is {self.max_ratio!r}: give a finite ratio >= 1")
+        if not (self.weight >= 0 and np.isfinite(self.weight)):
+            raise ValueError(f"NeedleReg.weight is {self.weight!r}: give a finite weight >= 0")
+
+    def __call__(self, ctx: LossContext) -> Tensor:
+        scales = ctx.out.meta["scales"]
+        mask = ctx.view.meta.get("mask") if self.in_mask else None
+        if ctx.view.weight == 0 or scales.shape[0] == 0 or (self.in_mask and mask is None):
+            return ctx.out.image.new_zeros(())
+        top2 = scales.topk(2, dim=1).values.clamp_min(torch.finfo(scales.dtype).tiny)
+        excess = (top2[:, 0].log() - top2[:, 1].log() - float(np.log(self.max_ratio))).clamp_min(0.0)
+        if mask is not None:
+            mask = torch.as_tensor(np.asarray(mask, bool))
+            h, w = mask.shape
+            px = ctx.out.meta["means2d"].detach().floor().long()
+            on = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+            inside = torch.zeros_like(on)
+            inside[on] = mask[px[on, 1], px[on, 0]]
+            if not bool(inside.any()):
+                return ctx.out.image.new_zeros(())
+            excess = excess[inside]
+        return excess.mean()
+
+
 def default_terms(kind: str, loss_cfg: LossConfig | None = None) -> list[LossTerm]:
     """The published loss of a model kind: photometric (both), + 0.01 x scale volume (Scaffold-GS)."""
     terms: list[LossTerm] = [PhotometricLoss(loss_cfg or LossConfig())]
