@@ -4,6 +4,7 @@ import pytest
 
 from coin_cl.engine import devices
 from coin_cl.engine.errors import NoDeviceError
+from coin_cl.engine.limits import min_raster_gpu_local_bytes
 from coin_cl.engine.runtime import Runtime, get_runtime
 
 # Kernel tests: CI runs them again on every OpenCL implementation present and under Oclgrind.
@@ -170,7 +171,10 @@ def test_a_capable_gpu_ranks_first(monkeypatch):
 
 @pytest.mark.parametrize(
     "local_mem, atomics, reason",
-    [(512, True, "local memory 512 B is below the 1100 B"), (48 * 1024, False, "neither a float atomic add")],
+    [
+        (512, True, f"local memory 512 B is below the {min_raster_gpu_local_bytes()} B"),
+        (48 * 1024, False, "neither a float atomic add"),
+    ],  # fmt: skip
 )
 def test_a_gpu_without_what_the_kernels_need_ranks_behind_the_cpu(
     monkeypatch, caplog, local_mem, atomics, reason
