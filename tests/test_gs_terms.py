@@ -249,6 +249,12 @@ def test_needle_regulariser_in_the_mask_counts_only_the_gaussians_centred_there(
     sphere_inside = torch.cat([torch.ones(1, 3), needle[1:]])
     assert float(term(_scales_ctx(sphere_inside, means2d=means2d, mask=mask))) == 0.0  # outside ones free
     assert float(term(_scales_ctx(needle, means2d=means2d))) == 0.0  # a view without a mask
+    # a culled splat (not drawn) or a NaN centre inside the mask does not count
+    culled = _scales_ctx(needle, means2d=means2d, mask=mask)
+    culled.out.meta["visible"] = torch.tensor([False, True, True, True])
+    assert float(term(culled)) == 0.0
+    nan_centre = _scales_ctx(needle, means2d=torch.full((4, 2), float("nan")), mask=mask)
+    assert float(term(nan_centre)) == 0.0
     everywhere = NeedleReg(max_ratio=4.0)(_scales_ctx(needle, means2d=means2d, mask=mask))
     assert math.isclose(float(everywhere), math.log(25.0), rel_tol=1e-5)
 

@@ -219,8 +219,11 @@ class NeedleReg(LossTerm):
         if mask is not None:
             mask = torch.as_tensor(np.asarray(mask, bool))
             h, w = mask.shape
-            px = ctx.out.meta["means2d"].detach().floor().long()
-            on = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+            m2 = ctx.out.meta["means2d"].detach()
+            # Drawn ones only: a culled splat's (behind the camera, NaN input) centre means nothing.
+            drawn = ctx.out.meta.get("visible", torch.ones(m2.shape[0], dtype=torch.bool))
+            px = torch.nan_to_num(m2, nan=-1.0).clamp(-1, max(w, h)).floor().long()
+            on = drawn & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
             inside = torch.zeros_like(on)
             inside[on] = mask[px[on, 1], px[on, 0]]
             if not bool(inside.any()):
