@@ -178,6 +178,53 @@ def test_killed_between_views_resumes_with_every_source_recorded(scene, tmp_path
         assert (tmp_path / "run" / "images" / p.name).read_bytes() == p.read_bytes(), p.name
 
 
+def test_threads_fill_the_same_images_as_one_and_are_not_part_of_the_key(scene, tmp_path, monkeypatch):
+    """The exemplar fills run several views at once (`Inpaint2DConfig.workers`); each view's fill
+    depends on its own seed alone, so three threads write the same bytes and record as one, and the
+    count does not rerun the stage."""
+    monkeypatch.delenv(LAMA_ENV, raising=False)
+    views = [i for i in scene.train_idx if scene.masks[i].any()][:5]
+    assert len(views) == 5
+    for n in (1, 3):
+        run_inpaint2d(
+            scene, scene.masks, views, tmp_path / str(n), Inpaint2DConfig(use_dataset=False, workers=n)
+        )
+    one, three = tmp_path / "1", tmp_path / "3"
+    assert (three / "sources.json").read_text() == (one / "sources.json").read_text()
+    names = sorted(p.name for p in (one / "images").iterdir())
+    assert len(names) == 5 and names == sorted(p.name for p in (three / "images").iterdir())
+    for name in names:
+        assert (three / "images" / name).read_bytes() == (one / "images" / name).read_bytes(), name
+    assert rerun_key(Inpaint2DConfig(workers=3)) == rerun_key(Inpaint2DConfig())
+    assert "workers" not in json.dumps(rerun_key(Inpaint2DConfig()))
+    for bad in (-1, 1.5, "2"):
+        with pytest.raises(ValueError, match="Inpaint2DConfig.workers"):
+            Inpaint2DConfig(workers=bad)
+
+
+def test_an_error_in_one_thread_is_raised_and_no_later_view_is_written(scene, tmp_path, monkeypatch):
+    """A view whose fill fails ends the stage with that error; the views after it are not
+    written (the pool's waiting fills are dropped), the ones before it are."""
+    import coin_cl.pipeline.inpaint2d as stage
+
+    monkeypatch.delenv(LAMA_ENV, raising=False)
+    views = [i for i in scene.train_idx if scene.masks[i].any()][:5]
+    real = stage.exemplar_inpaint
+    bad_view = scene.images[views[2]]
+
+    def failing(image, *a, **k):
+        if image is bad_view:
+            raise ValueError("exemplar inpainting: no fully known patch around the hole")
+        return real(image, *a, **k)
+
+    monkeypatch.setattr(stage, "exemplar_inpaint", failing)
+    with pytest.raises(ValueError, match="no fully known patch"):
+        run_inpaint2d(scene, scene.masks, views, tmp_path, Inpaint2DConfig(use_dataset=False, workers=2))
+    written = {p.name for p in (tmp_path / "images").iterdir()}
+    name = [scene.cameras[i].name.rsplit(".", 1)[0] + ".png" for i in views]
+    assert written == set(name[:2])
+
+
 def test_effective_prior_steps_come_from_the_plan():
     """The plan's measured prior step count reaches stage 1 (and CLG), unless the config fixes one."""
     from coin_cl.diffusion.scene_prior import ScenePriorConfig, steps_for_seconds

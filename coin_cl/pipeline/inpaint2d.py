@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -82,6 +83,11 @@ class Inpaint2DConfig:
     # virtual box, the embedded inpainter after a 10-minute run's split: unseen core 25.46 dB
     # against 22.59 (the render around it was 19.8 dB there, a grey wash the fill continued).
     context: str = "captures"
+    # Views the embedded exemplar inpainter fills at once, each in its own thread (numpy's gathers
+    # and OpenCV's solvers release the interpreter's lock). 0 (default): one per core this process
+    # may use. A view's fill depends on its own seed alone, so every count gives the same images;
+    # it is not part of the stage's rerun key.
+    workers: int = 0
 
     def __post_init__(self) -> None:
         from coin_cl.pipeline.models import SD2_MODES
@@ -99,6 +105,10 @@ class Inpaint2DConfig:
         if not (isinstance(self.exemplar_views, int) and self.exemplar_views >= 0):
             raise ValueError(f"Inpaint2DConfig.exemplar_views is {self.exemplar_views!r}: give an "
                              "integer >= 0")  # fmt: skip
+        if not (isinstance(self.workers, int) and self.workers >= 0):
+            raise ValueError(
+                f"Inpaint2DConfig.workers is {self.workers!r}: give an integer >= 0 (0: one per core)"
+            )
         if self.lama_path is not None and not Path(self.lama_path).expanduser().is_file():
             # Checked even where the scene's own inpaints make LaMa unneeded: a mistyped path is
             # said at once, not found out at the run that needs it.
@@ -140,7 +150,7 @@ def rerun_key(cfg: Inpaint2DConfig) -> dict:
     new file reruns it too)."""
     from coin_cl.pipeline.runner import jsonable
 
-    key = {"cfg": jsonable(cfg)}
+    key = {"cfg": {k: v for k, v in jsonable(cfg).items() if k != "workers"}}  # same fills at any count
     if resolve_inpainter(cfg) == "lama":
         src = cfg.lama_path or os.environ.get(LAMA_ENV)
         p = Path(src).expanduser() if src else None
@@ -162,6 +172,14 @@ def prior_key(cfg: Inpaint2DConfig, prior_seconds: float, prior_steps: int | Non
     # the measured step count (plans made before it have none: their key is unchanged)
     steps = {} if prior_steps is None else {"prior_steps": prior_steps}
     return {"prior_seconds": prior_seconds, **steps}
+
+
+def fill_workers(cfg: Inpaint2DConfig) -> int:
+    """The threads filling views at once: `cfg.workers`, or one per core this process may use."""
+    if cfg.workers:
+        return cfg.workers
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count() or 1)
+    return max(1, len(cores))
 
 
 def neighbour_views(i: int, views: list[int], k: int) -> list[int]:
@@ -283,34 +301,63 @@ def run_inpaint2d(
     from tqdm import tqdm
 
     image, hole = (scene.images, masks) if context is None else context  # what the inpainter sees
-    # a bar per view: the exemplar inpainter takes about a second a view, LaMa and SD2 much longer
-    for i in tqdm(views, desc="stage 1 inpaint", unit="view"):
-        name = Path(scene.cameras[i].name).stem + ".png"
-        path = img_dir / name
-        if path.is_file():
-            sources[name] = done.get(name, "(kept from an earlier run)")
-            continue
-        if not masks[i].any():
-            note(name, "captured image (no mask)")
-            write_png(path, to_uint8(scene.images[i]))
-            continue
-        if i in todo and kind == "embedded":
-            src = [(image[j], hole[j]) for j in neighbour_views(i, views, cfg.exemplar_views)]
-            img = exemplar_inpaint(image[i], hole[i], cfg.exemplar, seed=cfg.seed + i, sources=src)
-            src = EXEMPLAR_NAME
-        elif i in todo and kind == "lama":
-            fill = lama_inpaint(lama, image[i], hole[i])
-            img, src = paste(image[i], fill, hole[i], cfg.inpaint.feather_px, edge), LAMA_NAME
-        else:
-            img, src = inpaint_image(
-                image[i], hole[i], sd2=sd2 if i in by_sd2 else None, dataset_inpaint=dataset.get(i),
-                scene_prior=prior,
-                cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i, edge=edge,
-            )  # fmt: skip
-        if context is not None:
-            img = np.where(np.asarray(masks[i], bool)[..., None], img, scene.images[i])
-        note(name, src)
-        write_png(path, to_uint8(img))
+
+    def exemplar(i: int) -> np.ndarray:
+        src = [(image[j], hole[j]) for j in neighbour_views(i, views, cfg.exemplar_views)]
+        return exemplar_inpaint(image[i], hole[i], cfg.exemplar, seed=cfg.seed + i, sources=src)
+
+    def path_of(i: int) -> Path:
+        return img_dir / (Path(scene.cameras[i].name).stem + ".png")
+
+    # The exemplar fills run ahead in threads, at most two per worker waiting, and are written in
+    # view order by this thread (so a killed run resumes from the same finished views).
+    queue = [i for i in views if i in todo and kind == "embedded" and not path_of(i).is_file()]
+    workers = min(fill_workers(cfg), max(1, len(queue)))
+    pool = (
+        ThreadPoolExecutor(workers, thread_name_prefix="exemplar") if len(queue) > 1 and workers > 1 else None
+    )
+    ahead: dict[int, Future] = {}
+
+    def fill_of(i: int) -> np.ndarray:
+        if pool is None:
+            return exemplar(i)
+        while queue and len(ahead) < 2 * workers:
+            j = queue.pop(0)
+            ahead[j] = pool.submit(exemplar, j)
+        return ahead.pop(i).result()
+
+    if pool is not None:
+        log.info("1_inpaint: the exemplar inpainter fills %d views, %d at a time", len(queue), workers)
+    try:
+        # a bar per view: the exemplar inpainter takes about a second a view, LaMa and SD2 much longer
+        for i in tqdm(views, desc="stage 1 inpaint", unit="view"):
+            name = path_of(i).name
+            path = path_of(i)
+            if path.is_file():
+                sources[name] = done.get(name, "(kept from an earlier run)")
+                continue
+            if not masks[i].any():
+                note(name, "captured image (no mask)")
+                write_png(path, to_uint8(scene.images[i]))
+                continue
+            if i in todo and kind == "embedded":
+                img, src = fill_of(i), EXEMPLAR_NAME
+            elif i in todo and kind == "lama":
+                fill = lama_inpaint(lama, image[i], hole[i])
+                img, src = paste(image[i], fill, hole[i], cfg.inpaint.feather_px, edge), LAMA_NAME
+            else:
+                img, src = inpaint_image(
+                    image[i], hole[i], sd2=sd2 if i in by_sd2 else None, dataset_inpaint=dataset.get(i),
+                    scene_prior=prior,
+                    cfg=cfg.inpaint, prompt=prompt, seed=cfg.seed + i, edge=edge,
+                )  # fmt: skip
+            if context is not None:
+                img = np.where(np.asarray(masks[i], bool)[..., None], img, scene.images[i])
+            note(name, src)
+            write_png(path, to_uint8(img))
+    finally:
+        if pool is not None:  # an error or Ctrl-C: the views not started are dropped
+            pool.shutdown(wait=True, cancel_futures=True)
     sources = {**done, **sources}
     write_text(record, json.dumps(sources, indent=1, sort_keys=True))
     names = sorted(set(sources.values()))
