@@ -1,10 +1,12 @@
 """Remove the box from the shared SPIn-NeRF scene with CoIn and score it against the ground truth.
 
     python examples/remove_spinnerf.py [--data ../shared/data/spinnerf_scene1] [--budget 10]
-        [--out runs/spinnerf] [--iters N --prior-seconds S --clg-steps N]   # (smoke runs)
+        [--out runs/spinnerf] [--iters N] [--prior-sampler [--prior-seconds S --clg-steps N]]
 
-Uses the dataset's LaMa inpaints as the initial 2D results (seg masks), the embedded scene prior for
-CLG and the analytic features (no weights needed); pass --sd-path / --dino-path for the paper's models.
+Uses the dataset's LaMa inpaints as the initial 2D results (seg masks); CLG propagates the reference
+without a sampler (the default: the embedded scene prior's sampler did not pay for its minutes here),
+or with `--prior-sampler` samples with the scene prior and the analytic features (no weights
+needed); pass --sd-path / --dino-path for the paper's models.
 """
 
 from __future__ import annotations
@@ -33,13 +35,15 @@ def main(argv: list[str] | None = None):
     ap.add_argument("--sd-path", default=None)
     ap.add_argument("--dino-path", default=None)
     ap.add_argument("--iters", type=int, default=None, help="explicit iterations per training stage")
+    ap.add_argument("--prior-sampler", action="store_true", help="CLG samples with the embedded scene prior")
     ap.add_argument("--prior-seconds", type=float, default=None, help="scene prior training (smoke runs)")
     ap.add_argument("--clg-steps", type=int, default=None, help="CLG's DDIM steps (default: the model's)")
     args = ap.parse_args(argv)
 
     scene = coin_cl.load_scene(args.data)
     cfg = CoInConfig(resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
-                     prior_seconds=args.prior_seconds, clg=CLGConfig(steps=args.clg_steps))  # fmt: skip
+                     prior_seconds=args.prior_seconds,
+                     clg=CLGConfig(steps=args.clg_steps, prior_sampler=args.prior_sampler))  # fmt: skip
     cfg = cfg.with_iters(args.iters)
     result = coin_cl.inpaint(scene, args.out, mask_kind="seg", budget=args.budget, config=cfg)
     if result.metrics:

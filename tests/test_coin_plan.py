@@ -164,13 +164,15 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     """The dataset's own fills are read, not computed: only the masked training views without one
     count towards stage 1's estimate; the embedded inpainter fills every masked view; CLG guides every
     masked view either way (with a sampler, or propagating the reference without one: the default
-    on the embedded inpainter's fills without SD2), and is absent when skipped."""
+    without SD2, on any fills), and is absent when skipped."""
     from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig
 
     cfg = CoInConfig()
     views = CP.fixed_views(_Scene(), cfg, [0, 1, 2, 3])
-    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg": 4, "eval": 4}  # a learned inpainter's fills
+    # a learned inpainter's fills: stage 1 reads them; CLG propagates (no SD2, no prior_sampler)
+    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg_propagate": 4, "eval": 4}
+    assert CP.fixed_views(_Scene(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])["3_clg"] == 4
     own = CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2, 3])  # the exemplar's: CLG without a sampler
     assert own == {"0_scene": 4, "1_inpaint": 4, "3_clg_propagate": 4, "eval": 4}
     sampled = CP.fixed_views(_OwnCapture(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])

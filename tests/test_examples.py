@@ -77,14 +77,16 @@ def test_remove_bbox(room, tmp_path):
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_remove_spinnerf(spinnerf_dir, tmp_path):
-    # the shared scene at 1/8 of its size (126x71), 3 steps per GS stage, the dataset's LaMa inpaints.
-    # Slow (90-110 s on 2 loaded cores): its 58k SfM points make 586k Gaussians, and the eval stage
+    # the shared scene at 1/8 of its size (126x71), 3 steps per GS stage, the dataset's LaMa inpaints,
+    # CLG with the scene prior's sampler (the example's option; the default propagates).
+    # Slow (70-110 s on 2 cores): its 58k SfM points make 586k Gaussians, and the eval stage
     # renders 39 views and a 36-frame orbit of them; the image size hardly matters.
     res = load("remove_spinnerf").main(["--data", str(spinnerf_dir), "--out", str(tmp_path / "s"),
-                                        "--resolution", "0.125", "--iters", "3", "--prior-seconds", "1",
-                                        "--clg-steps", "2"])  # fmt: skip
+                                        "--resolution", "0.125", "--iters", "3", "--prior-sampler",
+                                        "--prior-seconds", "1", "--clg-steps", "2"])  # fmt: skip
     assert res.ply.is_file() and np.isfinite(res.metrics["m_psnr"])
     assert "dataset" in " ".join(res.stages["1_inpaint"]["result"]["sources"])
+    assert any("CLG model: " in n for n in res.stages["3_clg"]["notes"])  # the prior sampled
 
 
 def test_use_sd2(room, tmp_path):

@@ -105,14 +105,14 @@ class CLGConfig:
     # exposure, no seam) or pasted as it is (False: an edited reference, whose inserted object must
     # keep the edit's colours).
     propagate: bool = True
-    # Without Stable Diffusion 2, on the embedded inpainters' fills (the exemplar, Telea), CLG samples
-    # with the embedded scene prior (True: the paper's guided sampler on a 64 px model trained on the
-    # scene's own pixels, minutes of training) or, by default (False), runs without a sampler: every
-    # view's hole takes the reference's answer propagated (`propagate`), kept only where it is no
-    # worse than the view's initial inpaint (`keep_if_worse` applies as `warp_guard`), and the prior's
-    # minutes go to the GS stages (`coin_plan.clg_samples`). On a learned inpainter's fills (the
-    # dataset's, LaMa) the prior samples either way, and with SD2 the sampler is SD2. Measured on the
-    # real captures: docs/RESULTS.md, "CLG with and without the scene prior's sampler".
+    # Without Stable Diffusion 2, CLG samples with the embedded scene prior (True: the paper's guided
+    # sampler on a 64 px model trained on the scene's own pixels, minutes of training) or, by default
+    # (False), runs without a sampler: every view's hole takes the reference's answer propagated
+    # (`propagate`), kept only where it is no worse than the view's initial inpaint (`keep_if_worse`
+    # applies as `warp_guard`), and the prior's minutes go to the GS stages (`coin_plan.clg_samples`),
+    # on any stage-1 fills (the exemplar's, Telea's, LaMa's, the dataset's). With SD2 the sampler is
+    # SD2. Measured: docs/RESULTS.md, "CLG with and without the scene prior's sampler" (the
+    # exemplar's fills), docs/BENCHMARKS.md, "CLG's sampler on learned fills" (SPIn-NeRF's LaMa fills).
     prior_sampler: bool = False
     # keep_if_worse also for the warp-only fill (sample False). Off by default because that fill's
     # main use is an edited reference, whose warp adds an object with colours and texture its
