@@ -331,8 +331,8 @@ def run_inpaint2d(
     try:
         # a bar per view: the exemplar inpainter takes about a second a view, LaMa and SD2 much longer
         for i in tqdm(views, desc="stage 1 inpaint", unit="view"):
-            name = path_of(i).name
             path = path_of(i)
+            name = path.name
             if path.is_file():
                 sources[name] = done.get(name, "(kept from an earlier run)")
                 continue
