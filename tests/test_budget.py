@@ -361,6 +361,13 @@ def test_a_budget_too_small_is_refused_with_the_minimum_that_fits(tmp_path):
     with pytest.raises(B.BudgetTooSmall) as slower:
         _plan(tmp_path / "slow", 3, spp=0.4, prior=1.8)
     assert slower.value.minimum > least
+    assert "scene prior ~" in str(exc.value)  # its floor is part of the minimum
+    # a run that trains no prior: neither counted nor named
+    with pytest.raises(B.BudgetTooSmall) as untrained:
+        B.plan_run(tmp_path / "untrained", {"k": 3}, 3, _NONE, None, lambda: 0.2, lambda: 0.9,
+                   lambda: 0.05, shares=_REFINED, views=_VIEWS, probe_wall_seconds=5.0,
+                   prior_trained=False)  # fmt: skip
+    assert "scene prior" not in str(untrained.value) and untrained.value.minimum < least
 
 
 def test_a_resumed_run_reuses_its_plan_without_probing(tmp_path):

@@ -494,8 +494,8 @@ def too_small(
     return BudgetTooSmall(
         f"--budget {budget_minutes:g} minutes cannot fit this run on this machine: it needs at least "
         f"{least:g} minutes (probes and fixed stages ~{others / 60:.1f} min, "
-        f"scene prior ~{floor / 60:.1f} min, "
-        f"the fewest useful GS steps ({mins}) ~{need / 60:.1f} min); give --budget {least:g} or more, "
+        + (f"scene prior ~{floor / 60:.1f} min, " if trained else "")
+        + f"the fewest useful GS steps ({mins}) ~{need / 60:.1f} min); give --budget {least:g} or more, "
         "or fixed step counts with --iters", least)  # fmt: skip
 
 
