@@ -364,6 +364,54 @@ def test_removal_holds_every_mask_to_its_background_depth(first_run):
     assert any("keeps the background depth term" in n for n in res.stages["4_ted"]["notes"])
 
 
+def test_seed_background_puts_anchors_behind_the_object(room, first_run, tmp_path, monkeypatch):
+    """`CoInConfig.seed_background` hands Ref-GS seed points on D_bg seen through the reference's
+    mask, behind the object (farther than the object's own sparse points there); the default (off)
+    hands none. Neither the w/o Ref-GS row (so the naive one) nor an insertion seeds."""
+    import coin_cl.pipeline.refgs as refgs_mod
+    from coin_cl.gs.background_depth import dilate_mask
+    from coin_cl.gs.carve import CarveConfig
+    from coin_cl.pipeline.coin import mask_dilation
+    from coin_cl.pipeline.reference import choose_reference
+    from coin_cl.pipeline.runner import share_stages
+    from coin_cl.pipeline.stages import seeds_background
+    from coin_cl.scene.masks import derive_mask
+
+    out, res = first_run
+    assert not any("seed anchors" in n for n in res.stages["2_refgs"]["notes"])
+    got, real = [], refgs_mod.run_refgs
+
+    def spy(*args, **kw):
+        got.append(kw["seed_points"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(refgs_mod, "run_refgs", spy)
+    on = tmp_path / "on"
+    share_stages(out, on, ("0_scene", "1_inpaint"))
+    res_on = inpaint(room, on, config=replace(TINY, seed_background=True, skip=("clg", "ted")))
+    assert res_on.stages["2_refgs"]["status"] == "ran"  # the setting is in Ref-GS's key
+    notes = res_on.stages["2_refgs"]["notes"]
+    assert any("behind the object in the reference view seed anchors" in n for n in notes)
+    pts, cols = got[0]
+    assert len(pts) > 20 and cols.shape == (len(pts), 3) and np.isfinite(pts).all()
+    scene = load_scene(out / "0_scene" / "scene")
+    k = choose_reference(scene)
+    # the reference's training mask as the carve's background depth holds it (grown by its dilate_px)
+    mask = derive_mask(scene.masks[k], "seg", dilate=mask_dilation(scene, TINY))
+    cam, mask = scene.cameras[k], dilate_mask(mask, CarveConfig().dilate_px)
+    px, ok = cam.pixels(pts)
+    assert ok.all() and mask[px[:, 1], px[:, 0]].mean() > 0.95  # seen through the reference's mask
+    # behind the object: deeper than most sparse points seen through that mask, which are the
+    # object's (measured: seeds' median camera z 3.13, the points' 2.33)
+    opx, ook = cam.pixels(scene.points)
+    seen = ook & mask[opx[:, 1], opx[:, 0]]
+    assert np.median(cam.project(pts)[1]) > 1.2 * np.median(cam.project(scene.points[seen])[1])
+    on_cfg = replace(TINY, seed_background=True)
+    assert not seeds_background(replace(on_cfg, skip=("refgs",)), None)
+    assert not seeds_background(on_cfg, np.zeros((4, 4, 3), np.float32))
+    assert seeds_background(on_cfg, None) and not seeds_background(TINY, None)
+
+
 def test_removal_lays_one_learning_rate_schedule_over_ref_gs_and_te_d(first_run):
     """TEDConfig.rates "auto" is "continue" in a removal: Ref-GS's schedules span its own and the
     fine-tune's steps, and TE-D goes on from where Ref-GS stopped."""

@@ -49,6 +49,7 @@ from coin_cl.pipeline.schedule import refgs_schedule_span, stage_schedule
 from coin_cl.pipeline.stages import (
     carves,
     load_model,
+    seeds_background,
     stage_clg_adapter,
     stage_inpaint,
     stage_refgs,
@@ -431,6 +432,7 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
                                                       and cfg.ted.rates == "continue"),
                 "seed": cfg.seed,
                 "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
+                "seed_background": seeds_background(cfg, edited),
                 "plain": "refgs" in cfg.skip, **observed_key}  # fmt: skip
 
     stages: list[Stage[RunInputs]] = [

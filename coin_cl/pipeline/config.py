@@ -45,7 +45,11 @@ class CoInConfig:
     and on the synthetic room gained 1.1 dB m-PSNR but blurred (docs/RESULTS.md). observed
     "captures" against "target" at 1501 GS steps with the rooms' exact masks (one machine): room
     m-PSNR 22.44 / 22.25, HF ratio 0.793 / 0.780, GMSD 0.140 / 0.139; room360 22.49 / 22.44, 0.906 /
-    0.862, 0.137 / 0.142 (docs/RESULTS.md, "The observed part from the captures by default")."""
+    0.862, 0.137 / 0.142 (docs/RESULTS.md, "The observed part from the captures by default").
+    `seed_background` on a Zen 3 (docs/BENCHMARKS.md, "Anchors seeded behind the object"): SPIn-NeRF
+    at fixed steps m-PSNR 13.27 against 13.04 and masked VGG-PD 3.95 against 4.15, but the cup
+    capture's default run at budget 10 lost 0.67 dB m-PSNR (25.15 against 25.82), the reference's
+    darker fill spread into every view."""
 
     # The shape of mask given for the object: "seg" | "bbox" | "scribble" (the latter two derived
     # from the scene's segmentation masks). Default "seg": the paper's main setting.
@@ -115,10 +119,16 @@ class CoInConfig:
     inpaint_region: str = "auto"
     # The refined masks' settings (`pipeline.refine_masks`).
     refine: RefineConfig = field(default_factory=RefineConfig)
-    # Removal carves the object's volume out of the GS for good (`gs.carve`) and seeds anchors on
-    # the background behind it; not with insertion or the w/o Ref-GS row. Default False: it cost
-    # SPIn-NeRF 0.7 dB m-PSNR (class docstring).
+    # Removal carves the object's volume out of the GS for good (`gs.carve`); not with insertion or
+    # the w/o Ref-GS row. Default False: with `seed_background` it cost SPIn-NeRF 0.7 dB m-PSNR
+    # (class docstring).
     carve: bool = False
+    # Removal seeds Ref-GS's anchors on the background surface behind the object in the reference
+    # view (D_bg inside its mask, `gs.carve.background_points`), coloured by the reference's fill, so
+    # that the hole has primitives from the first step instead of waiting for growth to reach it;
+    # not with insertion or the w/o Ref-GS row (so not in the naive row). Default False: one wrong
+    # fill in the reference then colours every view (class docstring).
+    seed_background: bool = False
     # The carve's settings (`gs.carve`; also the "auto" region's visibility estimate).
     carve_cfg: CarveConfig = field(default_factory=CarveConfig)
     # How the observed part of a refined mask reaches the model, from OBSERVED: "captures"

@@ -196,7 +196,7 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
     lift = read_lift(ctx.inputs["1_inpaint"])
     # The object's volume is the input masks', also when refined masks narrow what is inpainted (the
     # carve here, the pruning vote and the background depth in run_refgs's object_masks).
-    attach, bg = _carve_hook(ctx, ctx.run.scene, ctx.run.masks, train)
+    attach, bg = _background_hook(ctx, ctx.run.scene, ctx.run.masks, train)
     seed_points = None if lift is None else (lift.points, lift.colors)
     if bg is not None and len(bg):
         k = ctx.run.ref
@@ -243,30 +243,50 @@ def _observed_excluded(
 
 def carves(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
     """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
-    return cfg.carve and "refgs" not in cfg.skip and edited is None and not cfg.prompt
+    return cfg.carve and _removal_with_refgs(cfg, edited)
 
 
-def _carve_hook(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int]):
-    """(trainer callback that gives the model the carve volume, seed points on the background
-    behind the object in the reference view), or (None, None) when this run does not carve."""
+def seeds_background(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
+    """Whether this run seeds anchors on the background behind the object (removal with Ref-GS;
+    see `CoInConfig.seed_background`)."""
+    return cfg.seed_background and _removal_with_refgs(cfg, edited)
+
+
+def _removal_with_refgs(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
+    return "refgs" not in cfg.skip and edited is None and not cfg.prompt
+
+
+def _background_hook(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int]):
+    """(trainer callback that gives the model the carve volume, or None when this run does not
+    carve; seed points on the background behind the object in the reference view, or None when this
+    run does not seed). Both come from the carve's background depth D_bg (`gs.carve`)."""
     cfg = ctx.run.cfg
-    if not carves(cfg, ctx.run.edited):
+    carve, seed = carves(cfg, ctx.run.edited), seeds_background(cfg, ctx.run.edited)
+    if not (carve or seed):
         return None, None
     from coin_cl.gs.carve import background_points, build_carve
 
     cams = [scene.cameras[i] for i in train]
     vol = build_carve(cams, [masks[i] for i in train], np.asarray(scene.points), cfg.carve_cfg)
     if vol is None:
+        ctx.note("no background depth behind the object (too few sparse points around the masks): "
+                 "no carve, no background seeds")  # fmt: skip
         return None, None
-    ref = ctx.run.ref
-    with_mask = [i for i in train if np.asarray(masks[i]).any()]
-    pts = background_points(vol, with_mask.index(ref)) if ref in with_mask else np.zeros((0, 3), np.float32)
-    import torch
+    pts = None
+    if seed:
+        ref = ctx.run.ref
+        with_mask = [i for i in train if np.asarray(masks[i]).any()]
+        j = with_mask.index(ref) if ref in with_mask else None  # the carve holds the views with a mask
+        pts = np.zeros((0, 3), np.float32) if j is None else background_points(vol, j)
+        import torch
 
-    inside = vol.contains(torch.as_tensor(pts)).numpy() if len(pts) else np.zeros(0, bool)
-    pts = pts[~inside]  # on the background surface, not in front of it
-    ctx.note(f"carving the object's volume: D_bg from {len(scene.points)} sparse points in {len(vol)} views; "
-             f"{len(pts)} background points behind the object seed anchors")  # fmt: skip
+        inside = vol.contains(torch.as_tensor(pts)).numpy() if len(pts) else np.zeros(0, bool)
+        pts = pts[~inside]  # on the background surface, not in front of it
+        ctx.note(f"{len(pts)} points on the background behind the object in the reference view seed "
+                 f"anchors (D_bg from {len(scene.points)} sparse points), coloured by its fill")  # fmt: skip
+    if not carve:
+        return None, pts
+    ctx.note(f"carving the object's volume: D_bg from {len(scene.points)} sparse points in {len(vol)} views")
 
     def attach(trainer, step):
         if getattr(trainer.model, "carve", "n/a") is None:
