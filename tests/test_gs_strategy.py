@@ -221,6 +221,25 @@ def test_a_model_built_above_its_cap_does_not_grow_and_says_so(caplog):
     assert "cap 100 = 1 per training pixel x 100 pixels" in msg and "starts above the cap" in msg
 
 
+def test_a_floor_lets_a_model_built_above_its_per_pixel_cap_grow_to_it(caplog):
+    # The same model and per-pixel cap (10 anchors; the model has 20), with a floor of 21 anchors
+    # (`min_cap`, what Ref-GS sets from its initial size): room for one, the steeper cell grows.
+    st = _grower(gaussians_per_pixel=1.0)
+    m = _two_cell_model(st)
+    st.train_pixels = 100
+    st.min_cap = 210
+    lim = st.size_limit(m)
+    assert lim["anchors"] == 21 and lim["reason"] == (
+        "cap 210 (the caller's floor, min_cap) over the per-pixel cap 100 = 1 per training pixel x 100 pixels"
+    )
+    with caplog.at_level(logging.INFO, logger="coin_cl.gs.strategy"):
+        ev = st.adjust_anchors(m)
+    assert ev == {"grown": 1, "pruned": 2, "held_back": 1}
+    assert m.p["anchors"].data[-1].tolist() == [4.0, -6.0, 2.0]
+    st.min_cap, st.gaussians_per_pixel = 5000, 0.0  # no per-pixel cap: the floor adds none
+    assert st.size_limit(m)["anchors"] == st.max_anchors
+
+
 @pytest.mark.parametrize("cap", [0.0, 0.2])
 def test_scaffold_run_never_exceeds_its_cap_and_says_why(cap, caplog):
     # Aggressive growth (every offset qualifies, every 4 steps) on a tiny scene: without a cap the

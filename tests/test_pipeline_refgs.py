@@ -105,7 +105,7 @@ def test_stage_writes_every_output(room, tmp_path):
 def test_growth_cap_reaches_the_strategy(room, tmp_path):
     # The cap Ref-GS grows under: per pixel of its training views, as log.json records it.
     syn, scene, targets = room
-    cfg = _cfg(feature_attention=False, depth_loss=False)
+    cfg = _cfg(feature_attention=False, depth_loss=False, growth_over_initial=1.0)  # the per-pixel cap alone
     res = run_refgs(scene, targets, tmp_path / "c", cfg, budget_minutes=None, iters=12, seed=0,
                     gaussians_per_pixel=0.5)  # fmt: skip
     st = json.loads(Path(res["log"]).read_text())["strategy"]
@@ -113,6 +113,12 @@ def test_growth_cap_reaches_the_strategy(room, tmp_path):
     assert st["gaussians_per_pixel"] == 0.5 and st["train_pixels"] == pixels
     assert st["size_limit"]["neural_gaussians"] == int(0.5 * pixels) // 10 * 10
     assert st["size_limit"]["reason"] == f"cap {int(0.5 * pixels)} = 0.5 per training pixel x {pixels} pixels"
+    # a per-pixel cap below the initial model: growth may still reach growth_over_initial x its size
+    res = run_refgs(scene, targets, tmp_path / "f", _cfg(feature_attention=False, depth_loss=False),
+                    budget_minutes=None, iters=12, seed=0, gaussians_per_pixel=1e-4)  # fmt: skip
+    st = json.loads(Path(res["log"]).read_text())["strategy"]
+    assert st["min_cap"] > int(1e-4 * pixels) and "min_cap" in st["size_limit"]["reason"]
+    assert st["size_limit"]["neural_gaussians"] == st["min_cap"] // 10 * 10
 
 
 def test_schedule_iters_lay_the_decay_and_growth_over_the_longer_run(room, tmp_path):

@@ -99,6 +99,12 @@ class RefGSConfig:
     # filled it and blurred the whole view (Ref-GS alone, 1,375 steps: PSNR outside the masks 27.27
     # uncapped, 27.95 at 1.0, 28.88 at 0.3; docs/BENCHMARKS.md "The depth terms' share"). 0: uncapped.
     aux_grad_ratio: float = balance.RATIO
+    # Growth may take the model to at least this many times its initial neural Gaussians, also where
+    # the per-pixel cap (`ScaffoldStrategy.gaussians_per_pixel`) is below that: a scene whose sparse
+    # points start above the cap (SPIn-NeRF scene 1: 0.11 per pixel) would otherwise never grow, and
+    # the hole keeps the few anchors left after the object's points are pruned (a blur; grown, the
+    # gravel's grain crosses it: docs/BENCHMARKS.md, "Growth cap"). 1 = the per-pixel cap alone.
+    growth_over_initial: float = 1.5
     # RNG seed of Ref-GS (model init, training, attention). None (default): the run's seed (`seed` of
     # `run_refgs`, `CoInConfig.seed` in a CoIn run; the resolved value is in log.json's 2_refgs settings).
     seed: int | None = None
@@ -125,6 +131,9 @@ class RefGSConfig:
         if self.lambda_bg_depth < 0 or self.bg_depth_margin < 0 or self.bg_depth_behind < 0:
             raise ValueError("lambda_bg_depth, bg_depth_margin and bg_depth_behind must be >= 0")
         balance.check_ratio(self.aux_grad_ratio)
+        if not (math.isfinite(self.growth_over_initial) and self.growth_over_initial >= 1.0):
+            raise ValueError(f"RefGSConfig.growth_over_initial is {self.growth_over_initial!r}: give a "
+                             "number >= 1 (1: the per-pixel cap alone)")  # fmt: skip
         if self.lambda_depth < 0:
             raise ValueError(f"lambda_depth must be >= 0, got {self.lambda_depth}")
         if not 0.0 <= self.attn_from <= 1.0:

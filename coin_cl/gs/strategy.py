@@ -289,7 +289,8 @@ class ScaffoldStrategy(Strategy):
     train_pixels)` (and anchors at most `max_anchors`). When more new anchors qualify than the cap
     leaves room for, those whose offsets had the steepest screen gradients grow; the first time
     the cap holds growth back the log says so once, with the count and its reason. The cap bounds
-    growth only: a model built above it (dense SfM points) keeps its anchors and does not grow.
+    growth only: a model built above it (dense SfM points) keeps its anchors and grows only to
+    `min_cap`, the floor a caller may set (Ref-GS: a multiple of its initial size).
 
     Statistics: opacity_accum [A], anchor_denom [A], offset_grad_accum [A*k], offset_denom [A*k]
     (k offsets per anchor).
@@ -312,9 +313,12 @@ class ScaffoldStrategy(Strategy):
     # views, 6.7 M pixels, 53 k neural Gaussians from SfM) it held the test views' PSNR of no cap
     # (within 0.15 dB) at 600 steps, where 0.01 lost 0.6 dB, and stops the growth that took
     # longer runs to 0.03-0.04 per pixel (docs/BENCHMARKS.md, "Growth cap"). A model built above
-    # it does not grow: SPIn-NeRF scene 1 starts at 0.11 per pixel, and its Ref-GS scored 0.5 dB
-    # higher without growth than with it.
+    # it grows only to `min_cap` (SPIn-NeRF scene 1 starts at 0.11 per pixel).
     gaussians_per_pixel: float = 0.02
+    # Growth may reach at least this many neural Gaussians whatever `gaussians_per_pixel` gives
+    # (Ref-GS sets it from the model's initial size, `RefGSConfig.growth_over_initial`); 0: no floor.
+    # No effect without the per-pixel cap (`max_anchors` alone bounds growth then).
+    min_cap: int = 0
 
     _stats = ("opacity_accum", "anchor_denom", "offset_grad_accum", "offset_denom")
 
@@ -334,10 +338,13 @@ class ScaffoldStrategy(Strategy):
         """{'anchors': the most anchors growth may reach, 'neural_gaussians': that x k,
         'reason': why (the per-pixel cap, or `max_anchors`)}."""
         k = model.cfg.n_offsets
-        cap = neural_gaussian_cap(self.gaussians_per_pixel, getattr(self, "train_pixels", 0))
+        per_pixel = neural_gaussian_cap(self.gaussians_per_pixel, getattr(self, "train_pixels", 0))
+        cap = max(per_pixel, self.min_cap) if per_pixel else 0
         if cap and cap // k < self.max_anchors:
-            reason = (f"cap {cap} = {self.gaussians_per_pixel:g} per training pixel x "
+            reason = (f"cap {per_pixel} = {self.gaussians_per_pixel:g} per training pixel x "
                       f"{self.train_pixels} pixels")  # fmt: skip
+            if cap > per_pixel:
+                reason = f"cap {cap} (the caller's floor, min_cap) over the per-pixel {reason}"
             return {"anchors": cap // k, "neural_gaussians": cap // k * k, "reason": reason}
         reason = f"max_anchors {self.max_anchors} (memory guard)"
         return {"anchors": self.max_anchors, "neural_gaussians": self.max_anchors * k, "reason": reason}

@@ -105,8 +105,9 @@ STEP_COST.update({k: STEP_COST["refgs"] * r for k, r in TED_PER_REFGS_STEP.items
 # captures: the model grows) of Ref-GS's mean step. Its step cost grows with the model's size to
 # this power, and the model reaches its size cap early in the run, so the mean step is the grown
 # one: cup_plain at budget 10, 52.8k -> 134k neural Gaussians (2.55x), first steps 0.077 s, mean
-# 0.127, last fifth 0.150 (2.55^0.55 = 1.67: 0.129); a model that starts at its cap does not grow
-# (SPIn-NeRF: 553k against a cap of 97k, mean step 0.91-1.07x the first steps').
+# 0.127, last fifth 0.150 (2.55^0.55 = 1.67: 0.129). A model that starts above its per-pixel cap
+# may grow to Ref-GS's floor (`RefGSConfig.growth_over_initial`): SPIn-NeRF at budget 10 planned a
+# mean step of 0.73 s from first steps of 0.58 s (553k -> 597k, late steps 1.0 s).
 GROWTH_COST_EXPONENT = 0.55
 PROBE_STEPS = 12  # timed steps, after PROBE_WARMUP untimed ones (kernel builds, first allocations)
 PROBE_WARMUP = 3

@@ -334,6 +334,8 @@ def run_refgs(
         strategy = scaled_strategy("scaffold", n + extra)
         if gaussians_per_pixel is not None:
             strategy = replace(strategy, gaussians_per_pixel=float(gaussians_per_pixel))
+        if cfg.growth_over_initial > 1.0:  # from the model as built from the points, the same on a resume
+            strategy = replace(strategy, min_cap=int(cfg.growth_over_initial * model.n_primitives))
         return Trainer(model, views, [], tcfg, folder, cb, strategy=strategy, terms=terms)
 
     if replan_seconds is not None and replan is None and not (out / "gs" / "ckpt.pt").is_file():
