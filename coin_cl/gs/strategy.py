@@ -336,7 +336,7 @@ class ScaffoldStrategy(Strategy):
 
     def size_limit(self, model: Model) -> dict[str, Any]:
         """{'anchors': the most anchors growth may reach, 'neural_gaussians': that x k,
-        'reason': why (the per-pixel cap, or `max_anchors`)}."""
+        'reason': why (the per-pixel cap, the caller's floor `min_cap` above it, or `max_anchors`)}."""
         k = model.cfg.n_offsets
         per_pixel = neural_gaussian_cap(self.gaussians_per_pixel, getattr(self, "train_pixels", 0))
         cap = max(per_pixel, self.min_cap) if per_pixel else 0
