@@ -111,7 +111,7 @@ class CLGConfig:
     # (`propagate`), kept only where it is no worse than the view's initial inpaint (`keep_if_worse`
     # applies as `warp_guard`), and the prior's minutes go to the GS stages (`coin_plan.clg_samples`),
     # on any stage-1 fills (the exemplar's, Telea's, LaMa's, the dataset's). With SD2 the sampler is
-    # SD2. Measured: docs/RESULTS.md, "CLG with and without the scene prior's sampler" (the
+    # SD2. Measured: docs/history/RESULTS-2026.md, "CLG with and without the scene prior's sampler" (the
     # exemplar's fills), docs/BENCHMARKS.md, "CLG's sampler on learned fills" (SPIn-NeRF's LaMa fills).
     prior_sampler: bool = False
     # keep_if_worse also for the warp-only fill (sample False). Off by default because that fill's
