@@ -323,11 +323,6 @@ def stage_clg(
     else:
         points = reference_points(scene.cameras[k], depths[k], masks[k])
         ctx.note(f"P_k: {len(points)} points unprojected from the reference render's depth")
-    if (ctx.inputs["1_inpaint"] / "edit" / "points.ply").is_file():
-        # not harmonised either: the inserted object's colours are the edit's, not its surroundings'
-        cfg = replace(cfg, sample=False, propagate=False)
-        ctx.note("edited reference: no sampler (no model here can draw the inserted object); each hole pixel "
-                 "takes the reference warped through P_k, or R_n where P_k does not reach")  # fmt: skip
     sd2_plan = ctx.inputs["1_inpaint"] / "sd2.json"
     sd2 = parse_optional(sd2_plan, SD2_PLAN, run_folder_fix(sd2_plan, "stage 1 runs again"))
     if cfg.sample and sd2 is not None and sd2["mode"] == "reference_only":

@@ -69,9 +69,8 @@ class CLGConfig:
     progress: bool = True
     # False = no diffusion sampler: every hole pixel takes the energy's own target, the reference's
     # colour warped through P_k where supported (S) and R_n elsewhere, i.e. the minimiser of E(X) with
-    # the RGB term alone (`warp_fill`). The pipeline sets it for an edited reference
-    # (`coin_cl.pipeline.insert`), where no model can draw the inserted object and a sampler would
-    # paint the hole with the scene's own textures.
+    # the RGB term alone (`warp_fill`). The pipeline sets it without Stable Diffusion 2 unless
+    # `prior_sampler` asks (`coin_plan.clg_samples`) and in SD2's reference_only mode.
     sample: bool = True
     # Where the output's band above the sampler's working resolution comes from, from DETAILS
     # (`coin_cl.pipeline.clg_detail`): "reference" (default; class docstring) the reference's detail
@@ -102,8 +101,7 @@ class CLGConfig:
     # Without a sampler (`sample` False): the reference warped into view n's hole is blended in the
     # gradient domain against view n's own surroundings (True, `clg_view.propagated`,
     # `coin_cl.diffusion.poisson.poisson_blend`: the reference's texture in view n's light and
-    # exposure, no seam) or pasted as it is (False: an edited reference, whose inserted object must
-    # keep the edit's colours).
+    # exposure, no seam) or pasted as it is (False: for an object that must keep its own colours).
     propagate: bool = True
     # Without Stable Diffusion 2, CLG samples with the embedded scene prior (True: the paper's guided
     # sampler on a 64 px model trained on the scene's own pixels, minutes of training) or, by default
@@ -114,10 +112,10 @@ class CLGConfig:
     # SD2. Measured: docs/history/RESULTS-2026.md, "CLG with and without the scene prior's sampler" (the
     # exemplar's fills), docs/BENCHMARKS.md, "CLG's sampler on learned fills" (SPIn-NeRF's LaMa fills).
     prior_sampler: bool = False
-    # keep_if_worse also for the warp-only fill (sample False). Off by default because that fill's
-    # main use is an edited reference, whose warp adds an object with colours and texture its
-    # surroundings lack (the colour check would reject what was asked for); SD2's reference_only
-    # mode turns it on.
+    # keep_if_worse also for the warp-only fill (sample False). Off by default (a warp that adds
+    # colours and texture its surroundings lack would be rejected by the colour check); the pipeline
+    # turns it on where stage 1's fills are per-view guesses (`coin_plan.clg_samples`, SD2's
+    # reference_only mode). An insertion runs no CLG (`stages.clg_skip_reason`).
     warp_guard: bool = False
     # keep_if_worse's texture tolerance, a share in [0, 1).
     texture_tol: float = 0.1

@@ -48,7 +48,9 @@ from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_st
 from coin_cl.pipeline.schedule import refgs_schedule_span, stage_schedule
 from coin_cl.pipeline.stages import (
     carves,
+    clg_skip_reason,
     load_model,
+    refgs_settings,
     seeds_background,
     stage_clg_adapter,
     stage_inpaint,
@@ -353,7 +355,7 @@ def _run(
     # would choose again from the masks it is given (refined masks, insertion footprints), or ignore
     # --ref, and P_k would then come from another view than CLG's camera k.
     run = RunInputs(out=out, scene=scene, masks=masks, ref=ref, cfg=cfg, plan=plan,
-                    refgs_cfg=cfg.refgs_settings(ref), edited=edited, capture=capture)  # fmt: skip
+                    refgs_cfg=refgs_settings(cfg, ref, edited), edited=edited, capture=capture)  # fmt: skip
     log.info(
         "CoIn: %d training views at %dx%d (%d with a mask), reference view %d (%s), %s masks; %s",
         len(train), cam.width, cam.height, sum(masks[i].any() for i in train), ref, scene.cameras[ref].name,
@@ -395,6 +397,7 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
                                         "ref": ref, "cfg": jsonable(cfg.insert)}  # fmt: skip
     refined = cfg.inpaint_region == "refined"
     clg_cfg = cfg.clg_settings()  # the defaults in the key too: a changed default reruns CLG
+    clg_skip = clg_skip_reason(cfg, edited)
     r = ["0_refine"] if refined else []  # read by every stage that sees the views' masks
     # only "captures" enters the keys: "target" runs made before the option keep their stages
     observed_key = {"observed": cfg.observed} if refined and cfg.observed != "target" else {}
@@ -446,9 +449,9 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
               {"cfg": jsonable(clg_cfg), "ref": ref, "dino": cfg.dino_path, "seed": cfg.seed,
                "sd": cfg.sd_path, "prompt": cfg.prompt,
                **({"sd2_mode": cfg.inpaint2d.sd2_mode} if cfg.sd_path else {})},
-              skip="asked (--skip-stage clg)" if "clg" in cfg.skip else None),
+              skip=clg_skip),
         Stage("4_ted", stage_ted,
-              ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if "clg" in cfg.skip else ["3_clg"]),
+              ["0_scene", *r, "1_inpaint", "2_refgs"] + ([] if clg_skip else ["3_clg"]),
               ted_key, skip="asked (--skip-stage ted)" if "ted" in cfg.skip else None),
     ]  # fmt: skip
     final = final_stage(cfg)

@@ -29,6 +29,7 @@ from coin_cl.pipeline.schedule import refgs_rate, stage_schedule, ted_schedule
 
 if TYPE_CHECKING:
     from coin_cl.diffusion.sampling import Denoiser
+    from coin_cl.gs.refgs import RefGSConfig
     from coin_cl.gs.terms import LossTerm
     from coin_cl.pipeline.config import CoInConfig
     from coin_cl.pipeline.run_inputs import RunInputs
@@ -208,13 +209,7 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
         ctx.note(
             f"insertion: {len(lift.points)} lifted points seed the model; hull depth is the prior on the edit"
         )
-    if lift is not None or cfg.prompt or ctx.run.edited is not None:
-        # insertion: the masks hold the new object, not the background; and the reference, the one
-        # view that shows the object, says where it ends also outside its mask, where the other
-        # views' captures show the empty scene (weighed in the mask alone, the object's colour
-        # leaked into 3% of the far pixels of a view of the synthetic room)
-        rcfg = replace(rcfg, bg_depth=False, weight_region="view")
-    elif rcfg.bg_depth:
+    if rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
     return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
                      schedule_iters=int(ctx.settings["schedule_iters"]),
@@ -239,6 +234,46 @@ def _observed_excluded(
     train = set(scene.train_idx)
     return [np.asarray(given[i], bool) & ~np.asarray(refined[i], bool) if i in train else None
             for i in range(len(scene))]  # fmt: skip
+
+
+def refgs_settings(cfg: CoInConfig, ref: int, edited: np.ndarray | None) -> RefGSConfig:
+    """Ref-GS's settings in this run (what the 2_refgs key records): `CoInConfig.refgs_settings`,
+    and in an insertion (an edited reference or a prompt) no background depth, since the masks hold
+    the new object, not the background, and the adaptive weights on whole views: the reference, the
+    one view that shows the object, says where it ends also outside its mask, where the other views'
+    captures show the empty scene (weighed in the mask alone, the object's colour leaked into 3% of
+    the far pixels of a view of the synthetic room). An object lifted from one photo
+    (`InsertConfig.regions` "derive") is seen in every view's stage-1 image as the same lifted
+    geometry, so no view needs the reference to arbitrate: every view weighs the same (weighted 50x,
+    the reference alone shaped the object and it rendered as a haze from the side; docs/RUN.md,
+    "Insertion on a real capture")."""
+    rcfg = cfg.refgs_settings(ref)
+    if edited is None and not cfg.prompt:
+        return rcfg
+    rcfg = replace(rcfg, bg_depth=False, weight_region="view")
+    if lifts_one_photo(cfg, edited):
+        rcfg = replace(rcfg, adaptive_weights=False)
+    return rcfg
+
+
+def lifts_one_photo(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
+    """Whether this run inserts an object lifted from the edited reference alone (regions derived)."""
+    return edited is not None and cfg.insert.propagate and cfg.insert.regions == "derive"
+
+
+def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
+    """Why this run leaves CLG out (None: it runs): asked, or an insertion whose stage 1 lifted the
+    object (`InsertConfig.propagate`), where every view's initial image is already the edited
+    reference warped through the lifted object."""
+    if "clg" in cfg.skip:
+        return "asked (--skip-stage clg)"
+    if edited is not None and cfg.insert.propagate:
+        return (
+            "an insertion: stage 1's images are the edited reference warped through the lifted object, "
+            "one answer in every view already (CLG's warp through Ref-GS's depth, P_k, gave a sparser "
+            "copy of it, speckled with the surface behind)"
+        )
+    return None
 
 
 def carves(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
