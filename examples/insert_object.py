@@ -407,7 +407,8 @@ def main(argv: list[str] | None = None) -> dict:
     info["profile"] = args.profile
     res = None
     if not args.lift_only:
-        cfg = CoInConfig(resolution=args.resolution, ref=args.edited_view, iters_refgs=args.iters,
+        # the view by its file name: a bare "24" would also name index 24 of a larger subset
+        cfg = CoInConfig(resolution=args.resolution, ref=scene.cameras[k].name, iters_refgs=args.iters,
                          iters_ted_finetune=args.ted_iters, iters_ted_adversarial=0, insert=icfg)  # fmt: skip
         t_run = time.perf_counter()
         res = coin_cl.inpaint(scene, out / "run", config=cfg, edited_ref=out / "edited.png")
