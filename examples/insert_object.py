@@ -2,7 +2,7 @@
 
     python examples/insert_object.py [--data ../shared/data/cup_capture] [--out runs/insert_cup]
         [--edited-view 24 --target X Y] [--source-view 32 --polygon X0 Y0 X1 Y1 ...]
-        [--train 12 --held-out 8] [--resolution 0.2] [--iters 500 --ted-iters 400] [--edit-only]
+        [--train 24 --held-out 8] [--resolution 0.2] [--iters 500 --ted-iters 400] [--edit-only]
 
 What it does, step by step (everything it writes lies in --out):
 1. Loads the capture (77 phone photos of a white cup on a wooden desk, COLMAP poses). The photos are
@@ -317,7 +317,7 @@ def main(argv: list[str] | None = None) -> dict:
         metavar="X Y",
         help="the cut in the (upright) source view: x0 y0 x1 y1 ... (default: the cup in 32)",
     )
-    ap.add_argument("--train", type=int, default=12, help="training views (the edited one included)")
+    ap.add_argument("--train", type=int, default=24, help="training views (the edited one included)")
     ap.add_argument("--held-out", type=int, default=8, help="views left out of training, rendered")
     ap.add_argument("--resolution", type=float, default=0.2, help="working scale of the 800x600 photos")
     ap.add_argument("--iters", type=int, default=500, help="Ref-GS steps")
