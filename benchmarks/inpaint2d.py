@@ -260,8 +260,13 @@ def main() -> None:
     ap.add_argument("--sd2-only", action="store_true", help="only the SD2 measurement")
     ap.add_argument("--sd2-json", type=Path, default=None, help="a saved --sd2 measurement to report")
     ap.add_argument("--grid", type=Path, default=ROOT / "docs" / "img" / "inpaint2d_grid.png")
-    ap.add_argument("--rows", nargs="+", default=None, metavar="TEXT",
-                    help="run only the rows whose name contains one of these (default: every row)")
+    ap.add_argument(
+        "--rows",
+        nargs="+",
+        default=None,
+        metavar="TEXT",
+        help="run only the rows whose name contains one of these (default: every row)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(2)
     head = f"{cpu_model()}; {os.cpu_count()} cores; torch {torch.__version__}; commit {git_commit()}"
@@ -288,8 +293,10 @@ def main() -> None:
     if args.rows:
         rows = {n: fn for n, fn in rows.items() if any(t in n for t in args.rows)}
         if not {"embedded (exemplar, default)", "OpenCV TELEA", "OpenCV FSR_FAST"} <= set(rows):
-            raise SystemExit("--rows must keep 'embedded (exemplar, default)' and both OpenCV rows: "
-                             "the summary compares against them")
+            raise SystemExit(
+                "--rows must keep 'embedded (exemplar, default)' and both OpenCV rows: "
+                "the summary compares against them"
+            )
     for name, fn in rows.items():
         for k, cases in sets.items():
             if k == "test" and name not in big and not name.startswith("LaMa"):

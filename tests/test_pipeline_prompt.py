@@ -1,7 +1,7 @@
 """Insertion from a text prompt (`coin-cl run --prompt`): without Stable Diffusion 2 weights it is a
 clear error naming where to give them (no silent fallback to the prompt-less scene prior); with the
 tiny random SD2 pipeline of the diffusion tests the prompt reaches the text encoder and changes
-stage 1's inpaints."""
+stage 1's inpaints; a text insertion draws the reference once and lifts it into every view."""
 
 import numpy as np
 import pytest
@@ -50,3 +50,47 @@ def test_prompt_reaches_the_text_encoder(room, tmp_path):
         m = scene.masks[i]
         assert np.array_equal(a[~m], b[~m])  # outside the mask: the capture, whatever the prompt
         assert np.abs(a[m] - b[m]).mean() > 1e-3  # inside: the conditioning changed the fill
+
+
+def test_a_prompt_is_drawn_once_and_lifted_into_every_view(room, tmp_path):
+    """With SD2 (the tiny random pipeline), a text insertion draws the prompt into the reference's
+    mask alone, then lifts it like an edited photo: every other view's stage-1 image is the capture
+    with the lifted object warped in, CLG is left out, and the run goes to the end."""
+    from dataclasses import replace
+
+    from coin_cl.diffusion.scene_prior import ScenePriorConfig
+
+    from coin_cl.gs.refgs import RefGSConfig
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.scene.masks import read_mask
+
+    (tmp_path / "sd2").mkdir()
+    sd = _tiny_pipeline(tmp_path / "sd2")
+    icfg = Inpaint2DConfig(inpaint=InpaintConfig(sd_crop=64, sampler_sd=SamplerConfig(num_steps=2)),
+                           prior=ScenePriorConfig(patch=32, base=8, max_steps=2))  # fmt: skip
+    cfg = CoInConfig(sd_path=str(sd), iters_refgs=3, iters_ted_finetune=2, iters_ted_adversarial=0,
+                     inpaint2d=icfg, refgs=RefGSConfig(depth_prior_iters=5), mask_dilate=0)  # fmt: skip
+    out = tmp_path / "run"
+    res = inpaint(room, out, config=replace(cfg, prompt="a red box"))
+    st = res.stages
+    assert st["1_inpaint"]["result"]["sources"] == ["Stable Diffusion 2 inpainting (the reference), lifted"]
+    assert st["1_inpaint"]["result"]["lifted_points"] > 0
+    assert st["3_clg"]["status"].startswith("skipped: an insertion")
+    assert st["4_ted"]["status"] == "ran" and res.ply.is_file()
+    drawn = sorted((out / "1_inpaint" / "prompt" / "images").glob("*.png"))
+    assert len(drawn) == 1  # SD2 ran on the reference alone
+    scene = load_scene(room)
+    stems = [c.name.rsplit(".", 1)[0] for c in scene.cameras]
+    k = stems.index(drawn[0].stem)
+    ref_image = read_image(out / "1_inpaint" / "images" / drawn[0].name)
+    np.testing.assert_array_equal(ref_image, read_image(drawn[0]))  # the reference: SD2's answer as drawn
+    moved = 0
+    for i in scene.train_idx:
+        if i == k:
+            continue
+        img = read_image(out / "1_inpaint" / "images" / f"{stems[i]}.png")
+        foot = read_mask(out / "1_inpaint" / "footprints" / f"{stems[i]}.png", scene.masks[i].shape)
+        cap = scene.images[i]
+        assert np.abs(img[~foot] - cap[~foot]).max() < 1.5 / 255  # outside the footprint: the capture
+        moved += foot.any() and np.abs(img[foot] - cap[foot]).mean() > 0.02  # inside: the object warped in
+    assert moved >= 2

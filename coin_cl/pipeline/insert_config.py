@@ -19,7 +19,9 @@ class InsertConfig:
     ref_match_tol: mean absolute difference outside the mask above which the edited image is not
     taken for a view of this scene. propagate: False = the naive alternative the benchmark scores
     against: no lift; the other views keep their captures (empty footprints), so a GS is simply
-    trained on the edited reference beside the unedited views.
+    trained on the edited reference beside the unedited views. With a text prompt, True: SD2 draws
+    the reference alone and the lift (hull) carries it into the other views; False: SD2 on every
+    view and CLG sampling with the prompt.
 
     The one-photo path (`coin_cl.pipeline.insert_geometry`, its module doc has the measurements):
     regions: where the object may appear in the other views. "hull": the scene's masks cover it

@@ -137,6 +137,8 @@ def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
     cam = scene.cameras[train[0]]
     icfg = planned_config(cfg.inpaint2d, ctx.run.plan, cfg.seed, cam.width, cam.height)
     sd2, only, why = sd2_denoiser(cfg.sd_path), None, ""
+    if cfg.prompt and cfg.insert.propagate and sd2 is not None:
+        return _prompt_insert(ctx, scene, masks, train, sd2, icfg)
     if sd2 is not None:  # SD2 on every view, or on the reference only (SD2's CPU-practical mode)
         mode, why = sd2_mode_for(cfg, sd2, sum(bool(masks[i].any()) for i in train))
         ctx.note(why)
@@ -153,6 +155,28 @@ def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
     for s in res["sources"]:
         ctx.note(f"initial inpainting source: {s}")
     return res
+
+
+def _prompt_insert(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int],
+                   sd2: Denoiser, icfg) -> dict:  # fmt: skip
+    """Stage 1 of an insertion from a text prompt: Stable Diffusion 2 draws the prompt into the
+    reference's mask alone (`prompt/images/`), and that view is then an edited reference like a
+    user's photo: lifted by the masks' visual hull and warped into every other view
+    (`insert.run_insert`, regions "hull"), so the views agree by construction and SD2 runs once."""
+    from coin_cl.pipeline.insert import check_edit, run_insert
+
+    cfg, k = ctx.run.cfg, ctx.run.ref
+    run_inpaint2d(scene, masks, [k], ctx.out / "prompt", icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt,
+                  sd2_views=[k], sd2_why="a text insertion: SD2 draws the reference, the lift the rest",
+                  exact_masks=cfg.mask_dilate == 0)  # fmt: skip
+    edited = read_inpaints(scene, ctx.out / "prompt", [k])[k]
+    icfg_ins = replace(cfg.insert, regions="hull")
+    check_edit(edited, scene.images[k], masks[k], f"{scene.cameras[k].name} (SD2's answer to the prompt)",
+               icfg_ins)  # fmt: skip
+    res = run_insert(scene, masks, train, k, edited, ctx.out, icfg_ins, cfg.device)
+    ctx.note(f"the prompt drawn by Stable Diffusion 2 into the reference {scene.cameras[k].name}, then "
+             f"{res['source']}; {res['views_without_object']} views without the object")  # fmt: skip
+    return {**res, "sources": ["Stable Diffusion 2 inpainting (the reference), lifted"]}
 
 
 def _targets(ctx: StageContext[RunInputs], folder: Path) -> dict[int, np.ndarray]:
@@ -262,12 +286,12 @@ def lifts_one_photo(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
 
 
 def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
-    """Why this run leaves CLG out (None: it runs): asked, or an insertion whose stage 1 lifted the
-    object (`InsertConfig.propagate`), where every view's initial image is already the edited
-    reference warped through the lifted object."""
+    """Why this run leaves CLG out (None: it runs): asked, or an insertion (an edited reference, or
+    a prompt SD2 draws into the reference) whose stage 1 lifts the object (`InsertConfig.propagate`),
+    where every view's initial image is already the reference warped through the lifted object."""
     if "clg" in cfg.skip:
         return "asked (--skip-stage clg)"
-    if edited is not None and cfg.insert.propagate:
+    if (edited is not None or cfg.prompt) and cfg.insert.propagate:
         return (
             "an insertion: stage 1's images are the edited reference warped through the lifted object, "
             "one answer in every view already (CLG's warp through Ref-GS's depth, P_k, gave a sparser "
