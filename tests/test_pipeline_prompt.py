@@ -94,3 +94,20 @@ def test_a_prompt_is_drawn_once_and_lifted_into_every_view(room, tmp_path):
         assert np.abs(img[~foot] - cap[~foot]).max() < 1.5 / 255  # outside the footprint: the capture
         moved += foot.any() and np.abs(img[foot] - cap[foot]).mean() > 0.02  # inside: the object warped in
     assert moved >= 2
+
+
+def test_a_prompt_sd2_leaves_empty_is_a_clear_error(room, tmp_path, monkeypatch):
+    """SD2's fill equal to the capture (nothing drawn) stops the run in stage 1 with what to do."""
+    import coin_cl.pipeline.stages as stages
+    from coin_cl.pipeline.coin import CoInConfig
+
+    (tmp_path / "sd2").mkdir()
+    sd = _tiny_pipeline(tmp_path / "sd2")
+    scene = load_scene(room)
+    captures = lambda sc, folder, views: {i: scene.images[i] for i in views}  # noqa: E731
+    monkeypatch.setattr(stages, "read_inpaints", captures)
+    icfg = Inpaint2DConfig(inpaint=InpaintConfig(sd_crop=64, sampler_sd=SamplerConfig(num_steps=1)))
+    cfg = CoInConfig(sd_path=str(sd), iters_refgs=2, inpaint2d=icfg, prompt="a red box")
+    with pytest.raises(ValueError, match="drew nothing for the prompt 'a red box'.*reword the prompt"):
+        inpaint(room, tmp_path / "run", config=cfg)
+    assert not (tmp_path / "run" / "2_refgs").exists()

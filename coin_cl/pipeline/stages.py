@@ -163,7 +163,7 @@ def _prompt_insert(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.nd
     reference's mask alone (`prompt/images/`), and that view is then an edited reference like a
     user's photo: lifted by the masks' visual hull and warped into every other view
     (`insert.run_insert`, regions "hull"), so the views agree by construction and SD2 runs once."""
-    from coin_cl.pipeline.insert import check_edit, run_insert
+    from coin_cl.pipeline.insert import edit_region, run_insert
 
     cfg, k = ctx.run.cfg, ctx.run.ref
     run_inpaint2d(scene, masks, [k], ctx.out / "prompt", icfg, cfg.mask_kind, sd2=sd2, prompt=cfg.prompt,
@@ -171,8 +171,12 @@ def _prompt_insert(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.nd
                   exact_masks=cfg.mask_dilate == 0)  # fmt: skip
     edited = read_inpaints(scene, ctx.out / "prompt", [k])[k]
     icfg_ins = replace(cfg.insert, regions="hull")
-    check_edit(edited, scene.images[k], masks[k], f"{scene.cameras[k].name} (SD2's answer to the prompt)",
-               icfg_ins)  # fmt: skip
+    if not edit_region(edited, scene.images[k], masks[k], icfg_ins.edit_tol).any():
+        raise ValueError(
+            f"Stable Diffusion 2 drew nothing for the prompt {cfg.prompt!r} in view {scene.cameras[k].name} "
+            f"(its fill equals the capture inside the mask): nothing to insert; reword the prompt, change "
+            f"--seed, or give a larger mask there"
+        )
     res = run_insert(scene, masks, train, k, edited, ctx.out, icfg_ins, cfg.device)
     ctx.note(f"the prompt drawn by Stable Diffusion 2 into the reference {scene.cameras[k].name}, then "
              f"{res['source']}; {res['views_without_object']} views without the object")  # fmt: skip
