@@ -180,6 +180,10 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     assert CP.fixed_views(_OwnCapture(), CoInConfig(sd_path="SD2"), [0, 1, 2, 3])["3_clg"] == 4
     assert CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2])["1_inpaint"] == 3
     assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(skip=("clg",)), [0, 1])
+    # an insertion that lifts its object leaves CLG out (coin_plan.clg_skip_reason): nothing priced
+    edited = np.zeros((2, 2, 3), np.float32)
+    assert "3_clg" not in CP.fixed_views(_Scene(), cfg, [0, 1], edited)
+    assert "3_clg" not in CP.fixed_views(_Scene(), CoInConfig(prompt="a red box", sd_path="SD2"), [0, 1])
     # below the capture's size eval also scores the masked test views there
     held = type("Held", (_OwnCapture,), {"test_idx": [3]})()
     assert CP.fixed_views(held, CoInConfig(resolution=0.5), [0, 1])["eval_capture"] == 1

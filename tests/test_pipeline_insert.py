@@ -89,10 +89,11 @@ def colour_gains(scene, k, out):
 
 
 def test_ref_gs_and_clg_settings_of_an_insertion():
-    """Ref-GS and CLG as an insertion sets them (stages.refgs_settings, stages.clg_skip_reason):
+    """Ref-GS and CLG as an insertion sets them (stages.refgs_settings, coin_plan.clg_skip_reason):
     no background depth, whole views weighed; with the object lifted from one photo every view
     the same; CLG left out wherever stage 1 lifted the object, and only there."""
-    from coin_cl.pipeline.stages import clg_skip_reason, refgs_settings
+    from coin_cl.pipeline.coin_plan import clg_skip_reason
+    from coin_cl.pipeline.stages import refgs_settings
 
     edited = np.zeros((4, 4, 3), np.float32)
     removal = refgs_settings(SMALL, 0, None)

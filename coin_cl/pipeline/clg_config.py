@@ -115,7 +115,7 @@ class CLGConfig:
     # keep_if_worse also for the warp-only fill (sample False). Off by default (a warp that adds
     # colours and texture its surroundings lack would be rejected by the colour check); the pipeline
     # turns it on where stage 1's fills are per-view guesses (`coin_plan.clg_samples`, SD2's
-    # reference_only mode). An insertion runs no CLG (`stages.clg_skip_reason`).
+    # reference_only mode). An insertion runs no CLG (`coin_plan.clg_skip_reason`).
     warp_guard: bool = False
     # keep_if_worse's texture tolerance, a share in [0, 1).
     texture_tol: float = 0.1

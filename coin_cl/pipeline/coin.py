@@ -36,7 +36,7 @@ import numpy as np
 
 from coin_cl.opencv_contrib import require_contrib
 from coin_cl.pipeline.budget import MAX_WORK_PIXELS, PRIOR_MIN_SECONDS, working_resolution
-from coin_cl.pipeline.coin_plan import plan_for
+from coin_cl.pipeline.coin_plan import clg_skip_reason, plan_for
 from coin_cl.pipeline.config import STAGES, CoInConfig
 from coin_cl.pipeline.eval_stage import stage_eval
 from coin_cl.pipeline.inpaint2d import prior_key
@@ -48,7 +48,6 @@ from coin_cl.pipeline.runner import Stage, check_output_folder, jsonable, run_st
 from coin_cl.pipeline.schedule import refgs_schedule_span, stage_schedule
 from coin_cl.pipeline.stages import (
     carves,
-    clg_skip_reason,
     load_model,
     refgs_settings,
     seeds_background,
@@ -344,7 +343,7 @@ def _run(
     else:
         ref = choose_reference(masks, scene.cameras, train_idx=train, ref=cfg.ref)
     cam = scene.cameras[train[0]]
-    plan = plan_for(scene, out, cfg, train)
+    plan = plan_for(scene, out, cfg, train, edited)
     if plan.prior_seconds < PRIOR_MIN_SECONDS and not cfg.sd_path:
         log.warning(
             "the scene prior gets %.0f s of training (prior_seconds); below %.0f s it is measured to be "

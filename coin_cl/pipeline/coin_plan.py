@@ -23,6 +23,8 @@ from coin_cl.pipeline.budget import (
 from coin_cl.pipeline.config import CoInConfig
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from coin_cl.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -31,9 +33,11 @@ log = logging.getLogger(__name__)
 Probe = Callable[[], float] | None
 
 
-def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan:
-    """The plan of a CoIn run (`train` its training views): `plan_run` keyed by the settings the
-    step counts depend on, probing `scene` at its working size."""
+def plan_for(
+    scene: Scene, out: Path, cfg: CoInConfig, train: list[int], edited: np.ndarray | None = None
+) -> Plan:
+    """The plan of a CoIn run (`train` its training views; `edited`: an insertion's edited reference):
+    `plan_run` keyed by the settings the step counts depend on, probing `scene` at its working size."""
     cam = scene.cameras[train[0]]
     explicit = explicit_steps(cfg)
     skip_adv = adversarial_skip(scene, cfg) if explicit["ted_adversarial"] is None else None
@@ -57,6 +61,8 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
            "explicit": [*explicit.values(), cfg.prior_seconds], **skipped,
            # the budget holds every stage (stage_costs): which stages the run has decide its split
            "clock": {"region": cfg.inpaint_region, "skip": sorted(cfg.skip)}}  # fmt: skip
+    if "clg" not in cfg.skip and clg_skip_reason(cfg, edited):  # an insertion leaves CLG out
+        key["clock"]["clg"] = "left out"
     probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
               prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
     wall = None
@@ -67,14 +73,31 @@ def plan_for(scene: Scene, out: Path, cfg: CoInConfig, train: list[int]) -> Plan
     if shares == BUDGET_SHARES:
         shares = None  # the default split: plans made before keep their file
     return plan_run(out, key, cfg.budget_minutes, explicit, cfg.prior_seconds, *probes, shares=shares,
-                    views=fixed_views(scene, cfg, train), probe_wall_seconds=wall,
+                    views=fixed_views(scene, cfg, train, edited), probe_wall_seconds=wall,
                     prior_trained=prior_trained(scene, cfg), view_pixels=cam.width * cam.height)  # fmt: skip
 
 
-def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, int]:
+def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
+    """Why this run leaves CLG out (None: it runs): asked, or an insertion (an edited reference, or
+    a prompt SD2 draws into the reference) whose stage 1 lifts the object (`InsertConfig.propagate`),
+    where every view's initial image is already the reference warped through the lifted object."""
+    if "clg" in cfg.skip:
+        return "asked (--skip-stage clg)"
+    if (edited is not None or cfg.prompt) and cfg.insert.propagate:
+        return (
+            "an insertion: stage 1's images are the edited reference warped through the lifted object, "
+            "one answer in every view already (CLG's warp through Ref-GS's depth, P_k, gave a sparser "
+            "copy of it, speckled with the surface behind)"
+        )
+    return None
+
+
+def fixed_views(
+    scene: Scene, cfg: CoInConfig, train: list[int], edited: np.ndarray | None = None
+) -> dict[str, int]:
     """{fixed stage: the views it works on} for `stage_costs.fixed_costs`: 0_scene and eval every
-    view, CLG the masked training views (absent when skipped; "3_clg_propagate" when it runs without a
-    sampler), stage 1 the masked training views it
+    view, CLG the masked training views (absent when left out, `clg_skip_reason`; "3_clg_propagate"
+    when it runs without a sampler), stage 1 the masked training views it
     fills by computation (with the dataset's own fills only those without one: the rest are read);
     "eval_capture": the masked test views eval also scores at the capture's size (a run below it)."""
     from coin_cl.pipeline.inpaint2d import fill_source
@@ -86,7 +109,7 @@ def fixed_views(scene: Scene, cfg: CoInConfig, train: list[int]) -> dict[str, in
     views = {"0_scene": len(scene), "1_inpaint": len(filled), "3_clg": len(masked), "eval": len(scene)}
     if cfg.resolution not in (None, 1.0):  # eval scores the test views at the capture's size too
         views["eval_capture"] = sum(bool(scene.masks[i].any()) for i in scene.test_idx)
-    if "clg" in cfg.skip:
+    if clg_skip_reason(cfg, edited):
         del views["3_clg"]
     elif not clg_samples(scene, cfg):  # CLG without a sampler: a warp and a blend per view
         views["3_clg_propagate"] = views.pop("3_clg")

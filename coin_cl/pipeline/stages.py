@@ -289,21 +289,6 @@ def lifts_one_photo(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
     return edited is not None and cfg.insert.propagate and cfg.insert.regions == "derive"
 
 
-def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
-    """Why this run leaves CLG out (None: it runs): asked, or an insertion (an edited reference, or
-    a prompt SD2 draws into the reference) whose stage 1 lifts the object (`InsertConfig.propagate`),
-    where every view's initial image is already the reference warped through the lifted object."""
-    if "clg" in cfg.skip:
-        return "asked (--skip-stage clg)"
-    if (edited is not None or cfg.prompt) and cfg.insert.propagate:
-        return (
-            "an insertion: stage 1's images are the edited reference warped through the lifted object, "
-            "one answer in every view already (CLG's warp through Ref-GS's depth, P_k, gave a sparser "
-            "copy of it, speckled with the surface behind)"
-        )
-    return None
-
-
 def carves(cfg: CoInConfig, edited: np.ndarray | None) -> bool:
     """Whether this run carves (removal with Ref-GS; see `CoInConfig.carve`)."""
     return cfg.carve and _removal_with_refgs(cfg, edited)
