@@ -61,7 +61,7 @@ def plan_for(
            "explicit": [*explicit.values(), cfg.prior_seconds], **skipped,
            # the budget holds every stage (stage_costs): which stages the run has decide its split
            "clock": {"region": cfg.inpaint_region, "skip": sorted(cfg.skip)}}  # fmt: skip
-    if "clg" not in cfg.skip and clg_skip_reason(cfg, edited):  # an insertion leaves CLG out
+    if clg_skip_reason(cfg, edited) and "clg" not in cfg.skip:  # an insertion leaves CLG out
         key["clock"]["clg"] = "left out"
     probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
               prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
@@ -85,9 +85,9 @@ def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
         return "asked (--skip-stage clg)"
     if (edited is not None or cfg.prompt) and cfg.insert.propagate:
         return (
-            "an insertion: stage 1's images are the edited reference warped through the lifted object, "
-            "one answer in every view already (CLG's warp through Ref-GS's depth, P_k, gave a sparser "
-            "copy of it, speckled with the surface behind)"
+            "an insertion: stage 1's images are the reference (edited, or drawn by SD2) warped through the "
+            "lifted object, one answer in every view already (CLG's warp through Ref-GS's depth, P_k, "
+            "gave a sparser copy of it, speckled with the surface behind)"
         )
     return None
 

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from coin_cl.gs.refgs import RefGSConfig
     from coin_cl.gs.terms import LossTerm
     from coin_cl.pipeline.config import CoInConfig
+    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
     from coin_cl.pipeline.run_inputs import RunInputs
     from coin_cl.scene import Scene
 
@@ -158,7 +159,7 @@ def stage_inpaint(ctx: StageContext[RunInputs]) -> dict:
 
 
 def _prompt_insert(ctx: StageContext[RunInputs], scene: Scene, masks: list[np.ndarray], train: list[int],
-                   sd2: Denoiser, icfg) -> dict:  # fmt: skip
+                   sd2: Denoiser, icfg: Inpaint2DConfig) -> dict:  # fmt: skip
     """Stage 1 of an insertion from a text prompt: Stable Diffusion 2 draws the prompt into the
     reference's mask alone (`prompt/images/`), and that view is then an edited reference like a
     user's photo: lifted by the masks' visual hull and warped into every other view
