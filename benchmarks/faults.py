@@ -13,10 +13,11 @@ fixed so that runs are deterministic):
    compared with the reference;
 3. while a run works in a folder, a second `coin-cl run` on the same folder: it must be refused
    with one line naming the holder (`lock_conflicts_caught`);
-4. the bad-input corpus, built from the synthetic scene, each case through `coin-cl run` and
-   through `coin_cl.inpaint`: an error case passes when it gives one line naming the culprit
-   (CLI: exit code 2, no traceback), a handled case when the run completes (`--cli-cases errors`,
-   the CI test's size, runs the handled ones through `coin_cl.inpaint` only);
+4. the bad-input corpus, built from the synthetic scene, each case through `coin-cl run` (as
+   `python -m coin_cl.cli` runs it, every case in one process) and through `coin_cl.inpaint`: an
+   error case passes when it gives one line naming the culprit (CLI: exit code 2, no traceback), a
+   handled case when the run completes (`--cli-cases errors`, the CI test's size, runs the handled
+   ones through `coin_cl.inpaint` only);
 5. hostile input (`--skip-hostile` leaves it out), through `coin-cl` on copies of one finished
    tiny run folder (`hostile_cases`): a checkpoint whose unpickling would run code (planted at
    each checkpoint site and shown to run code when loaded unsafely; passes when the run refuses it
@@ -131,6 +132,46 @@ def api_main(args: argparse.Namespace) -> int:
             else:
                 os.environ[k] = v
         print("CASE " + json.dumps(rec), flush=True)
+    return 0
+
+
+def cli_main(args: argparse.Namespace) -> int:
+    """The corpus's `coin-cl run` calls (`--cli CASES.json`), each as `python -m coin_cl.cli ARGS`
+    runs it (`runpy`: the package's `__main__`, its exit code from SystemExit), all in one process,
+    one JSON line per case: what a process per case would show (exit code, stderr, a traceback)
+    without paying Python's and torch's start-up for each (the hostile cases and the kill chain
+    start real `coin-cl` processes)."""
+    import contextlib
+    import io
+    import logging
+    import runpy
+    import traceback
+
+    for c in json.loads(Path(args.cli).read_text()):
+        env_old = {k: os.environ.get(k) for k in c.get("env", {})}
+        os.environ.update(c.get("env", {}))
+        for h in logging.root.handlers[:]:  # each case's log lines go to its own stderr
+            logging.root.removeHandler(h)
+        err, t = io.StringIO(), time.time()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            sys.argv = ["coin-cl", *c["argv"]]
+            try:
+                runpy.run_module("coin_cl.cli", run_name="__main__", alter_sys=True)
+                rc = 0
+            except SystemExit as exc:  # the command's exit, or argparse's refusal
+                rc = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
+            except BaseException:  # noqa: BLE001 - what a process would die of, as its stderr shows it
+                traceback.print_exc()
+                rc = 1
+        for k, v in env_old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        text = err.getvalue()
+        rec = {"name": c["name"], "rc": rc, "stderr_tail": [_last_line(text)] if text.strip() else [],
+               "traceback": "Traceback" in text, "seconds": time.time() - t}  # fmt: skip
+        print("CLI " + json.dumps(rec), flush=True)
     return 0
 
 
@@ -557,38 +598,33 @@ def run_corpus(args, base: Path, root: Path) -> list[dict]:
             if line.startswith("CASE "):
                 r = json.loads(line[5:])
                 got[r["name"]] = r
+        batch = []
         for c in todo:
             c["api"] = got.get(c["name"], {"outcome": "crash", "message": api.stderr[-2000:]})
             if args.cli_cases == "errors" and c["expect"] == "handled":
                 # the API has run it to the end; the CLI adds only its exit code (CI's size)
                 c["cli"] = {"rc": None, "stderr_tail": [], "traceback": False, "seconds": 0.0}
                 continue
-            # the CLI: `coin-cl run`, a process per case
             if c["out"] == "full":
                 shutil.rmtree(c["out_api"], ignore_errors=True)  # room for the CLI's attempt
-            cmd = [
-                sys.executable,
-                "-m",
-                "coin_cl.cli",
-                "run",
-                c["scene"],
-                "--out",
-                c["out_cli"],
-                "--iters",
-                str(args.corpus_iters),
-                "--prior-seconds",
-                "2",
-            ]
-            t = time.time()
-            cli = subprocess.run(
-                cmd, capture_output=True, text=True, env={**os.environ, **CHILD_ENV, **c["env"]}, timeout=900
-            )
-            c["cli"] = {
-                "rc": cli.returncode,
-                "stderr_tail": cli.stderr.strip().splitlines()[-1:],
-                "traceback": "Traceback" in cli.stderr,
-                "seconds": time.time() - t,
-            }
+            argv = ["run", c["scene"], "--out", c["out_cli"], "--iters", str(args.corpus_iters),
+                    "--prior-seconds", "2"]  # fmt: skip
+            batch.append({"name": c["name"], "argv": argv, "env": c["env"]})
+        # the CLI: `coin-cl run`'s main for every case, in one process
+        (root / "cli_cases.json").write_text(json.dumps(batch))
+        proc = subprocess.run([sys.executable, __file__, "--cli", str(root / "cli_cases.json")],
+                              capture_output=True, text=True, env={**os.environ, **CHILD_ENV},
+                              timeout=1800)  # fmt: skip
+        clis = {}
+        for line in proc.stdout.splitlines():
+            if line.startswith("CLI "):
+                r = json.loads(line[4:])
+                clis[r.pop("name")] = r
+        for c in todo:
+            if "cli" not in c:
+                died = {"rc": proc.returncode, "stderr_tail": [_last_line(proc.stderr)],
+                        "traceback": "Traceback" in proc.stderr, "seconds": 0.0}  # fmt: skip
+                c["cli"] = clis.get(c["name"], died)
             for key in ("out_cli", "out_api"):
                 if Path(c[key]).exists():
                     c.setdefault("half_written", []).extend(unreadable_files(Path(c[key])))
@@ -1040,11 +1076,14 @@ def main() -> int:
     )
     ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--api", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--cli", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         return child_main(args)
     if args.api:
         return api_main(args)
+    if args.cli:
+        return cli_main(args)
     os.environ.update(CHILD_ENV)
     from coin_cl.scene import write_synthetic
 

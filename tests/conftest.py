@@ -6,10 +6,16 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-# The longest test files (minutes on 2 cores, `--durations`), started first so that the workers
-# of `-n auto` end together instead of one of them running the longest file last.
-LONGEST_FIRST = ("test_faults_harness.py", "test_examples.py", "test_pipeline_refgs.py",
-                 "test_pipeline_clg.py")  # fmt: skip
+# The longest test files (worker-seconds on 2 cores, `--durations`), longest first: with
+# `--dist loadfile --no-loadscope-reorder` (pyproject's addopts) xdist hands out whole files in this
+# order, so the workers of `-n auto` end together instead of one of them running a long file last
+# while the other waits (xdist's own order, by the number of tests in a file, put the fault harness
+# last). The rest follow in collection order.
+LONGEST_FIRST = ("test_faults_harness.py", "test_pipeline_coin.py", "test_pipeline_refgs.py",
+                 "test_examples.py", "test_pipeline_insert.py", "test_refine_masks.py",
+                 "test_benchmarks_budget_curve.py", "test_pipeline_clg.py", "test_benchmarks_real.py",
+                 "test_gs_background_depth.py", "test_diffusion_scene_prior.py", "test_cli_run.py",
+                 "test_cli_engine.py", "test_diffusion_exemplar.py")  # fmt: skip
 
 
 def pytest_collection_modifyitems(config, items):

@@ -90,21 +90,24 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from coin_cl.cli.guard import output_folder
-    from coin_cl.pipeline.coin import CoInConfig, inpaint
-    from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
-    from coin_cl.pipeline.insert_config import InsertConfig
-    from coin_cl.pipeline.report import run_report
-    from coin_cl.report_html import write_report
 
-    i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path, sd2_mode=args.sd2_mode)
-    cfg = CoInConfig(
-        resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
-        mask_dilate=args.mask_dilate,
-        skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
-        inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
-        insert=InsertConfig(regions=args.insert_regions, profile=args.insert_profile),
-    ).with_iters(args.iters)  # fmt: skip
+    # The folder is checked and locked before the pipeline (and torch) is imported: a refusal (a
+    # folder another command holds, a planted link) comes in a fraction of a second.
     with output_folder(args.out, "run"):
+        from coin_cl.pipeline.coin import CoInConfig, inpaint
+        from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
+        from coin_cl.pipeline.insert_config import InsertConfig
+        from coin_cl.pipeline.report import run_report
+        from coin_cl.report_html import write_report
+
+        i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path, sd2_mode=args.sd2_mode)
+        cfg = CoInConfig(
+            resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
+            mask_dilate=args.mask_dilate,
+            skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,
+            inpaint_region=args.inpaint_region, carve=args.carve, inpaint2d=i2d,
+            insert=InsertConfig(regions=args.insert_regions, profile=args.insert_profile),
+        ).with_iters(args.iters)  # fmt: skip
         res = inpaint(args.scene, args.out, mask_kind=args.mask_kind, reference=args.ref,
                       prompt=args.prompt or None, budget=args.budget, config=cfg,
                       force=tuple(args.force), edited_ref=args.edited_ref)  # fmt: skip
