@@ -71,11 +71,10 @@ def carried(cam_dst: Any, cam_src: Any, img_src: np.ndarray, region_dst: np.ndar
     rows, cols, z = rows[known], cols[known], z[known]
     if len(z) == 0:
         return warped, valid
-    uv, zs = cam_src.project(cam_dst.unproject(np.stack([cols + 0.5, rows + 0.5], 1), z))
-    ok = np.isfinite(uv).all(1)
-    ok[ok] = cam_src.in_image(uv[ok])
-    qu = np.floor(np.nan_to_num(uv[:, 0], nan=0.0)).astype(np.int64).clip(0, cam_src.width - 1)
-    qv = np.floor(np.nan_to_num(uv[:, 1], nan=0.0)).astype(np.int64).clip(0, cam_src.height - 1)
+    pts = cam_dst.unproject(np.stack([cols + 0.5, rows + 0.5], 1), z)
+    px, ok = cam_src.pixels(pts)  # in front of src, finite, inside its image
+    zs = cam_src.project(pts)[1]
+    qu, qv = px[:, 0], px[:, 1]
     d_src = np.asarray(depth_src, np.float64)[qv, qu]
     with np.errstate(invalid="ignore"):
         ok &= np.asarray(region_src, bool)[qv, qu] & np.isfinite(d_src) & (d_src > 0)

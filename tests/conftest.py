@@ -23,6 +23,19 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda it: rank.get(Path(str(it.fspath)).name, len(rank)))  # stable: the rest keep order
 
 
+def load_script(relpath: str, name: str):
+    """A script of the repository (`benchmarks/NAME.py`, `examples/NAME.py`: not a package) run as
+    the module `name`, registered in sys.modules (dataclasses look their module up there)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / relpath)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def shared_data_dir() -> Path | None:
     """The shared SPIn-NeRF data: $COIN_DATA, else ../shared/data beside the repository."""
     env = os.environ.get("COIN_DATA")

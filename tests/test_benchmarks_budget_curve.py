@@ -2,24 +2,16 @@
 its wall minutes and figures, the table, the plot, the JSON line, a rerun that trains nothing, and a
 budget the machine cannot fit recorded as refused with the minimum the run named."""
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import cv2
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 def _curve():
-    spec = importlib.util.spec_from_file_location(
-        "budget_curve_benchmark", ROOT / "benchmarks" / "budget_curve.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/budget_curve.py", "budget_curve_benchmark")
 
 
 # two tiny CoIn runs through the CLI, a rerun and a refused budget: about a minute on 2 cores

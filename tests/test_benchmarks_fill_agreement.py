@@ -2,21 +2,15 @@
 rows, the JSON line, the crop grid; one 3D model's renders agree across views more than the per-view
 fills it was trained on."""
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import cv2
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("fill_agreement", ROOT / "benchmarks" / "fill_agreement.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/fill_agreement.py", "fill_agreement")
 
 
 def test_fill_agreement_of_a_tiny_run(tmp_path, capfd):

@@ -1,22 +1,17 @@
 """benchmarks/real.py end to end on a tiny synthetic room (smoke steps): the table, the JSON line, the
 crop grid's columns, and a second invocation that scores the finished rows without training."""
 
-import importlib.util
 import json
 import math
 from pathlib import Path
 
 import cv2
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 def _real():
-    spec = importlib.util.spec_from_file_location("real_benchmark", ROOT / "benchmarks" / "real.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/real.py", "real_benchmark")
 
 
 def _manifests(out: Path) -> dict[str, tuple[int, bytes]]:

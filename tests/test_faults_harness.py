@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from conftest import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -58,12 +60,7 @@ def test_hostile_input_runs_no_code_and_changes_no_file_of_the_user(tmp_path):
 
 
 def _harness():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("faults", ROOT / "benchmarks" / "faults.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/faults.py", "faults")
 
 
 def test_the_vague_message_rule():
