@@ -48,6 +48,7 @@ vague_messages and more. `--skip-chain` leaves out 1-3 (the kill chain and its r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -56,6 +57,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +110,21 @@ def child_main(args: argparse.Namespace) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def case_env(env: dict[str, str]) -> Iterator[None]:
+    """A corpus case's environment variables set for the block, the old values back after it."""
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def api_main(args: argparse.Namespace) -> int:
     """The bad-input corpus through `coin_cl.inpaint` (`--api CASES.json`), one JSON line per case."""
     import traceback
@@ -116,21 +133,15 @@ def api_main(args: argparse.Namespace) -> int:
 
     cases = json.loads(Path(args.api).read_text())
     for c in cases:
-        env_old = {k: os.environ.get(k) for k in c.get("env", {})}
-        os.environ.update(c.get("env", {}))
         rec = {"name": c["name"]}
-        try:
-            inpaint(c["scene"], c["out_api"], config=tiny_config(args.iters, args.prior_steps))
-            rec["outcome"] = "completed"
-        except (ValueError, OSError, RuntimeError) as exc:
-            rec.update(outcome="error", type=type(exc).__name__, message=str(exc))
-        except Exception as exc:  # noqa: BLE001 - an unexpected kind is what this counts
-            rec.update(outcome="crash", type=type(exc).__name__, message=traceback.format_exc())
-        for k, v in env_old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        with case_env(c.get("env", {})):
+            try:
+                inpaint(c["scene"], c["out_api"], config=tiny_config(args.iters, args.prior_steps))
+                rec["outcome"] = "completed"
+            except (ValueError, OSError, RuntimeError) as exc:
+                rec.update(outcome="error", type=type(exc).__name__, message=str(exc))
+            except Exception as exc:  # noqa: BLE001 - an unexpected kind is what this counts
+                rec.update(outcome="crash", type=type(exc).__name__, message=traceback.format_exc())
         print("CASE " + json.dumps(rec), flush=True)
     return 0
 
@@ -141,19 +152,20 @@ def cli_main(args: argparse.Namespace) -> int:
     one JSON line per case: what a process per case would show (exit code, stderr, a traceback)
     without paying Python's and torch's start-up for each (the hostile cases and the kill chain
     start real `coin-cl` processes)."""
-    import contextlib
     import io
     import logging
     import runpy
     import traceback
 
     for c in json.loads(Path(args.cli).read_text()):
-        env_old = {k: os.environ.get(k) for k in c.get("env", {})}
-        os.environ.update(c.get("env", {}))
         for h in logging.root.handlers[:]:  # each case's log lines go to its own stderr
             logging.root.removeHandler(h)
         err, t = io.StringIO(), time.time()
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        with (
+            case_env(c.get("env", {})),
+            contextlib.redirect_stderr(err),
+            contextlib.redirect_stdout(io.StringIO()),
+        ):
             sys.argv = ["coin-cl", *c["argv"]]
             try:
                 runpy.run_module("coin_cl.cli", run_name="__main__", alter_sys=True)
@@ -163,11 +175,6 @@ def cli_main(args: argparse.Namespace) -> int:
             except BaseException:  # noqa: BLE001 - what a process would die of, as its stderr shows it
                 traceback.print_exc()
                 rc = 1
-        for k, v in env_old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
         text = err.getvalue()
         rec = {"name": c["name"], "rc": rc, "stderr_tail": [_last_line(text)] if text.strip() else [],
                "traceback": "Traceback" in text, "seconds": time.time() - t}  # fmt: skip
@@ -610,7 +617,7 @@ def run_corpus(args, base: Path, root: Path) -> list[dict]:
             argv = ["run", c["scene"], "--out", c["out_cli"], "--iters", str(args.corpus_iters),
                     "--prior-seconds", "2"]  # fmt: skip
             batch.append({"name": c["name"], "argv": argv, "env": c["env"]})
-        # the CLI: `coin-cl run`'s main for every case, in one process
+        # the CLI: every case as `python -m coin_cl.cli run ...` runs it, in one process (cli_main)
         (root / "cli_cases.json").write_text(json.dumps(batch))
         proc = subprocess.run([sys.executable, __file__, "--cli", str(root / "cli_cases.json")],
                               capture_output=True, text=True, env={**os.environ, **CHILD_ENV},
