@@ -27,6 +27,7 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -99,7 +100,8 @@ def crop_grid(inp: dict, pairs: list, n: int, cell: int = 128) -> np.ndarray:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", type=Path, nargs="+", help="finished coin-cl run folders")
-    ap.add_argument("--out", type=Path, default=None, help="folder for the crop grids (and renders)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="crop grids and renders (default: no grid, renders in a temp folder)")  # fmt: skip
     ap.add_argument("--crops", type=int, default=4, help="pairs shown in each crop grid")
     args = ap.parse_args(argv)
     from coin_cl.engine.runtime import get_runtime
@@ -108,9 +110,10 @@ def main(argv: list[str] | None = None) -> int:
     result = {}
     for run in args.runs:
         tag = run.name
-        work = (args.out or run / "agreement") / f"{tag}_renders"
         t0 = time.time()
-        inp = run_inputs(run, work)
+        # the training views' renders: under --out, else in a temporary folder (never in the run's)
+        with tempfile.TemporaryDirectory(prefix="fill-agreement-") as tmp:
+            inp = run_inputs(run, (args.out or Path(tmp)) / f"{tag}_renders")
         t_load = time.time() - t0
         pairs = neighbour_pairs(inp["cams"])
         print(f"\n{run}: {len(inp['cams'])} masked training views, {len(pairs)} neighbour pairs "
