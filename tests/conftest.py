@@ -2,6 +2,10 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from coin_cl.oclgrind import process_log  # noqa: E402
+
+process_log()  # under `python -m coin_cl.oclgrind`: each worker's reports in a file of its own
+
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
