@@ -1,7 +1,7 @@
 """Remove an object from your own scene given only bounding boxes.
 
     python examples/remove_bbox.py path/to/scene --out runs/mine [--ref IMG_0012.jpg] [--budget 10]
-        [--iters N --prior-seconds S --clg-steps N]   # fixed small counts instead of the budget (smoke runs)
+        [--iters N --prior-seconds S]   # fixed small counts instead of the budget (smoke runs)
 
 The scene is a COLMAP folder with object masks in masks/<image name> (or any layout `load_scene`
 reads); each mask is replaced by its bounding box, the shape a user draws in a viewer.
@@ -13,7 +13,6 @@ import argparse
 from pathlib import Path
 
 import coin_cl
-from coin_cl.pipeline.clg_config import CLGConfig
 from coin_cl.pipeline.coin import CoInConfig
 
 
@@ -26,12 +25,10 @@ def main(argv: list[str] | None = None):
     ap.add_argument("--resolution", type=float, default=None, help="default: from the image size")
     ap.add_argument("--iters", type=int, default=None, help="explicit iterations per training stage")
     ap.add_argument("--prior-seconds", type=float, default=None, help="scene prior training (smoke runs)")
-    ap.add_argument("--clg-steps", type=int, default=None, help="CLG's DDIM steps (default: the model's)")
     args = ap.parse_args(argv)
 
     scene = coin_cl.load_scene(args.scene)
-    cfg = CoInConfig(resolution=args.resolution, prior_seconds=args.prior_seconds,
-                     clg=CLGConfig(steps=args.clg_steps)).with_iters(args.iters)  # fmt: skip
+    cfg = CoInConfig(resolution=args.resolution, prior_seconds=args.prior_seconds).with_iters(args.iters)
     ref = int(args.ref) if args.ref is not None and args.ref.isdigit() else args.ref
     result = coin_cl.inpaint(scene, args.out, mask_kind="bbox", reference=ref, budget=args.budget, config=cfg)
     print(f"final Gaussians: {result.ply}")

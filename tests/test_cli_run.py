@@ -55,7 +55,7 @@ def test_every_stage_shows_progress(tmp_path, capsys):
     room = write_synthetic(tmp_path / "room", n_views=6, width=48, height=32, seed=1)
     cfg = CoInConfig(iters_refgs=9, iters_ted_finetune=4, iters_ted_adversarial=3, prior_seconds=3,
                      inpaint2d=Inpaint2DConfig(prior=ScenePriorConfig(patch=32, base=8, max_steps=4)),
-                     clg=CLGConfig(steps=2), ted=TEDConfig(n_patches=2),
+                     clg=CLGConfig(steps=2, without_sampler=True), ted=TEDConfig(n_patches=2),
                      refgs=RefGSConfig(depth_prior_iters=5))  # fmt: skip
     inpaint(room, tmp_path / "run", config=replace(cfg))
     err = capsys.readouterr().err

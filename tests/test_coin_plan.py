@@ -163,18 +163,20 @@ def test_a_baseline_with_its_counts_given_plans_nothing_and_refuses_nothing(tmp_
 def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     """The dataset's own fills are read, not computed: only the masked training views without one
     count towards stage 1's estimate; the embedded inpainter fills every masked view; CLG guides every
-    masked view either way (with a sampler, or propagating the reference without one: the default
-    without SD2, on any fills), and is absent when skipped."""
+    masked view where it runs (with a sampler, or propagating the reference without one where asked,
+    on any fills), and is absent when skipped or left out (the default without SD2)."""
     from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig
 
     cfg = CoInConfig()
     views = CP.fixed_views(_Scene(), cfg, [0, 1, 2, 3])
-    # a learned inpainter's fills: stage 1 reads them; CLG propagates (no SD2, no prior_sampler)
-    assert views == {"0_scene": 4, "1_inpaint": 3, "3_clg_propagate": 4, "eval": 4}
+    # a learned inpainter's fills: stage 1 reads them; no SD2, no prior_sampler: CLG left out
+    assert views == {"0_scene": 4, "1_inpaint": 3, "eval": 4}
     assert CP.fixed_views(_Scene(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])["3_clg"] == 4
-    own = CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2, 3])  # the exemplar's: CLG without a sampler
-    assert own == {"0_scene": 4, "1_inpaint": 4, "3_clg_propagate": 4, "eval": 4}
+    own = CP.fixed_views(_OwnCapture(), cfg, [0, 1, 2, 3])  # the exemplar's fills
+    assert own == {"0_scene": 4, "1_inpaint": 4, "eval": 4}
+    warp = CoInConfig(clg=CLGConfig(without_sampler=True))  # CLG asked to propagate without a sampler
+    assert CP.fixed_views(_OwnCapture(), warp, [0, 1, 2, 3]) == {**own, "3_clg_propagate": 4}
     sampled = CP.fixed_views(_OwnCapture(), CoInConfig(clg=CLGConfig(prior_sampler=True)), [0, 1, 2, 3])
     assert sampled == {"0_scene": 4, "1_inpaint": 4, "3_clg": 4, "eval": 4}
     assert CP.fixed_views(_OwnCapture(), CoInConfig(sd_path="SD2"), [0, 1, 2, 3])["3_clg"] == 4
@@ -190,11 +192,31 @@ def test_stage_one_is_costed_by_the_views_it_fills_by_computation():
     assert "eval_capture" not in CP.fixed_views(held, CoInConfig(resolution=1.0), [0, 1])
 
 
+def test_a_removal_without_a_sampler_leaves_clg_out_unless_asked():
+    """No SD2 and no prior sampler: CLG would only propagate the reference, which scored below
+    leaving it out on real scenes; it is left out with the reason, and runs where a sampler does,
+    where `without_sampler` asks, or where an insertion's CLG carries its object."""
+    from coin_cl.pipeline.clg_config import CLGConfig
+    from coin_cl.pipeline.coin import CoInConfig
+    from coin_cl.pipeline.insert_config import InsertConfig
+
+    why = CP.clg_skip_reason(CoInConfig(), None)
+    assert why.startswith("no sampler") and "without_sampler" in why
+    assert CP.clg_skip_reason(CoInConfig(clg=CLGConfig(without_sampler=True)), None) is None
+    assert CP.clg_skip_reason(CoInConfig(clg=CLGConfig(prior_sampler=True)), None) is None
+    assert CP.clg_skip_reason(CoInConfig(sd_path="SD2"), None) is None
+    # with a sampler asked but CLGConfig.sample off there is still none to run
+    assert CP.clg_skip_reason(CoInConfig(clg=CLGConfig(prior_sampler=True, sample=False)), None)
+    assert CP.clg_skip_reason(CoInConfig(skip=("clg",)), None).startswith("asked")
+    old_insert = CoInConfig(insert=InsertConfig(propagate=False))  # CLG warps the edited reference
+    assert CP.clg_skip_reason(old_insert, np.zeros((2, 2, 3), np.float32)) is None
+
+
 def test_no_time_is_planned_for_a_scene_prior_nothing_trains(tmp_path, monkeypatch, caplog):
-    """CLG skipped, or propagating without a sampler (the default without SD2), and stage 1 filling
-    without the prior (the embedded exemplar inpainter): the prior's steps are still planned (stage
-    1's key holds them) but its seconds go to the GS stages and the refusal's minimum leaves it out;
-    with CLG sampling with it, or the prior as stage 1's inpainter, it is charged as before."""
+    """CLG skipped, left out (the default without SD2) or propagating without a sampler, and stage 1
+    filling without the prior (the embedded exemplar inpainter): the prior's steps are still planned
+    (stage 1's key holds them) but its seconds go to the GS stages and the refusal's minimum leaves it
+    out; with CLG sampling with it, or the prior as stage 1's inpainter, it is charged as before."""
     from coin_cl.pipeline.clg_config import CLGConfig
     from coin_cl.pipeline.coin import CoInConfig
     from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
@@ -204,10 +226,14 @@ def test_no_time_is_planned_for_a_scene_prior_nothing_trains(tmp_path, monkeypat
     monkeypatch.setattr(CP, "prior_probe", lambda *a: lambda: 0.9)
     sampler = CLGConfig(prior_sampler=True)
     both = CP.plan_for(_OwnCapture(), tmp_path / "a", CoInConfig(budget_minutes=10.0, clg=sampler), [0, 1])
-    default = CP.plan_for(_OwnCapture(), tmp_path / "f", CoInConfig(budget_minutes=10.0), [0, 1])
-    assert "prior" not in default.fixed_seconds
-    assert default.fixed_seconds["3_clg"] < both.fixed_seconds["3_clg"]  # a warp and a blend a view
-    assert default.minutes["refgs"] > both.minutes["refgs"]
+    warp = CoInConfig(budget_minutes=10.0, clg=CLGConfig(without_sampler=True))
+    propagating = CP.plan_for(_OwnCapture(), tmp_path / "f", warp, [0, 1])
+    assert "prior" not in propagating.fixed_seconds
+    assert propagating.fixed_seconds["3_clg"] < both.fixed_seconds["3_clg"]  # a warp and a blend a view
+    assert propagating.minutes["refgs"] > both.minutes["refgs"]
+    default = CP.plan_for(_OwnCapture(), tmp_path / "g", CoInConfig(budget_minutes=10.0), [0, 1])
+    assert "prior" not in default.fixed_seconds and "3_clg" not in default.fixed_seconds  # left out
+    assert default.minutes["refgs"] > propagating.minutes["refgs"]
     with caplog.at_level("INFO"):
         bare = CP.plan_for(
             _OwnCapture(), tmp_path / "b", CoInConfig(budget_minutes=10.0, skip=("clg",)), [0, 1]

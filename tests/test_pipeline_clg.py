@@ -185,10 +185,11 @@ def test_stage_clg_reads_the_stage_folders(tmp_path):
     counts = {"refgs": 1, "ted_finetune": 0, "ted_adversarial": 0}
     plan = Plan(counts, dict.fromkeys(counts), 600.0, None, "explicit", {})
     expect = sorted(scene.cameras[i].name.rsplit(".", 1)[0] for i in train[2:])
-    # without SD2: by default no sampler (the reference propagated, nothing trained); with
-    # prior_sampler the scene prior is trained in CLG's own folder and samples
+    # without SD2: no sampler where asked (the reference propagated, nothing trained; the pipeline
+    # leaves CLG out otherwise); with prior_sampler the scene prior is trained in CLG's own folder
+    # and samples
     for name, sampler in (("3_clg", False), ("3_clg_prior", True)):
-        clg = CLGConfig(steps=2, progress=False, prior_sampler=sampler)
+        clg = CLGConfig(steps=2, progress=False, prior_sampler=sampler, without_sampler=not sampler)
         cfg = CoInConfig(clg=clg, inpaint2d=Inpaint2DConfig(prior=prior))
         run = RunInputs(out=tmp_path, scene=replace(scene, masks=masks), masks=masks, ref=k, cfg=cfg,
                         plan=plan, refgs_cfg=cfg.refgs_settings(k))  # fmt: skip

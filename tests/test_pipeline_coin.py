@@ -22,7 +22,9 @@ from coin_cl.scene import load_scene, write_synthetic
 TINY = CoInConfig(
     iters_refgs=12, iters_ted_finetune=3, iters_ted_adversarial=3, prior_seconds=30,
     inpaint2d=Inpaint2DConfig(prior=ScenePriorConfig(patch=32, base=8, max_steps=6)),
-    clg=CLGConfig(steps=3), ted=TEDConfig(n_patches=2), refgs=RefGSConfig(depth_prior_iters=10),
+    # CLG asked to run without a sampler (the default leaves it out without SD2): the pipeline's CLG path
+    clg=CLGConfig(steps=3, without_sampler=True), ted=TEDConfig(n_patches=2),
+    refgs=RefGSConfig(depth_prior_iters=10),
     inpaint_region="input",
 )  # fmt: skip
 
@@ -121,7 +123,7 @@ def test_seed_and_clg_settings_reach_their_stages(room, first_run, tmp_path):
 
     out = tmp_path / "clg"
     shutil.copytree(first_run[0], out)
-    res = inpaint(room, out, config=replace(TINY, clg=CLGConfig(steps=2)))
+    res = inpaint(room, out, config=replace(TINY, clg=CLGConfig(steps=2, without_sampler=True)))
     status = {k: r["status"] for k, r in res.stages.items()}
     assert status["2_refgs"] == "skipped: up to date" and status["3_clg"] == "ran"
     out = tmp_path / "seed"

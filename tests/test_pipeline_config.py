@@ -152,6 +152,7 @@ NOT_CONFIG = {
     "out": "the run folder: `inpaint`'s second argument",
     "force": "stages to rerun: `inpaint(force=...)`, not a setting of the result",
     "help": "argparse's own",
+    "clg": "a mode that sets CLGConfig fields (cli.run.CLG_MODES; test_the_clg_flag_sets_its_fields)",
 }
 # flag dest -> the config field it sets (a dotted path from CoInConfig).
 FLAG_FIELDS = {
@@ -213,6 +214,20 @@ def test_every_run_flag_has_its_config_fields_default():
                 type(_field(cfg, target[2:]))(**{name: choice})
     # --iters sets every GS stage's count (`CoInConfig.with_iters`): all three default to None
     assert (cfg.iters_refgs, cfg.iters_ted_finetune, cfg.iters_ted_adversarial) == (None, None, None)
+
+
+def test_the_clg_flag_sets_its_fields():
+    """--clg's default (auto) is CLGConfig's defaults; every other mode sets fields CLGConfig has to
+    values that differ from their defaults, and the config accepts them."""
+    from coin_cl.cli.run import CLG_MODES
+    from coin_cl.pipeline.clg_config import CLGConfig
+
+    assert _run_parser().get_default("clg") == "auto" and CLG_MODES["auto"] == {}
+    default = CLGConfig()
+    for mode, fields in CLG_MODES.items():
+        cfg = CLGConfig(**fields)
+        assert all(getattr(cfg, k) != getattr(default, k) for k in fields), mode
+        assert (mode == "auto") == (not fields)
 
 
 def test_a_flag_default_that_drifts_is_caught(monkeypatch):

@@ -8,6 +8,9 @@ from pathlib import Path
 from coin_cl.cli import values
 from coin_cl.pipeline.insert_config import PROFILES
 
+# --clg's choices: the CLGConfig fields each sets (auto: CLGConfig's defaults)
+CLG_MODES = {"auto": {}, "propagate": {"without_sampler": True}, "prior": {"prior_sampler": True}}
+
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="CoIn on a scene: 2D inpainting, Ref-GS, CLG, TE-D, evaluation")
@@ -62,6 +65,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="the paper's ablations, repeatable: clg / ted leave that stage out; refgs trains the "
                         "coarse GS (stage 2_refgs, which CLG and TE-D stand on) as plain Scaffold-GS, "
                         "without Ref-GS's four pieces")  # fmt: skip
+    p.add_argument("--clg", choices=tuple(CLG_MODES), default="auto",
+                   help="CLG's sampler: auto = Stable Diffusion 2 with --sd-path, else CLG is left out "
+                        "(logged; its propagation alone scored below leaving it out on real scenes); "
+                        "propagate = no sampler, each view's hole takes the reference's answer warped "
+                        "into it where that is no worse; prior = the embedded scene prior's sampler "
+                        "(minutes of training; docs/RUN.md)")  # fmt: skip
     p.add_argument("--iters", type=values.positive_int, default=None,
                    help="steps of each GS training stage (replaces the budget's plan)")  # fmt: skip
     p.add_argument("--prior-seconds", type=values.nonneg_float, default=None,
@@ -94,6 +103,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     # The folder is checked and locked before the pipeline (and torch) is imported: a refusal (a
     # folder another command holds, a planted link) comes in a fraction of a second.
     with output_folder(args.out, "run"):
+        from coin_cl.pipeline.clg import CLGConfig
         from coin_cl.pipeline.coin import CoInConfig, inpaint
         from coin_cl.pipeline.inpaint2d import Inpaint2DConfig
         from coin_cl.pipeline.insert_config import InsertConfig
@@ -101,7 +111,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         from coin_cl.report_html import write_report
 
         i2d = Inpaint2DConfig(inpainter=args.inpainter, lama_path=args.lama_path, sd2_mode=args.sd2_mode)
-        cfg = CoInConfig(
+        clg = CLGConfig(**CLG_MODES[args.clg]) if CLG_MODES[args.clg] else None
+        cfg = CoInConfig(clg=clg,
             resolution=args.resolution, sd_path=args.sd_path, dino_path=args.dino_path,
             mask_dilate=args.mask_dilate,
             skip=tuple(args.skip_stage), seed=args.seed, device=args.device, prior_seconds=args.prior_seconds,

@@ -339,10 +339,10 @@ def stage_clg(
 
         if not clg_samples(scene, ccfg):
             cfg = replace(cfg, sample=False, warp_guard=True)
-            ctx.note("stage 1's fills are the embedded inpainter's and no Stable Diffusion 2 is given: CLG "
-                     "runs without a sampler (CLGConfig.prior_sampler): each view's hole takes the reference "
-                     "warped through P_k, blended into the view's own surroundings, where that is no worse "
-                     "than its initial inpaint")  # fmt: skip
+            ctx.note("no Stable Diffusion 2 and CLGConfig.prior_sampler off: CLG runs without a sampler "
+                     "(CLGConfig.without_sampler): each view's hole takes the reference warped through P_k, "
+                     "blended into the view's own surroundings, where that is no worse than its initial "
+                     "inpaint")  # fmt: skip
     denoiser, extractor = None, None
     if cfg.sample:
         from coin_cl.diffusion.features import make_feature_extractor

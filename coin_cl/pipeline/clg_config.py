@@ -70,7 +70,8 @@ class CLGConfig:
     # False = no diffusion sampler: every hole pixel takes the energy's own target, the reference's
     # colour warped through P_k where supported (S) and R_n elsewhere, i.e. the minimiser of E(X) with
     # the RGB term alone (`warp_fill`). The pipeline sets it without Stable Diffusion 2 unless
-    # `prior_sampler` asks (`coin_plan.clg_samples`) and in SD2's reference_only mode.
+    # `prior_sampler` asks (`coin_plan.clg_samples`; CLG then runs only with `without_sampler`) and in
+    # SD2's reference_only mode.
     sample: bool = True
     # Where the output's band above the sampler's working resolution comes from, from DETAILS
     # (`coin_cl.pipeline.clg_detail`): "reference" (default; class docstring) the reference's detail
@@ -105,17 +106,23 @@ class CLGConfig:
     propagate: bool = True
     # Without Stable Diffusion 2, CLG samples with the embedded scene prior (True: the paper's guided
     # sampler on a 64 px model trained on the scene's own pixels, minutes of training) or, by default
-    # (False), runs without a sampler: every view's hole takes the reference's answer propagated
-    # (`propagate`), kept only where it is no worse than the view's initial inpaint (`keep_if_worse`
-    # applies as `warp_guard`), and the prior's minutes go to the GS stages (`coin_plan.clg_samples`),
-    # on any stage-1 fills (the exemplar's, Telea's, LaMa's, the dataset's). With SD2 the sampler is
-    # SD2. Measured: docs/history/RESULTS-2026.md, "CLG with and without the scene prior's sampler" (the
-    # exemplar's fills), docs/BENCHMARKS.md, "CLG's sampler on learned fills" (SPIn-NeRF's LaMa fills).
+    # (False), runs no sampler, and then runs only where `without_sampler` asks. With SD2 the sampler
+    # is SD2. Measured: docs/history/RESULTS-2026.md, "CLG with and without the scene prior's sampler"
+    # (the exemplar's fills), docs/BENCHMARKS.md, "CLG's sampler on learned fills" (SPIn-NeRF's LaMa fills).
     prior_sampler: bool = False
+    # What CLG does when no sampler runs (no SD2, `prior_sampler` False): True = every view's hole
+    # takes the reference's answer propagated (`propagate`), kept only where it is no worse than the
+    # view's initial inpaint (`keep_if_worse` applies as `warp_guard`), on any stage-1 fills; False
+    # (default) = CLG is left out, logged with the reason (`coin_plan.clg_skip_reason`), and TE-D
+    # fits stage 1's images. Measured on two real scenes at two seeds each (docs/BENCHMARKS.md, "CLG
+    # without a sampler against leaving it out"): the propagation lost m-PSNR and masked VGG distance
+    # in all four pairs, the more the more views its guard let it write. SD2's reference_only mode
+    # propagates whatever this says (its other views have no other source of the reference's answer).
+    without_sampler: bool = False
     # keep_if_worse also for the warp-only fill (sample False). Off by default (a warp that adds
     # colours and texture its surroundings lack would be rejected by the colour check); the pipeline
-    # turns it on where stage 1's fills are per-view guesses (`coin_plan.clg_samples`, SD2's
-    # reference_only mode). An insertion runs no CLG (`coin_plan.clg_skip_reason`).
+    # turns it on whenever CLG runs without a sampler (`without_sampler`, SD2's reference_only mode).
+    # An insertion runs no CLG (`coin_plan.clg_skip_reason`).
     warp_guard: bool = False
     # keep_if_worse's texture tolerance, a share in [0, 1).
     texture_tol: float = 0.1

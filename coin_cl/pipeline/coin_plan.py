@@ -61,7 +61,7 @@ def plan_for(
            "explicit": [*explicit.values(), cfg.prior_seconds], **skipped,
            # the budget holds every stage (stage_costs): which stages the run has decide its split
            "clock": {"region": cfg.inpaint_region, "skip": sorted(cfg.skip)}}  # fmt: skip
-    if clg_skip_reason(cfg, edited) and "clg" not in cfg.skip:  # an insertion leaves CLG out
+    if clg_skip_reason(cfg, edited) and "clg" not in cfg.skip:  # an insertion, or no sampler to run
         key["clock"]["clg"] = "left out"
     probes = (lambda: probe_seconds_per_step(scene, train, cfg.device, cfg.seed),
               prior_probe(cfg, cam.width, cam.height), disc_probe(cfg, cam.width, cam.height))  # fmt: skip
@@ -78,9 +78,11 @@ def plan_for(
 
 
 def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
-    """Why this run leaves CLG out (None: it runs): asked, or an insertion (an edited reference, or
+    """Why this run leaves CLG out (None: it runs): asked; an insertion (an edited reference, or
     a prompt SD2 draws into the reference) whose stage 1 lifts the object (`InsertConfig.propagate`),
-    where every view's initial image is already the reference warped through the lifted object."""
+    where every view's initial image is already the reference warped through the lifted object; or a
+    removal with no sampler to run (no SD2, `CLGConfig.prior_sampler` off) where
+    `CLGConfig.without_sampler` does not ask for the propagation alone."""
     if "clg" in cfg.skip:
         return "asked (--skip-stage clg)"
     if (edited is not None or cfg.prompt) and cfg.insert.propagate:
@@ -88,6 +90,13 @@ def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
             "an insertion: stage 1's images are the reference (edited, or drawn by SD2) warped through the "
             "lifted object, one answer in every view already (CLG's warp through Ref-GS's depth, P_k, "
             "gave a sparser copy of it, speckled with the surface behind)"
+        )
+    removal = edited is None and not cfg.prompt  # an insertion's CLG carries its object (propagate False)
+    if removal and not cfg.sd_path and not clg_samples(None, cfg) and not cfg.clg_settings().without_sampler:
+        return (
+            "no sampler to run (no Stable Diffusion 2, CLGConfig.prior_sampler off), and CLG's propagation "
+            "alone scored below leaving it out on real scenes (docs/BENCHMARKS.md); TE-D fits stage 1's "
+            "images (--clg propagate or CLGConfig.without_sampler runs it)"
         )
     return None
 
@@ -116,12 +125,13 @@ def fixed_views(
     return views
 
 
-def clg_samples(scene: Scene, cfg: CoInConfig) -> bool:
+def clg_samples(scene: Scene | None, cfg: CoInConfig) -> bool:
     """Whether CLG runs a diffusion sampler: with Stable Diffusion 2, or with the embedded scene
-    prior where `CLGConfig.prior_sampler` asks; else it propagates the reference without one
-    (`clg.stage_clg`), whatever stage 1's fills are, and the prior's training minutes go to the GS
-    stages. Measured (docs/RESULTS.md, docs/BENCHMARKS.md): on the exemplar's fills the guard kept
-    the input in 41 of 55 views and the run scored higher without the sampler; on SPIn-NeRF's LaMa
+    prior where `CLGConfig.prior_sampler` asks; else it is left out (`clg_skip_reason`) or, where
+    `CLGConfig.without_sampler` asks, propagates the reference without one (`clg.stage_clg`),
+    whatever stage 1's fills are, and the prior's training minutes go to the GS stages. Measured
+    (docs/RESULTS.md, docs/BENCHMARKS.md): on the exemplar's fills the guard kept the input in 41 of
+    55 views and the run scored higher without the sampler; on SPIn-NeRF's LaMa
     fills at budget 10 the sampler and its prior took 3.9 of the 10 minutes, and without them Ref-GS
     and TE-D trained 909 steps instead of 467 to a level result (m-PSNR +0.03 dB, masked VGG
     distance 2.4% lower, bbox GMSD 1% higher)."""
@@ -141,7 +151,7 @@ def prior_trained(scene: Scene, cfg: CoInConfig) -> bool:
         return True
     if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "prior" and cfg.inpaint2d.use_prior:
         return True
-    why = "CLG is skipped" if "clg" in cfg.skip else "CLG propagates the reference without a sampler"
+    why = "CLG is skipped" if "clg" in cfg.skip else "CLG runs no sampler"
     log.info("scene prior: not trained here (%s and stage 1 fills without it): no time planned for it", why)
     return False
 
