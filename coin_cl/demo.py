@@ -159,7 +159,10 @@ def room(
     coin, cfg = within_reach(cfg, lambda c: inpaint(scene_dir, out / "coin", config=c, device=device))
     budget = cfg.budget_minutes
     write_report(out / "coin")
-    what = "CoIn: Ref-GS, CLG, TE-D on the stage-1 inpaints"
+    # the stages the result holds, as the run recorded them (CLG is left out without a sampler, logged)
+    ran = [n for s, n in (("2_refgs", "Ref-GS"), ("3_clg", "CLG"), ("4_ted", "TE-D"))
+           if coin.stages.get(s, {}).get("status") in ("ran", "skipped: up to date")]  # fmt: skip
+    what = f"CoIn: {', '.join(ran) or 'no GS stage'} on the stage-1 inpaints"
     rows["coin"] = _row(coin.metrics, time.perf_counter() - t, what)
     # The baseline starts from CoIn's scene and stage-1 folders (the runner skips them: their
     # manifests match), so both methods fit the very same inpaints.

@@ -39,8 +39,10 @@ def test_demo_room_runs_coin_and_baselines(tmp_path, capsys, monkeypatch):
         assert all(np.isfinite(row[k]) for k in ("psnr", "m_psnr", "hf_ratio", "bbox_gmsd")), row
     # a reconstruction, however short, beats a blank image on the held-out ground truth
     assert room["methods"]["masked_recon"]["psnr"] > 10.0
-    # the embedded default standing in for Stable Diffusion 2 is named in the results
+    # the embedded default standing in for Stable Diffusion 2 is named in the results, and CoIn's row
+    # names the stages its run had (without a sampler CLG is left out)
     assert "embedded exemplar" in room["inpainting_model"]
+    assert room["methods"]["coin"]["what"] == "CoIn: Ref-GS, TE-D on the stage-1 inpaints"
     md = (tmp_path / "room" / "results.md").read_text()
     assert "| coin |" in md and "embedded exemplar" in md and md in capsys.readouterr().out
     # the baseline started from CoIn's very inpaints: its stage 1 was skipped, not redone
