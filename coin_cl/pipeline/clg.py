@@ -337,7 +337,7 @@ def stage_clg(
     if cfg.sample:
         from coin_cl.pipeline.coin_plan import clg_samples
 
-        if not clg_samples(scene, ccfg):
+        if not clg_samples(ccfg):
             cfg = replace(cfg, sample=False, warp_guard=True)
             ctx.note("no Stable Diffusion 2 and CLGConfig.prior_sampler off: CLG runs without a sampler "
                      "(CLGConfig.without_sampler): each view's hole takes the reference warped through P_k, "

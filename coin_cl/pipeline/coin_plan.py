@@ -92,7 +92,7 @@ def clg_skip_reason(cfg: CoInConfig, edited: np.ndarray | None) -> str | None:
             "gave a sparser copy of it, speckled with the surface behind)"
         )
     removal = edited is None and not cfg.prompt  # an insertion's CLG carries its object (propagate False)
-    if removal and not cfg.sd_path and not clg_samples(None, cfg) and not cfg.clg_settings().without_sampler:
+    if removal and not cfg.sd_path and not clg_samples(cfg) and not cfg.clg_settings().without_sampler:
         return (
             "no sampler to run (no Stable Diffusion 2, CLGConfig.prior_sampler off), and CLG's propagation "
             "alone scored below leaving it out on real scenes (docs/BENCHMARKS.md); TE-D fits stage 1's "
@@ -120,12 +120,12 @@ def fixed_views(
         views["eval_capture"] = sum(bool(scene.masks[i].any()) for i in scene.test_idx)
     if clg_skip_reason(cfg, edited):
         del views["3_clg"]
-    elif not clg_samples(scene, cfg):  # CLG without a sampler: a warp and a blend per view
+    elif not clg_samples(cfg):  # CLG without a sampler: a warp and a blend per view
         views["3_clg_propagate"] = views.pop("3_clg")
     return views
 
 
-def clg_samples(scene: Scene | None, cfg: CoInConfig) -> bool:
+def clg_samples(cfg: CoInConfig) -> bool:
     """Whether CLG runs a diffusion sampler: with Stable Diffusion 2, or with the embedded scene
     prior where `CLGConfig.prior_sampler` asks; else it is left out (`clg_skip_reason`) or, where
     `CLGConfig.without_sampler` asks, propagates the reference without one (`clg.stage_clg`),
@@ -147,7 +147,7 @@ def prior_trained(scene: Scene, cfg: CoInConfig) -> bool:
     plans no time for it (logged)."""
     from coin_cl.pipeline.inpaint2d import fill_source
 
-    if "clg" not in cfg.skip and clg_samples(scene, cfg):
+    if "clg" not in cfg.skip and clg_samples(cfg):
         return True
     if fill_source(scene, cfg.inpaint2d, cfg.mask_kind, cfg.sd_path) == "prior" and cfg.inpaint2d.use_prior:
         return True
