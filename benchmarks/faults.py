@@ -11,8 +11,9 @@ fixed so that runs are deterministic):
    under the folder must read back whole (a PNG decodes, a .pt loads, a JSON parses); at the end
    every output (images, PLY, GIF, arrays, model and prior tensors, JSON without timings) is
    compared with the reference;
-3. while a run works in a folder, a second `coin-cl run` on the same folder: it must be refused
-   with one line naming the holder (`lock_conflicts_caught`);
+3. while a run works in a folder (the kill chain's last resumption, stopped with SIGSTOP while the
+   second command tries, so that it cannot end first), a second `coin-cl run` on the same folder:
+   it must be refused with one line naming the holder (`lock_conflicts_caught`);
 4. the bad-input corpus, built from the synthetic scene, each case through `coin-cl run` (as
    `python -m coin_cl.cli` runs it, every case in one process) and through `coin_cl.inpaint`: an
    error case passes when it gives one line naming the culprit (CLI: exit code 2, no traceback), a
@@ -102,12 +103,62 @@ def tiny_config(iters: int, prior_steps: int):
     )
 
 
-def child_main(args: argparse.Namespace) -> int:
-    """One CoIn run (`--child SCENE OUT`): what the harness starts and kills."""
+def child_main(scene: str, out: str, log_path: str, iters: int, prior_steps: int) -> None:
+    """One CoIn run, what the harness starts and kills: a child of the fork server (`spawn`), its
+    output appended to `log_path`."""
+    fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
+    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
     from coin_cl.pipeline.coin import inpaint
 
-    inpaint(args.child[0], args.child[1], config=tiny_config(args.iters, args.prior_steps))
-    return 0
+    inpaint(scene, out, config=tiny_config(iters, prior_steps))
+
+
+class Child:
+    """A run started by `spawn`, with the `subprocess.Popen` calls the kill chain makes."""
+
+    def __init__(self, proc) -> None:
+        self.proc = proc
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def poll(self) -> int | None:
+        return self.proc.exitcode  # None while it runs
+
+    def wait(self) -> int:
+        self.proc.join()
+        return self.proc.exitcode
+
+    def send_signal(self, sig: int) -> None:
+        os.kill(self.proc.pid, sig)
+
+    def kill(self) -> None:
+        self.proc.kill()
+
+
+_FORKS = None
+
+
+def spawn(args, scene: Path, out: Path, log_path: Path) -> Child:
+    """Start a run in a new process, forked from a server that has imported torch, torch._dynamo (the
+    first Adam imports it) and the pipeline, and nothing else: a fresh process for the run (no run
+    state, OpenCL not started), without the 6-7 s of imports a new interpreter pays on 2 cores,
+    which made up most of the kill chain's time."""
+    global _FORKS
+    if _FORKS is None:
+        import multiprocessing
+
+        _FORKS = multiprocessing.get_context("forkserver")
+        _FORKS.set_forkserver_preload(["torch", "torch._dynamo", "coin_cl.pipeline.coin"])
+    proc = _FORKS.Process(
+        target=child_main, args=(str(scene), str(out), str(log_path), args.iters, args.prior_steps)
+    )
+    proc.start()
+    return Child(proc)
 
 
 @contextlib.contextmanager
@@ -133,7 +184,7 @@ def api_main(args: argparse.Namespace) -> int:
 
     cases = json.loads(Path(args.api).read_text())
     for c in cases:
-        rec = {"name": c["name"]}
+        rec, t = {"name": c["name"]}, time.time()
         with case_env(c.get("env", {})):
             try:
                 inpaint(c["scene"], c["out_api"], config=tiny_config(args.iters, args.prior_steps))
@@ -142,6 +193,7 @@ def api_main(args: argparse.Namespace) -> int:
                 rec.update(outcome="error", type=type(exc).__name__, message=str(exc))
             except Exception as exc:  # noqa: BLE001 - an unexpected kind is what this counts
                 rec.update(outcome="crash", type=type(exc).__name__, message=traceback.format_exc())
+        rec["seconds"] = round(time.time() - t, 2)
         print("CASE " + json.dumps(rec), flush=True)
     return 0
 
@@ -180,23 +232,6 @@ def cli_main(args: argparse.Namespace) -> int:
                "traceback": "Traceback" in text, "seconds": time.time() - t}  # fmt: skip
         print("CLI " + json.dumps(rec), flush=True)
     return 0
-
-
-def spawn(args, scene: Path, out: Path, log_path: Path) -> subprocess.Popen:
-    cmd = [
-        sys.executable,
-        __file__,
-        "--child",
-        str(scene),
-        str(out),
-        "--iters",
-        str(args.iters),
-        "--prior-steps",
-        str(args.prior_steps),
-    ]
-    return subprocess.Popen(
-        cmd, stdout=open(log_path, "ab"), stderr=subprocess.STDOUT, env={**os.environ, **CHILD_ENV}
-    )
 
 
 def stage_started_after(out: Path, stage: str, t0: float) -> bool:
@@ -349,28 +384,36 @@ def progress_kept(folder: Path) -> int:
     return n + sum(1 for _ in folder.glob("images/*.png"))
 
 
-def lock_conflict(args, scene: Path, out: Path) -> tuple[int, int]:
-    """One run at a time: while a run works in `out`, `coin-cl run` on the same folder must be
-    refused with one line naming it. Returns (caught, tried)."""
-    t0 = time.time()
-    proc = spawn(args, scene, out, out.parent / "conflict.log")
+def lock_conflict(proc: Child, scene: Path, out: Path) -> tuple[int, int]:
+    """One run at a time: while the run `proc` holds `out`'s lock, `coin-cl run` on the same folder
+    must be refused with one line naming it. The holder is stopped (SIGSTOP) while the second
+    command tries, so it cannot finish first, and continued afterwards: a stopped process keeps its
+    lock, and its outputs are the same. Returns (caught, tried)."""
+    from coin_cl.pipeline.lock import LOCK_NAME
+
+    def holds_lock() -> bool:
+        try:
+            return json.loads((out / LOCK_NAME).read_text()).get("pid") == proc.pid
+        except (OSError, ValueError, AttributeError):  # not there yet, or half written
+            return False
+
+    while proc.poll() is None and not holds_lock():
+        time.sleep(0.02)
+    if proc.poll() is not None:
+        return 0, 0
+    proc.send_signal(signal.SIGSTOP)
     try:
-        while proc.poll() is None and not stage_started_after(out, "0_scene", t0):
-            time.sleep(0.02)
-        if proc.poll() is not None:
-            return 0, 0
         cli = subprocess.run(
             [sys.executable, "-m", "coin_cl.cli", "run", str(scene), "--out", str(out), "--iters", "3"],
             capture_output=True, text=True, env={**os.environ, **CHILD_ENV}, timeout=300,
         )  # fmt: skip
-        last = (cli.stderr.strip().splitlines() or [""])[-1]
-        ok = cli.returncode == 2 and "in use by another coin-cl run" in last and f"process {proc.pid}" in last
-        ok = ok and "Traceback" not in cli.stderr and proc.poll() is None  # and the first run goes on
-        print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
-        return int(ok), 1
     finally:
-        proc.kill()
-        proc.wait()
+        proc.send_signal(signal.SIGCONT)
+    last = (cli.stderr.strip().splitlines() or [""])[-1]
+    ok = cli.returncode == 2 and "in use by another coin-cl run" in last and f"process {proc.pid}" in last
+    ok = ok and "Traceback" not in cli.stderr and proc.poll() is None  # and the first run goes on
+    print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
+    return int(ok), 1
 
 
 def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, float]) -> dict:
@@ -420,9 +463,10 @@ def kill_chain(args, scene: Path, ref: Path, out: Path, ref_seconds: dict[str, f
         )
     if proc is not None:
         proc.wait()
-    conflicts, conflict_tries = lock_conflict(args, scene, out.parent / "conflict")
     t0 = time.time()
-    rc = spawn(args, scene, out, log_path).wait()  # resumes what is left (skips what is done)
+    proc = spawn(args, scene, out, log_path)  # resumes what is left (skips what is done)
+    conflicts, conflict_tries = lock_conflict(proc, scene, out)
+    rc = proc.wait()
     n_cmp, diff = compare_outputs(ref, out)
     return {
         "kills": kills,
@@ -486,25 +530,24 @@ def build_corpus(base: Path, root: Path) -> list[dict]:
     p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 3])
     d = _copy(base, case("unreadable_image", "error", t0))
     (d / "images_4" / t0).write_bytes(b"not an image " * 40)
-    d = _copy(base, case("grey_image", "handled"))
+    # Readable but unusual formats, one per view, in one scene (each a whole run to the end): a grey
+    # image, an RGBA one, a 16-bit one, and every mask a lossy JPEG.
+    d = _copy(base, case("grey_rgba_16bit_images_jpeg_masks", "handled"))
     p = d / "images_4" / t0
     iio.imwrite(p, iio.imread(p)[..., :3].mean(axis=2).astype(np.uint8))
-    d = _copy(base, case("rgba_image", "handled"))
-    p = d / "images_4" / t0
+    p = d / "images_4" / t1
     a = iio.imread(p)[..., :3]
     iio.imwrite(p, np.concatenate([a, np.full(a.shape[:2] + (1,), 255, np.uint8)], 2))
-    d = _copy(base, case("image_16bit", "handled"))
-    p = d / "images_4" / t0
+    p = d / "images_4" / train[2]
     cv2.imwrite(str(p), iio.imread(p)[..., 2::-1].astype(np.uint16) * 257)
-    d = _copy(base, case("mask_size_differs", "error", f"label/{t0}"))
-    m = iio.imread(d / "images_4" / "label" / t0)
-    iio.imwrite(d / "images_4" / "label" / t0, cv2.resize(m, (m.shape[1] // 2, m.shape[0] // 2)))
-    d = _copy(base, case("jpeg_masks", "handled"))
     for p in sorted((d / "images_4" / "label").glob("*.png")):
         iio.imwrite(
             p.with_suffix(".jpg"), (iio.imread(p) > 0).astype(np.uint8) * 255, extension=".jpg", quality=70
         )
         p.unlink()
+    d = _copy(base, case("mask_size_differs", "error", f"label/{t0}"))
+    m = iio.imread(d / "images_4" / "label" / t0)
+    iio.imwrite(d / "images_4" / "label" / t0, cv2.resize(m, (m.shape[1] // 2, m.shape[0] // 2)))
     d = _copy(base, case("masks_empty_everywhere", "error", "no training view with a mask"))
     for p in (d / "images_4" / "label").glob("*.png"):
         iio.imwrite(p, np.zeros_like(iio.imread(p)))
@@ -663,6 +706,7 @@ def judge(c: dict) -> dict:
         "api": api.get("message", api["outcome"])[:300],
         "cli": "" if c["expect"] == "handled" and cli["rc"] == 0 else (cli["stderr_tail"] or [""])[0][:300],
         "half_written": c.get("half_written", []),
+        "seconds": (api.get("seconds", 0.0), cli.get("seconds", 0.0)),
         "cli_last": (cli["stderr_tail"] or [""])[0],  # whole, for `vague` (the 300 above are for tables)
     }
 
@@ -1081,12 +1125,9 @@ def main() -> int:
         help="corpus cases also run through `coin-cl run`: all, or only those that must "
         "fail (the handled ones then run to the end through coin_cl.inpaint alone)",
     )
-    ap.add_argument("--child", nargs=2, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--api", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--cli", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.child:
-        return child_main(args)
     if args.api:
         return api_main(args)
     if args.cli:
@@ -1126,6 +1167,9 @@ def main() -> int:
                 f"{'not run' if r['cli_ok'] is None else 'ok' if r['cli_ok'] else 'FAIL'} | "
                 f"{r['cli'] or '(completed)'} |"
             )
+        times = ", ".join(f"{r['name']} {r['seconds'][0]:.1f} + {r['seconds'][1]:.1f}" for r in rows
+                          if "skipped" not in r)  # fmt: skip
+        print(f"seconds per case (coin_cl.inpaint + coin-cl run): {times}")
         for r in rows:
             if "skipped" not in r and not (r["api_ok"] and r["cli_ok"] is not False):
                 print(f"  {r['name']}: api: {r['api']!r}\n  {' ' * len(r['name'])}  cli: {r['cli']!r}")

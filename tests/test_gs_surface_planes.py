@@ -188,3 +188,25 @@ def test_room_background_depth_keeps_the_table_top_in_front_of_the_floor():
     assert share[False][1] > 0.15  # the failure this fixes (0.28 at this size)
     assert share[True][1] < 0.02  # 0.002 at this size
     assert share[True][0] < share[False][0] + 0.01  # no new error in front
+
+
+@pytest.mark.parametrize("r", [0.02, 0.07, 0.3, 5.0])
+def test_patches_are_the_components_of_every_pair_within_the_link(r):
+    """The groups come from the triangulation's short edges; they must be exactly the connected
+    components of the brute-force "at most r apart" graph, with duplicated and collinear points."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from coin_cl.gs.surface_planes import _link_graph
+
+    rng = np.random.default_rng(int(r * 100))
+    blobs = [rng.normal(c, 0.05, (150, 2)) for c in ([0, 0], [0.4, 0.1], [2.0, 2.0])]
+    line = np.column_stack([np.linspace(3, 4, 40), np.full(40, -1.0)])
+    for q in (np.concatenate([*blobs, blobs[0][:20], line]), line):  # duplicates; collinear alone
+        tree, n = cKDTree(q), len(q)
+        pairs = tree.query_pairs(r, output_type="ndarray")
+        brute = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        want = connected_components(brute, directed=False)[1]
+        got = connected_components(_link_graph(q, tree, r), directed=False)[1]
+        np.testing.assert_array_equal(got, want)

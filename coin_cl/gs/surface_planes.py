@@ -110,18 +110,38 @@ def between(cam: Any, points: np.ndarray, rows: np.ndarray, cols: np.ndarray, ba
 
 
 def _patches(q: np.ndarray, min_points: int, link: float) -> list[np.ndarray]:
-    """Index arrays of the connected groups of plane coordinates `q` [N, 2] (neighbours closer than
-    max(LINK_SPACINGS x median spacing, link)) with at least `min_points` points."""
+    """Index arrays of the connected groups of plane coordinates `q` [N, 2] (neighbours at most
+    max(LINK_SPACINGS x median spacing, link) apart) with at least `min_points` points."""
     if len(q) < max(min_points, 3):
         return []
     tree = cKDTree(q)
     spacing = float(np.median(tree.query(q, k=2)[0][:, 1]))
-    pairs = tree.query_pairs(max(LINK_SPACINGS * spacing, link), output_type="ndarray")
-    n = len(q)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
+    _, label = connected_components(_link_graph(q, tree, max(LINK_SPACINGS * spacing, link)), directed=False)
     sizes = np.bincount(label)
     return [np.nonzero(label == c)[0] for c in np.nonzero(sizes >= min_points)[0]]
+
+
+def _link_graph(q: np.ndarray, tree: cKDTree, r: float) -> coo_matrix:
+    """A graph on the points `q` [N, 2] with the connected components of "at most `r` apart".
+
+    The Delaunay triangulation's edges of length <= r: the Euclidean minimum spanning tree lies in
+    the triangulation, and the components of the r-graph are those of its edges <= r, so this is
+    exact with O(N) edges, where listing every pair within r (the link is the mask's size, often
+    most of the ring) costs O(N^2): 0.16 s a view on SPIn-NeRF's rings. Points Qhull leaves out of
+    the triangulation (duplicates) are linked to their nearest vertex; collinear points (no
+    triangulation) take the pair list."""
+    n = len(q)
+    try:
+        tri = Delaunay(q)
+    except QhullError:
+        pairs = tree.query_pairs(r, output_type="ndarray")
+        return coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    s = tri.simplices
+    edges = np.concatenate([s[:, [0, 1]], s[:, [1, 2]], s[:, [0, 2]]])
+    if len(tri.coplanar):
+        edges = np.concatenate([edges, tri.coplanar[:, [0, 2]]])
+    edges = edges[np.linalg.norm(q[edges[:, 0]] - q[edges[:, 1]], axis=1) <= r]
+    return coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
 
 
 def fit_plane_patches(points: np.ndarray, tol: float, min_points: int, link: float = 0.0,
