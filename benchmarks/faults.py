@@ -143,18 +143,25 @@ class Child:
 _FORKS = None
 
 
-def spawn(args, scene: Path, out: Path, log_path: Path) -> Child:
-    """Start a run in a new process, forked from a server that has imported torch, torch._dynamo (the
-    first Adam imports it) and the pipeline, and nothing else: a fresh process for the run (no run
-    state, OpenCL not started), without the 6-7 s of imports a new interpreter pays on 2 cores,
-    which made up most of the kill chain's time."""
+def forks():
+    """The fork server's context: runs and commands start as processes forked from a server that
+    has imported torch, torch._dynamo (the first Adam imports it), the pipeline and the CLI, and
+    nothing else: a fresh process (no run state, OpenCL not started), without the 6-7 s of imports a
+    new interpreter pays on 2 cores, which made up most of the kill chain's and the hostile cases'
+    time. The real `coin-cl` entry point starts as its own interpreter where that matters (a second
+    command on a held folder, Ctrl-C)."""
     global _FORKS
     if _FORKS is None:
         import multiprocessing
 
         _FORKS = multiprocessing.get_context("forkserver")
-        _FORKS.set_forkserver_preload(["torch", "torch._dynamo", "coin_cl.pipeline.coin"])
-    proc = _FORKS.Process(
+        _FORKS.set_forkserver_preload(["torch", "torch._dynamo", "coin_cl.pipeline.coin", "coin_cl.cli"])
+    return _FORKS
+
+
+def spawn(args, scene: Path, out: Path, log_path: Path) -> Child:
+    """Start a CoIn run (`child_main`) in a new process from the fork server (`forks`)."""
+    proc = forks().Process(
         target=child_main, args=(str(scene), str(out), str(log_path), args.iters, args.prior_steps)
     )
     proc.start()
@@ -753,15 +760,36 @@ def _hash_tree(root: Path) -> dict[str, str]:
     return out
 
 
-def _cli(args: list[str], timeout: float = 600, env: dict | None = None) -> dict:
-    """`python -m coin_cl.cli ARGS`: {rc, last (stderr's last line), traceback, seconds}."""
+def cli_child(argv: list[str], err_path: str) -> None:
+    """`python -m coin_cl.cli ARGV` in a child of the fork server (`_cli`): stderr to `err_path`,
+    the exit code from the command's SystemExit, as the interpreter would give it."""
+    import runpy
+
+    fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+    os.dup2(fd, 2)
+    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
+    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    sys.argv = ["coin-cl", *argv]
+    runpy.run_module("coin_cl.cli", run_name="__main__", alter_sys=True)
+
+
+def _cli(args: list[str], timeout: float = 600) -> dict:
+    """`python -m coin_cl.cli ARGS` in a new process (forked from the server `forks` keeps: no run
+    state, without the interpreter's start-up): {rc, last (stderr's last line), traceback, seconds}."""
+    import tempfile
+
     t = time.time()
-    try:
-        p = subprocess.run([sys.executable, "-m", "coin_cl.cli", *args], capture_output=True, text=True,
-                           env={**os.environ, **CHILD_ENV, **(env or {})}, timeout=timeout)  # fmt: skip
-        rc, err = p.returncode, p.stderr
-    except subprocess.TimeoutExpired as exc:
-        rc, err = None, (exc.stderr or b"").decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+    with tempfile.TemporaryDirectory() as tmp:
+        err_path = os.path.join(tmp, "stderr")
+        proc = forks().Process(target=cli_child, args=(list(args), err_path))
+        proc.start()
+        proc.join(timeout)
+        rc = proc.exitcode
+        if rc is None:  # timed out
+            proc.kill()
+            proc.join()
+        err = Path(err_path).read_text(errors="replace") if os.path.exists(err_path) else ""
     return {"rc": rc, "last": _last_line(err), "traceback": "Traceback" in err,
             "seconds": round(time.time() - t, 1)}  # fmt: skip
 
