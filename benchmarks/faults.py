@@ -159,6 +159,37 @@ def forks():
     return _FORKS
 
 
+def harness_child(argv: list[str], out_path: str, err_path: str) -> None:
+    """This script with `argv` (its --api or --cli mode) in a child of the fork server, stdout and
+    stderr to the two files."""
+    for fd, path in ((1, out_path), (2, err_path)):
+        os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
+    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    sys.argv = [__file__, *argv]
+    sys.exit(main())
+
+
+def harness_process(argv: list[str], timeout: float) -> subprocess.CompletedProcess:
+    """`python faults.py ARGV` as a new process from the fork server (`forks`), waited for:
+    its exit code (None when it ran past `timeout` and was killed), stdout and stderr."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out_path, err_path = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
+        proc = forks().Process(target=harness_child, args=(list(argv), out_path, err_path))
+        proc.start()
+        proc.join(timeout)
+        if proc.exitcode is None:
+            proc.kill()
+            proc.join()
+            rc = None
+        else:
+            rc = proc.exitcode
+        read = lambda p: Path(p).read_text(errors="replace") if os.path.exists(p) else ""  # noqa: E731
+        return subprocess.CompletedProcess(argv, rc, read(out_path), read(err_path))
+
+
 def spawn(args, scene: Path, out: Path, log_path: Path) -> Child:
     """Start a CoIn run (`child_main`) in a new process from the fork server (`forks`)."""
     proc = forks().Process(
@@ -634,22 +665,8 @@ def run_corpus(args, base: Path, root: Path) -> list[dict]:
     try:
         # the API: every case in one process (coin_cl.inpaint), one JSON line per case
         (root / "cases.json").write_text(json.dumps(todo))
-        api = subprocess.run(
-            [
-                sys.executable,
-                __file__,
-                "--api",
-                str(root / "cases.json"),
-                "--iters",
-                str(args.corpus_iters),
-                "--prior-steps",
-                str(args.corpus_iters),
-            ],
-            capture_output=True,
-            text=True,
-            env={**os.environ, **CHILD_ENV},
-            timeout=1800,
-        )
+        api = harness_process(["--api", str(root / "cases.json"), "--iters", str(args.corpus_iters),
+                               "--prior-steps", str(args.corpus_iters)], timeout=1800)  # fmt: skip
         got = {}
         for line in api.stdout.splitlines():
             if line.startswith("CASE "):
@@ -669,9 +686,7 @@ def run_corpus(args, base: Path, root: Path) -> list[dict]:
             batch.append({"name": c["name"], "argv": argv, "env": c["env"]})
         # the CLI: every case as `python -m coin_cl.cli run ...` runs it, in one process (cli_main)
         (root / "cli_cases.json").write_text(json.dumps(batch))
-        proc = subprocess.run([sys.executable, __file__, "--cli", str(root / "cli_cases.json")],
-                              capture_output=True, text=True, env={**os.environ, **CHILD_ENV},
-                              timeout=1800)  # fmt: skip
+        proc = harness_process(["--cli", str(root / "cli_cases.json")], timeout=1800)
         clis = {}
         for line in proc.stdout.splitlines():
             if line.startswith("CLI "):
