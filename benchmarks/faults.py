@@ -103,14 +103,20 @@ def tiny_config(iters: int, prior_steps: int):
     )
 
 
+def _own_streams(out_path: str, err_path: str, append: bool = False) -> None:
+    """A forked child's stdout and stderr (fds 1 and 2, and sys.stdout / sys.stderr, line-buffered)
+    to files: its output, not the fork server's."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if append else os.O_TRUNC)
+    for fd, path in ((1, out_path), (2, err_path)):
+        os.dup2(os.open(path, flags), fd)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
+    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+
+
 def child_main(scene: str, out: str, log_path: str, iters: int, prior_steps: int) -> None:
     """One CoIn run, what the harness starts and kills: a child of the fork server (`spawn`), its
     output appended to `log_path`."""
-    fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
-    os.dup2(fd, 1)
-    os.dup2(fd, 2)
-    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
-    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    _own_streams(log_path, log_path, append=True)
     from coin_cl.pipeline.coin import inpaint
 
     inpaint(scene, out, config=tiny_config(iters, prior_steps))
@@ -162,10 +168,7 @@ def forks():
 def harness_child(argv: list[str], out_path: str, err_path: str) -> None:
     """This script with `argv` (its --api or --cli mode) in a child of the fork server, stdout and
     stderr to the two files."""
-    for fd, path in ((1, out_path), (2, err_path)):
-        os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
-    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
-    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    _own_streams(out_path, err_path)
     sys.argv = [__file__, *argv]
     sys.exit(main())
 
@@ -780,11 +783,7 @@ def cli_child(argv: list[str], err_path: str) -> None:
     the exit code from the command's SystemExit, as the interpreter would give it."""
     import runpy
 
-    fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
-    os.dup2(fd, 2)
-    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
-    sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
-    sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+    _own_streams(os.devnull, err_path)
     sys.argv = ["coin-cl", *argv]
     runpy.run_module("coin_cl.cli", run_name="__main__", alter_sys=True)
 
