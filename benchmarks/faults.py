@@ -43,7 +43,7 @@ kills, resumed_identical, bad_inputs, clear_errors, tracebacks (corpus and hosti
 lock_conflicts_caught, hostile_cases, hostile_ok, exec_refused (of exec_tried), data_loss,
 vague_messages and more. `--skip-chain` leaves out 1-3 (the kill chain and its reference run).
 
-    nice -n 15 python benchmarks/faults.py --out /tmp/faults     (about 10 minutes on 2 cores)
+    nice -n 15 python benchmarks/faults.py --out /tmp/faults     (about 5 minutes on 2 cores)
 """
 
 from __future__ import annotations
