@@ -108,7 +108,9 @@ def _own_streams(out_path: str, err_path: str, append: bool = False) -> None:
     to files: its output, not the fork server's."""
     flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if append else os.O_TRUNC)
     for fd, path in ((1, out_path), (2, err_path)):
-        os.dup2(os.open(path, flags), fd)
+        opened = os.open(path, flags)
+        os.dup2(opened, fd)
+        os.close(opened)
     sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - the process's own streams
     sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
 
@@ -173,24 +175,32 @@ def harness_child(argv: list[str], out_path: str, err_path: str) -> None:
     sys.exit(main())
 
 
+def run_forked(target, args: tuple, timeout: float) -> int | None:
+    """`target(*args)` in a new process from the fork server (`forks`), waited for: its exit code,
+    or None when it ran past `timeout` (then it is killed)."""
+    proc = forks().Process(target=target, args=args)
+    proc.start()
+    proc.join(timeout)
+    if proc.exitcode is None:
+        proc.kill()
+        proc.join()
+        return None
+    return proc.exitcode
+
+
+def _read(path: str) -> str:
+    return Path(path).read_text(errors="replace") if os.path.exists(path) else ""
+
+
 def harness_process(argv: list[str], timeout: float) -> subprocess.CompletedProcess:
-    """`python faults.py ARGV` as a new process from the fork server (`forks`), waited for:
-    its exit code (None when it ran past `timeout` and was killed), stdout and stderr."""
+    """`python faults.py ARGV` as a new process from the fork server (`run_forked`): its exit code
+    (None when it ran past `timeout`), stdout and stderr."""
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
         out_path, err_path = os.path.join(tmp, "stdout"), os.path.join(tmp, "stderr")
-        proc = forks().Process(target=harness_child, args=(list(argv), out_path, err_path))
-        proc.start()
-        proc.join(timeout)
-        if proc.exitcode is None:
-            proc.kill()
-            proc.join()
-            rc = None
-        else:
-            rc = proc.exitcode
-        read = lambda p: Path(p).read_text(errors="replace") if os.path.exists(p) else ""  # noqa: E731
-        return subprocess.CompletedProcess(argv, rc, read(out_path), read(err_path))
+        rc = run_forked(harness_child, (list(argv), out_path, err_path), timeout)
+        return subprocess.CompletedProcess(argv, rc, _read(out_path), _read(err_path))
 
 
 def spawn(args, scene: Path, out: Path, log_path: Path) -> Child:
@@ -444,16 +454,13 @@ def lock_conflict(proc: Child, scene: Path, out: Path) -> tuple[int, int]:
         return 0, 0
     proc.send_signal(signal.SIGSTOP)
     try:
-        cli = subprocess.run(
-            [sys.executable, "-m", "coin_cl.cli", "run", str(scene), "--out", str(out), "--iters", "3"],
-            capture_output=True, text=True, env={**os.environ, **CHILD_ENV}, timeout=300,
-        )  # fmt: skip
+        cli = _cli(["run", str(scene), "--out", str(out), "--iters", "3"], timeout=300)
     finally:
         proc.send_signal(signal.SIGCONT)
-    last = (cli.stderr.strip().splitlines() or [""])[-1]
-    ok = cli.returncode == 2 and "in use by another coin-cl run" in last and f"process {proc.pid}" in last
-    ok = ok and "Traceback" not in cli.stderr and proc.poll() is None  # and the first run goes on
-    print(f"  lock conflict: rc {cli.returncode}: {last}", flush=True)
+    last = cli["last"]
+    ok = cli["rc"] == 2 and "in use by another coin-cl run" in last and f"process {proc.pid}" in last
+    ok = ok and not cli["traceback"] and proc.poll() is None  # and the first run goes on
+    print(f"  lock conflict: rc {cli['rc']}: {last}", flush=True)
     return int(ok), 1
 
 
@@ -796,14 +803,8 @@ def _cli(args: list[str], timeout: float = 600) -> dict:
     t = time.time()
     with tempfile.TemporaryDirectory() as tmp:
         err_path = os.path.join(tmp, "stderr")
-        proc = forks().Process(target=cli_child, args=(list(args), err_path))
-        proc.start()
-        proc.join(timeout)
-        rc = proc.exitcode
-        if rc is None:  # timed out
-            proc.kill()
-            proc.join()
-        err = Path(err_path).read_text(errors="replace") if os.path.exists(err_path) else ""
+        rc = run_forked(cli_child, (list(args), err_path), timeout)
+        err = _read(err_path)
     return {"rc": rc, "last": _last_line(err), "traceback": "Traceback" in err,
             "seconds": round(time.time() - t, 1)}  # fmt: skip
 
