@@ -250,7 +250,7 @@ def test_a_minute_budget_follows_the_pipelines_rule(room, tmp_path, monkeypatch)
 
 def test_the_count_is_planned_again_from_the_first_steps_and_kept_on_a_rerun(room, tmp_path, monkeypatch):
     """`replan_seconds`: PROBE_STEPS steps of a thrown-away copy time the machine (here each reported
-    as 0.01 s), the count follows `budget.refgs_steps_from_rate` and stage.json records it; the copy
+    as 0.03 s), the count follows `budget.refgs_steps_from_rate` and stage.json records it; the copy
     leaves no trace (the run equals one given that count outright), and a rerun with the same request
     keeps the decision without timing again."""
     syn, scene, targets = room
@@ -260,9 +260,12 @@ def test_the_count_is_planned_again_from_the_first_steps_and_kept_on_a_rerun(roo
         for _ in range(steps + warmup):
             step()
         calls.append(steps)
-        return 0.01
+        return 0.03
 
     monkeypatch.setattr(stage, "median_step_seconds", timed)
+    # a floor of 10 steps instead of 100: the count then comes from the rate (tens of steps), and the
+    # three runs below train those instead of the real floor's 300 steps
+    monkeypatch.setitem(B.costs.MIN_STEPS, "refgs", 10)
     # the stage's clock stands still: the seconds left after its setup are the 1.5 asked, on any
     # machine (a loaded CI machine took longer than that to set up, leaving none)
     monkeypatch.setattr(stage, "time", SimpleNamespace(perf_counter=lambda: 0.0))
@@ -270,10 +273,10 @@ def test_the_count_is_planned_again_from_the_first_steps_and_kept_on_a_rerun(roo
     res = run_refgs(scene, targets, tmp_path / "r", cfg, budget_minutes=None, iters=7, seed=0,
                     replan_seconds=1.5, schedule_iters=27)  # fmt: skip
     rp = res["replan"]
-    assert calls == [B.PROBE_STEPS] and rp["request"] == 7 and rp["first_seconds_per_step"] == 0.01
+    assert calls == [B.PROBE_STEPS] and rp["request"] == 7 and rp["first_seconds_per_step"] == 0.03
     assert rp["seconds"] == 1.5
-    assert rp["steps"] == B.refgs_steps_from_rate(rp["seconds"], 0.01, rp["size"], rp["size_limit"])[0]
-    assert res["iters"] == res["steps"] == rp["steps"] >= B.costs.MIN_STEPS["refgs"]
+    assert rp["steps"] == B.refgs_steps_from_rate(rp["seconds"], 0.03, rp["size"], rp["size_limit"])[0]
+    assert res["iters"] == res["steps"] == rp["steps"] > B.costs.MIN_STEPS["refgs"]  # the rate decided
     assert json.loads((tmp_path / "r" / stage.STAGE_JSON).read_text())["replan"] == rp
     log = json.loads(Path(res["log"]).read_text())["refgs"]
     assert log["schedule_iters"] == rp["steps"] + 20  # TE-D's 20 steps still follow it
