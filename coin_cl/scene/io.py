@@ -14,6 +14,9 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 # DSLR photo (a 61 MP full-frame sensor is 9504x6336) and ~1.2 GB as float32 RGB. A larger size
 # declared in a header is refused before any decode: a 100 KB PNG may declare 12000x12000.
 MAX_IMAGE_PIXELS = 100_000_000
+# zlib level of every PNG written: 1 wrote a 1008x567 render in 63 ms against 245 ms at PIL's
+# default 6, for files 7% larger (1.02 MB against 0.96); an eval stage writes dozens of them.
+PNG_COMPRESS_LEVEL = 1
 
 
 def _unreadable(what: str, path: Path, exc: BaseException) -> ValueError:
@@ -111,9 +114,10 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
 
 
 def write_png(path: str | Path, img: np.ndarray) -> None:
-    """Write a float [0, 1] or uint8 image (H, W[, 3]) as PNG, atomically."""
+    """Write a float [0, 1] or uint8 image (H, W[, 3]) as PNG, atomically (zlib level
+    `PNG_COMPRESS_LEVEL`)."""
     data = to_uint8(img)
-    atomic_write(path, lambda p: iio.imwrite(p, data, extension=".png"))
+    atomic_write(path, lambda p: iio.imwrite(p, data, extension=".png", compress_level=PNG_COMPRESS_LEVEL))
 
 
 def write_npy(path: str | Path, arr: np.ndarray) -> None:
