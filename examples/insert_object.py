@@ -22,8 +22,9 @@ What it does, step by step (everything it writes lies in --out):
 4. Writes `crops.png`: every view of the subset (sorted by azimuth from the edited view; label: view,
    azimuth / elevation in degrees, train / HO = held out / edited), cropped around the derived region:
    the capture with the inserted object's projected outline, the lift warped into the view (stage 1's
-   image; for held-out views the same warp, computed here) and the final render; `regions.png`, stage
-   1's sheet of the derived regions on every training view; `views.json`, the figures. With
+   image; for held-out views the same warp, computed here) and the final render (a view where the
+   scene hides the object whole is cropped around its outline and labelled "hidden"); `regions.png`,
+   stage 1's sheet of the derived regions on every training view; `views.json`, the figures. With
    --lift-only it stops before training and writes `lift_crops.png` without the render column.
 
 Runtime: 3.8 minutes on 2 CPU cores (AMD EPYC, Intel's OpenCL CPU runtime; --edit-only and
@@ -431,12 +432,15 @@ def main(argv: list[str] | None = None) -> dict:
         cam, stem = work.cameras[i], Path(work.cameras[i].name).stem
         foot = footprint(lift.points, cam)
         info["views"][cam.name]["object_px"] = int(foot.sum())
-        if not regions[i].any():
+        # a view where the scene hides the object whole (an empty region) is cropped around where
+        # the object would be, to show that the capture stays in front of it
+        around = regions[i] if regions[i].any() else foot
+        if not around.any():
             continue
-        ys, xs = np.nonzero(regions[i])
+        ys, xs = np.nonzero(around)
         # context around the region (the desk under it, the real cup beside it)
         pad = max(8, round(CROP_CONTEXT * max(np.ptp(ys), np.ptp(xs))))
-        crop = metrics.bbox_crop(regions[i], pad=pad)
+        crop = metrics.bbox_crop(around, pad=pad)
         warp = read_image(warp_dir / "images" / f"{stem}.png")
         tiles = [work.images[i][crop], warp[crop]]
         if res is not None:
@@ -445,6 +449,7 @@ def main(argv: list[str] | None = None) -> dict:
             write_png(out / "renders" / f"{stem}.png", to_uint8(render))
             tiles.append(render[crop])
         tag = "edited" if i == k else ("HO" if i in work.test_idx else "train")
+        tag += "" if regions[i].any() else ", hidden"
         label = f"{stem} {rel[views[i]]:+.0f}/{el[views[i]]:.0f} {tag}"
         rows.append((label, foot[crop], tiles))
     grid = "lift_crops.png" if res is None else "crops.png"

@@ -18,6 +18,7 @@ from coin_cl.pipeline.insert_geometry import (
     footprint,
     lift_one_photo,
     lift_reference,
+    occluded,
     run_insert_derived,
     splat_colors,
     splat_depth,
@@ -128,6 +129,36 @@ def test_scene_points_in_front_of_the_object_hide_it_in_that_view():
     assert (visible_footprint(lift, ground, cam, CFG) == whole).all()
     off = replace(CFG, occlusion=False)
     assert (visible_footprint(lift, np.concatenate([ground, sheet(-3.0)]), cam, off) == whole).all()
+
+
+def test_a_gap_in_the_occluders_points_does_not_show_the_object_through_it():
+    """A box behind a wall of scene points that hides it whole, but for a patch of the wall with no
+    points (a plain surface SfM found nothing on): the patch, larger than `min_component` and enclosed
+    by the wall, is not the object peeking out, so nothing of the box is the region; the same wall
+    covering only the box's left half still leaves its right half, which reaches the box's outline."""
+    cam = _look_at([0.0, -6.0, 3.0], [0.0, 0.0, 0.6], 120, 90, 110.0)
+    g = np.linspace(-4, 4, 41)
+    ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
+    u0, v0 = cam.project(np.zeros((1, 3)))[0][0]
+    yy, xx = np.mgrid[0:90, 0:120] + 0.5
+    region = (yy >= v0 - 30) & (yy <= v0) & (np.abs(xx - u0) <= 15)
+    edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
+    lift = lift_one_photo(edited, region, cam, ground, "box.png", CFG)
+    whole = footprint(lift.points, cam)
+    x0, x1 = lift.points[:, 0].min(), lift.points[:, 0].max()
+    wx, wz = np.meshgrid(np.linspace(x0 - 0.5, x1 + 0.5, 50), np.linspace(0.1, 3.0, 60), indexing="ij")
+    wall = np.stack([wx.ravel(), np.full(wx.size, -3.0), wz.ravel()], -1)
+    # the gap: where the ray to the box's centre crosses the wall (halfway to the camera, where the box
+    # looks half its width), a square a quarter of the box's width across
+    c, eye = lift.points.mean(0), np.array([0.0, -6.0, 3.0])
+    hit = eye + (c - eye) * (3.0 / (c[1] + 6.0))
+    gap = (np.abs(wall[:, 0] - hit[0]) < 0.12 * (x1 - x0)) & (np.abs(wall[:, 2] - hit[2]) < 0.12 * (x1 - x0))
+    seen_through = footprint(lift.points, cam) & ~occluded(lift, np.concatenate([ground, wall[~gap]]), cam)
+    assert seen_through.sum() >= CFG.min_component * whole.sum()  # the gap alone would pass the size rule
+    assert not visible_footprint(lift, np.concatenate([ground, wall[~gap]]), cam, CFG).any()
+    half = wall[wall[:, 0] < 0.0]
+    kept = visible_footprint(lift, np.concatenate([ground, half]), cam, CFG)
+    assert kept[whole & (xx > u0 + 3)].mean() > 0.95 and kept[whole & (xx < u0 - 3)].mean() < 0.1
 
 
 def test_contact_sheet_mixes_portrait_and_landscape_views():

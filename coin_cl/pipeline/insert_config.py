@@ -40,8 +40,10 @@ class InsertConfig:
     projection (None: 1 % of the view's longer side, at least 1). max_points: cap on lifted points
     (samples along the rays, or the shell's spacing, get coarser beyond it). occlusion: the
     scene's sparse points standing in front of the object hide it in a view (its region there
-    leaves them out, so the captured scene stays in front of it); False: the object is drawn over
-    everything it projects onto."""
+    leaves them out, so the captured scene stays in front of it; a visible part that shows little
+    of the object's outline is a gap in the occluder's points and is hidden too,
+    `insert_geometry.visible_footprint`); False: the object is drawn over everything it projects
+    onto."""
 
     edit_tol: float = 2.0 / 255.0
     hull_fraction: float = 0.9
