@@ -101,19 +101,29 @@ def test_object_wider_above_its_foot_stands_on_its_foot():
     assert lift.points[:, 2].min() >= -0.01  # nothing under the ground (1e-3 of the depth)
 
 
-def test_scene_points_in_front_of_the_object_hide_it_in_that_view():
-    """A box stood on the ground z = 0 from one photo, seen from the same camera: a sheet of scene
-    points between the camera and the box's left half hides that half (the region keeps the captured
-    scene in front); the same sheet behind the box hides nothing, nor does the ground in front of its
-    foot; with occlusion off the whole projection is the region."""
-    cam = _look_at([0.0, -6.0, 3.0], [0.0, 0.0, 0.6], 120, 90, 110.0)
+# The camera of the occlusion tests, at (0, -6, 3) looking at (0, 0, 0.6).
+EYE = np.array([0.0, -6.0, 3.0])
+
+
+def _box_on_ground():
+    """(camera, ground points z = 0, the lift of a red box painted standing on the ground in that
+    camera's photo, pixel x centres [H, W], the box's centre column u0): the occlusion tests' scene."""
+    cam = _look_at(EYE.tolist(), [0.0, 0.0, 0.6], 120, 90, 110.0)
     g = np.linspace(-4, 4, 41)
     ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
     u0, v0 = cam.project(np.zeros((1, 3)))[0][0]
     yy, xx = np.mgrid[0:90, 0:120] + 0.5
     region = (yy >= v0 - 30) & (yy <= v0) & (np.abs(xx - u0) <= 15)
     edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
-    lift = lift_one_photo(edited, region, cam, ground, "box.png", CFG)
+    return cam, ground, lift_one_photo(edited, region, cam, ground, "box.png", CFG), xx, u0
+
+
+def test_scene_points_in_front_of_the_object_hide_it_in_that_view():
+    """A box stood on the ground z = 0 from one photo, seen from the same camera: a sheet of scene
+    points between the camera and the box's left half hides that half (the region keeps the captured
+    scene in front); the same sheet behind the box hides nothing, nor does the ground in front of its
+    foot; with occlusion off the whole projection is the region."""
+    cam, ground, lift, xx, u0 = _box_on_ground()
     whole = footprint(lift.points, cam)
     x0 = lift.points[:, 0].min()
     sx, sz = np.meshgrid(np.linspace(x0 - 0.3, 0.0, 25), np.linspace(0.1, 3.0, 60), indexing="ij")
@@ -136,22 +146,15 @@ def test_a_gap_in_the_occluders_points_does_not_show_the_object_through_it():
     points (a plain surface SfM found nothing on): the patch, larger than `min_component` and enclosed
     by the wall, is not the object peeking out, so nothing of the box is the region; the same wall
     covering only the box's left half still leaves its right half, which reaches the box's outline."""
-    cam = _look_at([0.0, -6.0, 3.0], [0.0, 0.0, 0.6], 120, 90, 110.0)
-    g = np.linspace(-4, 4, 41)
-    ground = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((41, 41))], -1).reshape(-1, 3)
-    u0, v0 = cam.project(np.zeros((1, 3)))[0][0]
-    yy, xx = np.mgrid[0:90, 0:120] + 0.5
-    region = (yy >= v0 - 30) & (yy <= v0) & (np.abs(xx - u0) <= 15)
-    edited = np.where(region[..., None], [0.9, 0.1, 0.1], [0.5, 0.5, 0.5]).astype(np.float32)
-    lift = lift_one_photo(edited, region, cam, ground, "box.png", CFG)
+    cam, ground, lift, xx, u0 = _box_on_ground()
     whole = footprint(lift.points, cam)
     x0, x1 = lift.points[:, 0].min(), lift.points[:, 0].max()
     wx, wz = np.meshgrid(np.linspace(x0 - 0.5, x1 + 0.5, 50), np.linspace(0.1, 3.0, 60), indexing="ij")
     wall = np.stack([wx.ravel(), np.full(wx.size, -3.0), wz.ravel()], -1)
     # the gap: where the ray to the box's centre crosses the wall (halfway to the camera, where the box
     # looks half its width), a square a quarter of the box's width across
-    c, eye = lift.points.mean(0), np.array([0.0, -6.0, 3.0])
-    hit = eye + (c - eye) * (3.0 / (c[1] + 6.0))
+    c = lift.points.mean(0)
+    hit = EYE + (c - EYE) * ((-3.0 - EYE[1]) / (c[1] - EYE[1]))
     gap = (np.abs(wall[:, 0] - hit[0]) < 0.12 * (x1 - x0)) & (np.abs(wall[:, 2] - hit[2]) < 0.12 * (x1 - x0))
     seen_through = footprint(lift.points, cam) & ~occluded(lift, np.concatenate([ground, wall[~gap]]), cam)
     assert seen_through.sum() >= CFG.min_component * whole.sum()  # the gap alone would pass the size rule
