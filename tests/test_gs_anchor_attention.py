@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from coin_cl.gs.anchor_attention import AnchorAttention, mask_anchor_sets, write_back_features
+from coin_cl.gs.anchor_attention import (
+    AnchorAttention,
+    attend_written_out,
+    mask_anchor_sets,
+    write_back_features,
+)
 from coin_cl.gs.refgs import RefGSConfig, anchor_attention
 from coin_cl.scene.types import Camera
 
@@ -147,16 +152,6 @@ def test_attention_write_back_and_apply_view():
     assert torch.allclose(param[0], before[1]) and torch.equal(param[1:], before[1:])
 
 
-def _attend_explicit(att: AnchorAttention, f_in: torch.Tensor, f_side: torch.Tensor) -> torch.Tensor:
-    """The attention written out (the [heads, I, S] weights held): the reference of `attend`."""
-    h, d, c = att.heads, att.head_dim, att.feat_dim
-    q = att.q(f_in).view(-1, h, d).transpose(0, 1)
-    k = att.k(f_side).view(-1, h, d).transpose(0, 1)
-    v = f_side.view(-1, h, c // h).transpose(0, 1)
-    w = torch.softmax(q @ k.transpose(1, 2) / d**0.5, dim=-1)
-    return (w @ v).transpose(0, 1).reshape(-1, c)
-
-
 @pytest.mark.parametrize("heads,head_dim", [(4, 16), (8, 4), (2, 16)])  # value width below, above, equal
 def test_fused_attention_matches_the_written_out_softmax_in_float64(heads, head_dim):
     torch.manual_seed(0)
@@ -164,7 +159,7 @@ def test_fused_attention_matches_the_written_out_softmax_in_float64(heads, head_
     f_in = torch.randn(37, 32, dtype=torch.float64, requires_grad=True)
     f_side = torch.randn(53, 32, dtype=torch.float64, requires_grad=True)
     up = torch.randn(37, 32, dtype=torch.float64)
-    got, want = att.attend(f_in, f_side), _attend_explicit(att, f_in, f_side)
+    got, want = att.attend(f_in, f_side), attend_written_out(att, f_in, f_side)
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
     params = [f_in, f_side, *att.parameters()]
     g_got = torch.autograd.grad((got * up).sum(), params)
@@ -175,6 +170,6 @@ def test_fused_attention_matches_the_written_out_softmax_in_float64(heads, head_
     att32 = AnchorAttention(32, heads=heads, head_dim=head_dim, seed=3)
     a32, b32 = f_in.detach().float(), f_side.detach().float()
     torch.testing.assert_close(
-        att32.attend(a32, b32), _attend_explicit(att32, a32, b32), rtol=1e-5, atol=1e-6
+        att32.attend(a32, b32), attend_written_out(att32, a32, b32), rtol=1e-5, atol=1e-6
     )
     assert torch.equal(att32.attend(a32, b32), att32.attend(a32, b32))

@@ -151,8 +151,8 @@ class AnchorAttention(nn.Module):
     def attend(self, f_in: Tensor, f_side: Tensor) -> Tensor:
         """Attn(Q = f_in [I, C], K = V = f_side [S, C]) -> [I, C] (before the mix): per head
         softmax(q k^T / sqrt(head_dim)) v, computed by torch's fused attention, which never holds
-        the [heads, I, S] weights: at I = S = 2000 (the caps) forward and backward took 63 ms
-        against 403 ms for the explicit softmax on 2 cores, the same values to float rounding."""
+        the [heads, I, S] weights (`attend_written_out` does; error against it and both run times:
+        `benchmarks/attention.py`)."""
         h, d, c = self.heads, self.head_dim, self.feat_dim
         q = self.q(f_in).view(-1, h, d).transpose(0, 1)[None]  # [1, h, I, d]
         k = self.k(f_side).view(-1, h, d).transpose(0, 1)[None]  # [1, h, S, d]
@@ -222,6 +222,17 @@ class AnchorAttention(nn.Module):
         """
         in_idx, side_idx = mask_anchor_sets(anchors, cam, mask, ring_frac, ring_min_px)
         return self(features, in_idx, side_idx)
+
+
+def attend_written_out(att: AnchorAttention, f_in: Tensor, f_side: Tensor) -> Tensor:
+    """`att.attend` with its [heads, I, S] softmax weights written out and held: its reference (run
+    in float64 by the tests and the benchmark)."""
+    h, d, c = att.heads, att.head_dim, att.feat_dim
+    q = att.q(f_in).view(-1, h, d).transpose(0, 1)  # [h, I, d]
+    k = att.k(f_side).view(-1, h, d).transpose(0, 1)  # [h, S, d]
+    v = f_side.view(-1, h, c // h).transpose(0, 1)  # [h, S, C/h]
+    w = torch.softmax(q @ k.transpose(1, 2) / math.sqrt(d), dim=-1)  # [h, I, S]
+    return (w @ v).transpose(0, 1).reshape(-1, c)
 
 
 @torch.no_grad()
