@@ -31,8 +31,12 @@ RIM_BOUND = 0.8
 STRICT_GAIN = 0.1
 RECALL_COST = 0.12
 # exact masks: the vote on the default ring against the vote on the masks alone (test_tight_...)
-RING_RECALL_GAIN = 0.02  # measured +0.04 (0.80 -> 0.84) at 96x72, 90 degrees
-RING_PRECISION_GAIN = 0.05  # measured +0.10 (0.56 -> 0.66)
+# The vote on the ring at 96x72, 90 degrees, against the tight vote (precision / recall): 0.56 / 0.80
+# -> 0.66 / 0.84 on an AMD EPYC Zen 3, 0.60 / 0.79 -> 0.67 / 0.78 on a Xeon (Intel's runtime rounds
+# the fit differently per CPU): precision and F1 gain on both, recall moves either way by a little.
+RING_PRECISION_GAIN = 0.05
+RING_F1_GAIN = 0.02
+RING_RECALL_LOSS = 0.03  # the most recall the ring may cost
 
 
 @pytest.fixture(scope="module")
@@ -302,9 +306,9 @@ def test_vote_ring_makes_up_the_default_ring():
 def test_tight_masks_vote_on_the_default_ring(refined90, tmp_path):
     """Exact masks (`--mask-dilate 0`): the unanimous vote on them alone keeps Gaussians of the
     object's silhouette that some view has just outside its mask; they cover the footprint and the
-    split takes it for observed (recall falls). The vote on the masks widened by `vote_ring`, on
-    the same fit and the same (tight) split region, gains recall and precision (measured 0.56 / 0.80
-    -> 0.66 / 0.84); a vote that ignored the wider masks would gain neither."""
+    split takes it for observed. The vote on the masks widened by `vote_ring`, on the same fit and
+    the same (tight) split region, gains precision and F1 at about the same recall (figures by
+    `RING_PRECISION_GAIN`); a vote that ignored the wider masks would gain neither."""
     syn, scene, out90, _ = refined90
     train = list(scene.train_idx)
     tight = [np.asarray(m, bool) for m in scene.masks]
@@ -317,8 +321,10 @@ def test_tight_masks_vote_on_the_default_ring(refined90, tmp_path):
     p_t, r_t, _ = _scores(syn, scene, tmp_path / "tight")
     p_r, r_r, _ = _scores(syn, scene, tmp_path / "ring")
     print(f"tight vote {p_t:.3f} / {r_t:.3f}, vote on the ring {p_r:.3f} / {r_r:.3f}")
-    assert r_r > r_t + RING_RECALL_GAIN, (r_r, r_t)
+    f1_t, f1_r = 2 * p_t * r_t / (p_t + r_t), 2 * p_r * r_r / (p_r + r_r)
     assert p_r > p_t + RING_PRECISION_GAIN, (p_r, p_t)
+    assert f1_r > f1_t + RING_F1_GAIN, (f1_r, f1_t)
+    assert r_r > r_t - RING_RECALL_LOSS, (r_r, r_t)
 
 
 def test_small_observed_islands_go_back_to_the_unseen_core():
