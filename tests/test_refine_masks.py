@@ -368,3 +368,44 @@ def test_enclosed_observed_parts_go_back_to_the_unseen_core():
     assert enclosed_parts(diag, full)[7, 7]
     with pytest.raises(ValueError, match="RefineConfig.enclosed"):
         RefineConfig(enclosed=1)
+
+
+def test_fit_check_trusts_a_fit_only_where_it_beats_one_flat_colour_around_the_mask():
+    from coin_cl.pipeline.refine_masks import fit_reproduces
+
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.2, 0.8, (40, 60, 3))
+    mask = np.zeros((40, 60), bool)
+    mask[12:28, 20:40] = True
+    assert fit_reproduces(image + 0.01, image, mask, 4)  # close to the capture around the mask
+    flat = np.broadcast_to(np.median(image[~mask], 0), image.shape)
+    assert not fit_reproduces(flat, image, mask, 4)  # a flat colour does not beat itself
+    assert not fit_reproduces(image[:, ::-1], image, mask, 4)  # texture in the wrong place
+    plain = np.full_like(image, 0.5)
+    assert not fit_reproduces(plain + 0.001, plain, mask, 4)  # nothing to beat on a plain ring
+    nan = image.copy()
+    nan[:, :10] = np.nan  # non-finite pixels are left out, not propagated
+    assert fit_reproduces(nan, image, mask, 4)
+    assert not fit_reproduces(np.full_like(image, np.nan), image, mask, 4)
+    assert not fit_reproduces(image, image, np.ones((40, 60), bool), 4)  # no ring at all
+
+
+def test_fit_check_gives_up_the_observed_part_of_views_the_fit_misses(capture, refined, tmp_path):
+    """On the synthetic room the fit reproduces every view, so the check changes no split; a view
+    whose render is replaced by a flat colour keeps no observed part."""
+    from coin_cl.pipeline.refine_masks import fit_renders, split_view
+
+    syn, scene = capture
+    out, _ = refined
+    train, masks = list(scene.train_idx), _dilated(scene)
+    shutil.copytree(out / "default" / "gs", tmp_path / "gs")
+    renders, _, _ = fit_renders(scene, masks, train, tmp_path / "gs", RefineConfig(), 300)
+    checked, unchecked = RefineConfig(), RefineConfig(fit_check=False)
+    for i in train:
+        assert np.array_equal(split_view(scene, masks, renders, i, train, checked)[0],
+                              split_view(scene, masks, renders, i, train, unchecked)[0])  # fmt: skip
+    i = max(train, key=lambda j: (masks[j] & ~split_view(scene, masks, renders, j, train, checked)[0]).sum())
+    assert (masks[i] & ~split_view(scene, masks, renders, i, train, checked)[0]).any()  # an observed part
+    img, alpha, depth, cap_depth = renders[i]
+    renders[i] = (np.full_like(img, 0.5), alpha, depth, cap_depth)
+    assert np.array_equal(split_view(scene, masks, renders, i, train, checked)[0], masks[i])
