@@ -288,8 +288,8 @@ def fit_reproduces(render: np.ndarray, image: np.ndarray, mask: np.ndarray, ring
     """Whether `render` (H, W, 3) reproduces `image` (H, W, 3) around `mask` (H, W) bool better than
     one flat colour: over the ring of `ring_px` pixels outside the mask (8-neighbourhood, clipped
     to the frame), its mean absolute difference from the image is below that of the ring's
-    per-channel median colour. Non-finite pixels are left out of both; an empty ring (a mask that
-    covers the frame but for less than nothing) gives False, so the view keeps no observed part."""
+    per-channel median colour. Non-finite pixels are left out of both; a ring with no finite pixel
+    (a mask covering the whole frame, an all-NaN render) gives False: the view keeps no observed part."""
     ker = np.ones((3, 3), np.uint8)
     ring = cv2.dilate(mask.astype(np.uint8), ker, iterations=int(ring_px)).astype(bool) & ~mask
     r, im = np.asarray(render, np.float64)[ring], np.asarray(image, np.float64)[ring]
