@@ -212,13 +212,9 @@ def refine_masks(
     for i in list(train) + list(also):
         stem = Path(scene.cameras[i].name).stem
         mask = np.asarray(masks[i], bool)
-        refined, warped, found = split_view(scene, masks, renders, i, train, cfg)
-        if (
-            cfg.fit_check
-            and i in cams
-            and mask.any()
-            and not fit_reproduces(renders[i][0], scene.images[i], mask, cfg.fit_ring_px)
-        ):
+        trusted = fit_trusted(scene, renders, i, mask, cfg)
+        refined, warped, found = split_view(scene, masks, renders, i, train, cfg, trusted)
+        if not trusted and i in cams:
             unfit.append(stem)
         render = renders[i][0]
         write_mask(out_dir / "observed" / f"{stem}.png", mask & ~refined)
@@ -300,6 +296,14 @@ def fit_reproduces(render: np.ndarray, image: np.ndarray, mask: np.ndarray, ring
     return float(np.abs(r - im).mean()) < float(np.abs(im - np.median(im, 0)).mean())
 
 
+def fit_trusted(scene: Scene, renders: Renders, i: int, mask: np.ndarray, cfg: RefineConfig) -> bool:
+    """Whether view i's observed part may come from the fit: always without `cfg.fit_check` or
+    with an empty `mask` (H, W) bool, else `fit_reproduces` of its render around the mask."""
+    if not cfg.fit_check or not mask.any():
+        return True
+    return fit_reproduces(renders[i][0], scene.images[i], mask, cfg.fit_ring_px)
+
+
 def split_view(
     scene: Scene,
     masks: list[np.ndarray],
@@ -307,17 +311,18 @@ def split_view(
     i: int,
     train: list[int],
     cfg: RefineConfig,
+    trusted: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Step 3 for view i: its input mask split by the rules of `cfg` against the training views
-    `train`, from `fit_renders`' `renders`. Returns (M^rmv_n (H, W) bool, the unseen core; the
+    `train`, from `fit_renders`' `renders`. trusted: `fit_trusted`'s answer for the view when the
+    caller has it (None: asked here). Returns (M^rmv_n (H, W) bool, the unseen core; the
     observed part's colours from the captures (H, W, 3), None without `cfg.warp_tol`; the pixels
     those colours cover (H, W) bool)."""
     mask = np.asarray(masks[i], bool)
     alpha, d = renders[i][1], renders[i][2]
-    if cfg.fit_check and mask.any():
+    if not (fit_trusted(scene, renders, i, mask, cfg) if trusted is None else trusted):
         # a fit that cannot reproduce this view around the mask is not trusted inside it
-        if not fit_reproduces(renders[i][0], scene.images[i], mask, cfg.fit_ring_px):
-            return mask.copy(), None, np.zeros_like(mask)
+        return mask.copy(), None, np.zeros_like(mask)
     cams = {j: scene.cameras[j] for j in train}
     covered = mask & (alpha >= cfg.alpha_thresh)
     if cfg.view_check > 0:
