@@ -77,7 +77,8 @@ CUP_BOXES = {
 SCENES = ("spinnerf", "cup_plain", "cup_edge")
 ROWS = ("default", "naive", "masked_recon", "smooth", "embedded")
 KEYS = ("psnr", "m_psnr", "vgg_pd", "m_vgg_pd", "bbox_gmsd", "hf_ratio")
-CLI_BUDGET = 30.0  # `coin-cl run`'s --budget default: the budget of the default row without --budget
+# `coin-cl run`'s --budget default (CoInConfig's): the budget of the default row without --budget
+CLI_BUDGET = CoInConfig.budget_minutes
 
 
 def data_root() -> Path:
@@ -150,7 +151,7 @@ def base_config(default_run: Path, args) -> CoInConfig:
     """The CLI's config as the default row resolved it: its budget and working resolution (and the
     test's smoke steps), what the rows built beside it start from."""
     plan = json.loads((default_run / "plan.json").read_text())
-    cfg = CoInConfig(budget_minutes=args.budget or CLI_BUDGET, resolution=plan["key"]["resolution"],
+    cfg = CoInConfig(budget_minutes=plan["key"]["budget_minutes"], resolution=plan["key"]["resolution"],
                      prior_seconds=args.prior_seconds)  # fmt: skip
     return cfg.with_iters(args.iters)
 
