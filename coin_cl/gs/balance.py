@@ -36,9 +36,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
-# The default cap: each auxiliary term holds at most RATIO^2 (9 %) of Adam's second moment, so
-# the photometric steps stay within about 10 % of what they would be without the term.
-RATIO = 0.3
+# The default cap: each auxiliary term holds at most RATIO^2 (1 %) of Adam's second moment, so
+# the photometric steps stay within about 1 % of what they would be without the term. Measured on
+# cup_plain at a budget-10 run's steps, two seeds (docs/BENCHMARKS.md, "The depth terms' share"):
+# against 0.3 (9 %), PSNR more than 20 px from the masks +0.44 / +0.23 dB and in a 20-px ring
+# around them +1.28 / +0.33 dB (level with plain Scaffold-GS there), inside the masks m-PSNR
+# +0.56 / -0.20 dB, the ghost figure level.
+RATIO = 0.1
 # Steps between two measurements of one term (each costs one or two backward passes).
 EVERY = 25
 # Weight of the previous estimate in the exponential means of the squared gradient norms (per

@@ -95,9 +95,10 @@ class RefGSConfig:
     bg_depth_planes: bool = True
     # The depth terms' (reference depth, background depth) root-mean-square gradient held to at
     # most this times the photometric's, in Ref-GS and TE-D (`coin_cl.gs.balance`): each term then
-    # holds at most ratio^2 (9 %) of Adam's second moment. Uncapped, on the cup_plain capture they
-    # filled it and blurred the whole view (Ref-GS alone, 1,375 steps: PSNR outside the masks 27.27
-    # uncapped, 27.95 at 1.0, 28.88 at 0.3; docs/BENCHMARKS.md "The depth terms' share"). 0: uncapped.
+    # holds at most ratio^2 (1 % at the default 0.1) of Adam's second moment. Uncapped, on the
+    # cup_plain capture they filled it and blurred the whole view (Ref-GS alone, 1,375 steps: PSNR
+    # outside the masks 27.27 uncapped, 27.95 at 1.0, 28.88 at 0.3; docs/BENCHMARKS.md "The depth
+    # terms' share", where 0.1 is measured end to end). 0: uncapped.
     aux_grad_ratio: float = balance.RATIO
     # Growth may take the model to at least this many times its initial neural Gaussians, also where
     # the per-pixel cap (`ScaffoldStrategy.gaussians_per_pixel`) is below that: a scene whose sparse
