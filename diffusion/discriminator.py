@@ -116,43 +116,6 @@ def sample_patch_corners(
     return out
 
 
-def sample_clear_corners(
-    mask: np.ndarray,
-    n: int,
-    patch: int = 64,
-    margin: int = 32,
-    rng: np.random.Generator | None = None,
-) -> np.ndarray | None:
-    """Top-left corners (n, 2) int64 [y, x] of patch x patch windows inside an (H, W) image that
-    contain no pixel of `mask` (H, W) bool: the texture around a hole, never the hole itself.
-
-    Rule: a window's centre is drawn uniformly from the clear windows whose centre lies within
-    ``margin + patch // 2`` pixels of the mask (the surface that continues into the hole), from all
-    clear windows when none is that near. Returns None when no window is clear (the mask reaches
-    into every window); an empty mask leaves every window clear and near. H, W >= patch.
-    """
-    H, W = mask.shape
-    if H < patch or W < patch:
-        raise ValueError(f"image {H}x{W} is smaller than the patch size {patch}")
-    rng = rng or np.random.default_rng()
-    m = np.asarray(mask, bool)
-    s = cv2.integral(m.astype(np.uint8))  # (H + 1, W + 1) sums: a window's count in four lookups
-    inside = s[patch:, patch:] - s[:-patch, patch:] - s[patch:, :-patch] + s[:-patch, :-patch]
-    clear = inside == 0  # (H - patch + 1, W - patch + 1), indexed by top-left corner
-    if not clear.any():
-        return None
-    if m.any():
-        dist = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        h = patch // 2
-        centre = dist[h : h + clear.shape[0], h : h + clear.shape[1]]
-        near = clear & (centre <= margin + h)
-        if near.any():
-            clear = near
-    ys, xs = np.nonzero(clear)
-    pick = rng.integers(ys.size, size=n)
-    return np.stack([ys[pick], xs[pick]], 1).astype(np.int64)
-
-
 def crop_patches(img: torch.Tensor, corners: np.ndarray, patch: int = 64) -> torch.Tensor:
     """Patches (N, C, patch, patch) of img (C, H, W) at corners (N, 2) [y, x]; differentiable."""
     return torch.stack([img[:, y : y + patch, x : x + patch] for y, x in corners.tolist()])

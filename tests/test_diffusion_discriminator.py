@@ -10,7 +10,6 @@ from coin_cl.diffusion.discriminator import (
     crop_patches,
     d_loss,
     g_loss,
-    sample_clear_corners,
     sample_patch_corners,
 )
 
@@ -86,30 +85,3 @@ def test_patch_sampler_probability_rule():
     )
     with pytest.raises(ValueError, match="smaller than the patch"):
         sample_patch_corners(np.zeros((32, 32), bool), 1)
-
-
-def test_clear_sampler_takes_windows_beside_the_hole_never_in_it():
-    H, W = 120, 160
-    mask = np.zeros((H, W), bool)
-    mask[40:80, 60:100] = True
-    rng = np.random.default_rng(0)
-    c = sample_clear_corners(mask, 500, patch=32, margin=8, rng=rng)
-    assert c.shape == (500, 2) and c.dtype == np.int64
-    assert (c >= 0).all() and (c[:, 0] <= H - 32).all() and (c[:, 1] <= W - 32).all()
-    for y, x in c:
-        assert not mask[y : y + 32, x : x + 32].any()
-    # centres within margin + patch / 2 = 24 px of the hole's pixels (rows 40-79, columns 60-99)
-    cy, cx = c[:, 0] + 16, c[:, 1] + 16
-    dy, dx = np.clip(np.maximum(40 - cy, cy - 79), 0, None), np.clip(np.maximum(60 - cx, cx - 99), 0, None)
-    assert (np.hypot(dy, dx) <= 24).all()
-    # every side of the hole is drawn from, not one corner
-    assert (cx < 60).any() and (cx >= 100).any() and (cy < 40).any() and (cy >= 80).any()
-    # nothing near enough is clear: any clear window; no clear window at all: None
-    wide = np.ones((H, W), bool)
-    wide[:, :40] = False
-    far = sample_clear_corners(wide, 20, patch=32, margin=0, rng=rng)
-    assert far is not None and (far[:, 1] <= 40 - 32).all()
-    assert sample_clear_corners(np.ones((H, W), bool), 4, patch=32, rng=rng) is None
-    assert sample_clear_corners(np.zeros((H, W), bool), 3, patch=32, rng=rng).shape == (3, 2)
-    with pytest.raises(ValueError, match="smaller than the patch"):
-        sample_clear_corners(np.zeros((16, 64), bool), 1, patch=32)

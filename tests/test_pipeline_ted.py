@@ -87,25 +87,6 @@ def test_discriminator_steps_and_state_round_trips(scene):
     assert term.rng.integers(1 << 30) == other.rng.integers(1 << 30)
 
 
-def test_surroundings_mode_takes_real_patches_outside_the_hole(scene):
-    """real="surroundings": the discriminator's real patches hold no pixel of the view's hole (here
-    the hole's pixels are marked 1 in the real image, the rest 0), while the render's patches still
-    come from around the mask; "fills" takes the same windows as the render's, hole included."""
-    views = _views(scene)
-    hole = np.zeros((H, W), bool)
-    hole[10:20, 2:30] = True
-    real = torch.as_tensor(np.repeat(hole[..., None], 3, -1).astype(np.float32))
-    view = View(views[0].camera, views[0].image, None, 1.0, {"real": real, "mask": hole, "hole": hole})
-    out = type("Out", (), {"image": torch.rand(H, W, 3, requires_grad=True)})()
-    for mode, marked in (("surroundings", False), ("fills", True)):
-        term = AdversarialTerm(TEDConfig(n_patches=6, patch=32, margin=4, real=mode))
-        term(LossContext(view, 0, out, 0, None))
-        real_patches, _ = term._pending
-        assert bool((real_patches > 0.5).any()) is marked, mode
-    with pytest.raises(ValueError, match="TEDConfig.real"):
-        TEDConfig(real="photos")
-
-
 def _params(model):
     return {k: v.detach().clone() for k, v in model.optimizer.params.items()}
 

@@ -374,7 +374,7 @@ def stage_ted(ctx: StageContext[RunInputs]) -> dict:
     views = views_from_scene(scene, train, [guided.get(i, scene.images[i]) for i in range(len(scene))])
     excluded = _observed_excluded(ctx, masks)
     for v, i in zip(views, train, strict=True):
-        v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i], hole=np.asarray(ctx.run.masks[i], bool))
+        v.meta.update(real=torch.as_tensor(inp[i]), mask=masks[i])
         if excluded is not None and excluded[i] is not None:
             v.exclude = torch.as_tensor(excluded[i])
     model = load_model(ctx.inputs["2_refgs"], CKPT_NAME, model_from_state)

@@ -36,7 +36,6 @@ from coin_cl.diffusion.discriminator import (
     crop_patches,
     d_loss,
     g_loss,
-    sample_clear_corners,
     sample_patch_corners,
 )
 from coin_cl.gs.model_kinds import continue_rates
@@ -51,7 +50,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 RATES = ("restart", "continue")  # TEDConfig.rates, as a run resolves it ("auto" besides)
-REAL_SOURCES = ("fills", "surroundings")  # TEDConfig.real
 
 
 @dataclass
@@ -77,13 +75,6 @@ class TEDConfig:
     # Probability of drawing a patch centre from that band ([0, 1]). Default 1.0: every patch near
     # the mask, so the term only touches pixels near the inpainted region.
     p_near: float = 1.0
-    # Where the discriminator's "real" patches come from. "fills" (default): I^_n in the windows
-    # of the render's patches (paper 4.4): the stage-1 fill's texture is the target. "surroundings":
-    # windows of I^_n that touch no pixel of the view's input mask ('hole' in the view's meta, else
-    # 'mask'), drawn within `margin` of it: the captured surface around the hole, so the hole's
-    # render is pushed toward the texture of what surrounds it, not toward a collage or a blur (a
-    # view whose mask reaches into every window takes the "fills" patches).
-    real: str = "fills"
     # The discriminator's Adam learning rate (> 0). Default 2e-4: pix2pix's.
     lr_d: float = 2e-4
     # The discriminator's Adam betas (each in [0, 1)). Default (0.5, 0.999): pix2pix's.
@@ -136,8 +127,6 @@ class TEDConfig:
         ):  # fmt: skip
             if not ok:
                 raise ValueError(f"TEDConfig.{name} is {getattr(self, name)!r}: give {what}")
-        if self.real not in REAL_SOURCES:
-            raise ValueError(f"TEDConfig.real is {self.real!r}: use one of {REAL_SOURCES}")
         if self.rates not in ("auto", *RATES):
             raise ValueError(f"TEDConfig.rates is {self.rates!r}: use one of {('auto', *RATES)}")
         if self.seed is not None and not (isinstance(self.seed, int) and not isinstance(self.seed, bool)):
@@ -189,9 +178,7 @@ class AdversarialTerm(LossTerm):
     """lambda_gen * L_gen on patches of the render near the view's mask; trains its discriminator in
     `step_after`. Views whose `meta` has no 'real' image or an empty 'mask' contribute zero.
 
-    View.meta needs 'real' [H, W, 3] (I^_n) and 'mask' [H, W] bool (the inpainting mask); with
-    `TEDConfig.real` "surroundings" it may hold 'hole' [H, W] bool, the region the real patches
-    avoid (default 'mask').
+    View.meta needs 'real' [H, W, 3] (I^_n) and 'mask' [H, W] bool (the inpainting mask).
     """
 
     name = "adversarial"
@@ -221,12 +208,7 @@ class AdversarialTerm(LossTerm):
             np.asarray(mask, bool), self.cfg.n_patches, p, self.cfg.p_near, self.cfg.margin, self.rng
         )
         fake = crop_patches(ctx.out.image.permute(2, 0, 1), corners, p)
-        real_at = corners
-        if self.cfg.real == "surroundings":
-            hole = np.asarray(ctx.view.meta.get("hole", mask), bool)
-            clear = sample_clear_corners(hole, self.cfg.n_patches, p, self.cfg.margin, self.rng)
-            real_at = corners if clear is None else clear
-        real = crop_patches(torch.as_tensor(real_img).permute(2, 0, 1), real_at, p)
+        real = crop_patches(torch.as_tensor(real_img).permute(2, 0, 1), corners, p)
         loss = g_loss(self.disc(fake))
         self._pending = (real.detach(), fake.detach())
         self.last = {"corners": corners, "patch": p}
