@@ -240,14 +240,20 @@ def stage_refgs(ctx: StageContext[RunInputs]) -> dict:
         )
     if rcfg.bg_depth:
         ctx.note("background depth: every view's mask is held to the surrounding surfaces' depth (D_bg)")
-    return run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
-                     schedule_iters=int(ctx.settings["schedule_iters"]),
-                     max_seconds=cap, replan_seconds=cap / CAP_FACTOR if cap else None,
-                     device=cfg.device, seed=cfg.seed,
-                     seed_points=seed_points, callback=attach,
-                     known_depth=None if lift is None else lift.depth,
-                     object_masks=ctx.run.masks if "0_refine" in ctx.inputs else None,
-                     exclude=_observed_excluded(ctx, masks))  # fmt: skip
+    res = run_refgs(scene_m, full, ctx.out, rcfg, budget_minutes=None, iters=iters,
+                    schedule_iters=int(ctx.settings["schedule_iters"]),
+                    max_seconds=cap, replan_seconds=cap / CAP_FACTOR if cap else None,
+                    device=cfg.device, seed=cfg.seed,
+                    seed_points=seed_points, callback=attach,
+                    known_depth=None if lift is None else lift.depth,
+                    object_masks=ctx.run.masks if "0_refine" in ctx.inputs else None,
+                    exclude=_observed_excluded(ctx, masks))  # fmt: skip
+    replan = res.get("replan")
+    if replan and replan.get("steps") != iters:  # the note above named the count before Ref-GS's own plan
+        first, mean = replan["first_seconds_per_step"], replan["mean_seconds_per_step"]
+        ctx.note(f"Ref-GS: {replan['steps']} steps from its own first steps ({first:.3f} s each, "
+                 f"{mean:.3f} s on average with growth); {res['steps']} ran")  # fmt: skip
+    return res
 
 
 def _observed_excluded(
