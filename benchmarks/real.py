@@ -12,8 +12,10 @@ Scenes (`--scenes`; folders under `--data`, default `$COIN_DATA` else `../shared
 
 Rows (`--rows`; each a run folder OUT/<scene>/<row>):
     default       exactly `coin-cl run SCENE --out DIR` (with `--budget B` when --budget is given)
-    naive         plain Scaffold-GS on the default row's stage-1 inpaints, as many GS steps as the
-                  default row trained (`coin_cl.demo.baseline_config`, stages 0-1 shared)
+    naive         the paper's naive method: the default row's stage-1 inpainter over each whole
+                  input mask (`inpaint_region="input"`, no observed/unseen split), then plain
+                  Scaffold-GS for as many GS steps as the default row trained
+                  (`coin_cl.demo.baseline_config`, stage 0 shared)
     masked_recon  3DGS with the object's pixels left out of the loss, the same GS steps
                   (`coin_cl.demo.room_baseline` on the default row's working-resolution scene)
     smooth        the default pipeline at the default row's steps (`coin.steps_from`; TE-D's
@@ -262,7 +264,9 @@ def run_scene(name: str, scene: Path, out: Path, rows: list[str], args) -> dict:
     table["default"] = run_default(scene, default_run, args)
     print(f"[{name}] row default done ({(time.perf_counter() - t) / 60:.1f} min this invocation)", flush=True)
     base = base_config(default_run, args)
-    naive_cfg = baseline_config(base, default_run)
+    # whole masks: what the default row does with the observed part of each mask is CoIn's, not the
+    # naive method's
+    naive_cfg = baseline_config(replace(base, inpaint_region="input"), default_run)
     for row in rows:
         if row == "default":
             continue

@@ -41,6 +41,10 @@ def test_real_benchmark_tiny_room_table_json_grid_and_resume(tmp_path, capfd):
     grid = cv2.imread(str(out / "room" / "crops.png"))
     assert grid is not None and grid.shape[1] == 3 * (160 + 4)  # default, naive, truth
     runs = out / "room"
+    # the naive row is the paper's: each whole mask inpainted (no observed/unseen split, no 0_refine)
+    stages = {r: json.loads((runs / r / "log.json").read_text())["stages"] for r in ("default", "naive")}
+    assert stages["default"]["0_refine"]["status"] == "ran" and "0_refine" not in stages["naive"]
+    assert not any("unseen cores" in n for n in stages["naive"]["1_inpaint"]["notes"])
     before = _manifests(runs)
     assert any(k.startswith("default/") for k in before) and any(
         k.startswith("naive/2_refgs") for k in before
