@@ -18,7 +18,12 @@ inpaints disagree inside the masks) on a finished `coin-cl run` folder's working
 scene, real captures without the object): PSNR over the image and m-PSNR in the mask. Early and
 late steps as above (early: before the first growth; late: the last fifth, attention included).
 
-    python benchmarks/growth_cap.py --run RUN [--steps 500] [--caps 0,0.01,0.02]
+    python benchmarks/growth_cap.py --run RUN [--steps 500] [--caps 0,0.01,0.02] [--parts]
+
+`--parts` (with `--run`) also times every part of a Ref-GS step (decode, projection, binning,
+rasterization forward and backward, the loss terms, their `before_render` work such as the anchor
+attention, the whole backward, the optimiser, growth) and prints the median of each, early and
+late, and their ratio: where a late step's extra time goes.
 
 Ends with one JSON line {"scene", "resolution", "steps", "rows": [...]}.
 """
@@ -92,9 +97,38 @@ def run_cap(scene, cap: float, steps: int, backend: str) -> dict:
     }
 
 
-def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path) -> dict:
+def _part_timer(tr):
+    """A `train.PartTimer` on the parts of `tr`'s Ref-GS step (see the module doc, `--parts`)."""
+    import importlib
+
+    from train import PartTimer
+
+    from coin_cl.gs import terms as gs_terms
+
+    ops_project = importlib.import_module("coin_cl.engine.ops.project")
+    ops_raster = importlib.import_module("coin_cl.engine.ops.rasterize")
+    pt = PartTimer()
+    for obj, attr, part in (
+        (ops_raster._Rasterize, "forward", "rasterize fwd"),
+        (ops_raster._Rasterize, "backward", "rasterize bwd"),
+        (ops_project._Project, "forward", "project fwd"), (ops_project._Project, "backward", "project bwd"),
+        (ops_raster, "bin_tiles", "bin"), (gs_terms, "photometric_map", "photometric map"),
+        (tr.model, "visible_anchors", "visible anchors"), (tr.model, "decode", "decode"),
+        (tr.model, "render", "render (all)"), (torch.Tensor, "backward", "backward (all)"),
+        (tr.model.optimizer, "step", "optimizer"), (tr.strategy, "step_post_backward", "growth"),
+    ):  # fmt: skip
+        pt.patch(obj, attr, part)
+    for term in tr.terms:
+        pt.patch(type(term), "__call__", f"term {term.name}")
+        if hasattr(term, "before_render"):
+            pt.patch(type(term), "before_render", f"before_render {term.name}")
+    return pt
+
+
+def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path, parts: bool = False) -> dict:
     """Ref-GS for `steps` steps on `run`'s working scene and stage-1 inpaints with the cap `cap`;
-    sizes, test-view scores and step times."""
+    sizes, test-view scores and step times (with `parts`, 'parts': {part: (early s, late s)}, the
+    median of each part of a step)."""
     import shutil
 
     from imageio.v2 import imread
@@ -115,16 +149,25 @@ def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path) -
             shutil.copy(run / "2_refgs" / name, out / name)
     times, sizes = [], []
     last = [0.0]
+    timers = []
 
     def timer(tr, step: int) -> None:
         now = time.perf_counter()
+        if parts and not timers:
+            timers.append(_part_timer(tr))
         if step:
             times.append(now - last[0])
             sizes.append(tr.model.n_primitives)
+            if timers:
+                timers[0].lap()
         last[0] = now
 
-    res = run_refgs(scene, targets, out, RefGSConfig(), budget_minutes=None, iters=steps, backend=backend,
-                    ckpt_every=0, callback=timer, gaussians_per_pixel=cap)  # fmt: skip
+    try:
+        res = run_refgs(scene, targets, out, RefGSConfig(), budget_minutes=None, iters=steps, backend=backend,
+                        ckpt_every=0, callback=timer, gaussians_per_pixel=cap)  # fmt: skip
+    finally:
+        if timers:
+            timers[0].restore()
     sizes.append(res["n_primitives"])
     gs = json.loads((out / "gs" / "log.json").read_text())
     model = model_from_state(load_checkpoint(out / "gs" / "ckpt.pt")["model"])
@@ -138,6 +181,12 @@ def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path) -
     late = slice(len(times) - len(times) // 5, len(times))
     early_s = float(np.mean(times[EARLY[0] : EARLY[1]]))
     late_s = float(np.mean(times[late]))
+    split = {}
+    if timers:  # lap i holds step i's parts (the callback runs before each step)
+        laps = timers[0].steps
+        names = sorted({k for lap in laps for k in lap})
+        split = {k: (float(np.median([lap.get(k, 0.0) for lap in laps[EARLY[0] : EARLY[1]]])),
+                     float(np.median([lap.get(k, 0.0) for lap in laps[late]]))) for k in names}  # fmt: skip
     return {
         "cap_per_pixel": cap,
         "cap": gs["strategy"]["size_limit"]["neural_gaussians"] if cap > 0 else None,
@@ -152,6 +201,7 @@ def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path) -
         "s_step_late": late_s,
         "late_over_early": late_s / early_s,
         "train_seconds": float(np.sum(times)),
+        **({"parts": split} if parts else {}),
     }
 
 
@@ -164,6 +214,7 @@ def main() -> None:
     ap.add_argument("--backend", default="opencl")
     ap.add_argument("--run", type=Path, help="Ref-GS on this coin-cl run folder's stage-1 inpaints")
     ap.add_argument("--work", type=Path, default=Path("growth_cap_out"), help="Ref-GS folders (--run)")
+    ap.add_argument("--parts", action="store_true", help="with --run: time each part of a step")
     a = ap.parse_args()
     if a.steps < 5 * EARLY[1]:
         ap.error(f"--steps {a.steps}: use at least {5 * EARLY[1]} (early steps are {EARLY})")
@@ -177,7 +228,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for cap in (float(c) for c in a.caps.split(",")):
         if a.run:
-            r = run_refgs_cap(a.run, cap, a.steps, a.backend, a.work)
+            r = run_refgs_cap(a.run, cap, a.steps, a.backend, a.work, parts=a.parts)
         else:
             r = run_cap(scene, cap, a.steps, a.backend)
         rows.append(r)
@@ -186,6 +237,14 @@ def main() -> None:
               f"{r['psnr']:.2f} | {mp} | {r['ssim']:.4f} | {r['s_step_early']:.3f} | "
               f"{r['s_step_late']:.3f} | {r['late_over_early']:.2f} | {r['train_seconds']:.0f} |",
               flush=True)  # fmt: skip
+    for r in rows:
+        if r.get("parts"):
+            cap = f"{r['cap_per_pixel']:g}"
+            print(f"\n| part of a Ref-GS step, cap {cap} (median ms) | early | late | late / early |")
+            print("|---|---|---|---|")
+            for k, (e, late) in r["parts"].items():
+                print(f"| {k} | {1000 * e:.1f} | {1000 * late:.1f} | {late / e:.2f} |" if e > 0 else
+                      f"| {k} | {1000 * e:.1f} | {1000 * late:.1f} | - |")  # fmt: skip
     print(json.dumps({"scene": str(a.run or a.scene), "resolution": None if a.run else a.resolution,
                       "steps": a.steps, "rows": rows}))  # fmt: skip
 
