@@ -99,20 +99,11 @@ def run_cap(scene, cap: float, steps: int, backend: str) -> dict:
 
 def _part_timer(tr):
     """A `train.PartTimer` on the parts of `tr`'s Ref-GS step (see the module doc, `--parts`)."""
-    import importlib
+    from train import PartTimer, patch_engine_parts
 
-    from train import PartTimer
-
-    from coin_cl.gs import terms as gs_terms
-
-    ops_project = importlib.import_module("coin_cl.engine.ops.project")
-    ops_raster = importlib.import_module("coin_cl.engine.ops.rasterize")
     pt = PartTimer()
+    patch_engine_parts(pt)
     for obj, attr, part in (
-        (ops_raster._Rasterize, "forward", "rasterize fwd"),
-        (ops_raster._Rasterize, "backward", "rasterize bwd"),
-        (ops_project._Project, "forward", "project fwd"), (ops_project._Project, "backward", "project bwd"),
-        (ops_raster, "bin_tiles", "bin"), (gs_terms, "photometric_map", "photometric map"),
         (tr.model, "visible_anchors", "visible anchors"), (tr.model, "decode", "decode"),
         (tr.model, "render", "render (all)"), (torch.Tensor, "backward", "backward (all)"),
         (tr.model.optimizer, "step", "optimizer"), (tr.strategy, "step_post_backward", "growth"),
@@ -148,26 +139,27 @@ def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path, p
         if (run / "2_refgs" / name).is_file():
             shutil.copy(run / "2_refgs" / name, out / name)
     times, sizes = [], []
-    last = [0.0]
-    timers = []
+    last = 0.0
+    pt = None  # the part timer, made on the first step when `parts`
 
     def timer(tr, step: int) -> None:
+        nonlocal last, pt
         now = time.perf_counter()
-        if parts and not timers:
-            timers.append(_part_timer(tr))
+        if parts and pt is None:
+            pt = _part_timer(tr)
         if step:
-            times.append(now - last[0])
+            times.append(now - last)
             sizes.append(tr.model.n_primitives)
-            if timers:
-                timers[0].lap()
-        last[0] = now
+            if pt is not None:
+                pt.lap()
+        last = now
 
     try:
         res = run_refgs(scene, targets, out, RefGSConfig(), budget_minutes=None, iters=steps, backend=backend,
                         ckpt_every=0, callback=timer, gaussians_per_pixel=cap)  # fmt: skip
     finally:
-        if timers:
-            timers[0].restore()
+        if pt is not None:
+            pt.restore()
     sizes.append(res["n_primitives"])
     gs = json.loads((out / "gs" / "log.json").read_text())
     model = model_from_state(load_checkpoint(out / "gs" / "ckpt.pt")["model"])
@@ -182,8 +174,8 @@ def run_refgs_cap(run: Path, cap: float, steps: int, backend: str, work: Path, p
     early_s = float(np.mean(times[EARLY[0] : EARLY[1]]))
     late_s = float(np.mean(times[late]))
     split = {}
-    if timers:  # lap i holds step i's parts (the callback runs before each step)
-        laps = timers[0].steps
+    if pt is not None:  # lap i holds step i's parts (the callback runs before each step)
+        laps = pt.steps
         names = sorted({k for lap in laps for k in lap})
         split = {k: (float(np.median([lap.get(k, 0.0) for lap in laps[EARLY[0] : EARLY[1]]])),
                      float(np.median([lap.get(k, 0.0) for lap in laps[late]]))) for k in names}  # fmt: skip

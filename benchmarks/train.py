@@ -158,18 +158,31 @@ PARTS = ("visible anchors", "decode / activations", "project fwd", "bin", "raste
          "rasterize bwd", "project bwd", "torch backward", "optimizer", "densification")  # fmt: skip
 
 
-def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: str) -> dict:
-    """Train `kind` for warmup + `steps` steps on `fused` or the unfused path; per-part medians,
-    steps/s over the timed steps, held-out PSNR at the end."""
+def patch_engine_parts(pt: PartTimer) -> None:
+    """Time the engine's parts of any GS step on `pt`: the projection and rasterization kernels'
+    forward and backward, tile binning and the photometric loss's map."""
     import importlib
 
-    from coin_cl.engine import rendering
-    from coin_cl.engine.runtime import resolve_device
     from coin_cl.gs import terms as gs_terms
 
     # The modules, not the functions `coin_cl.engine.ops` re-exports under the same names.
     ops_project = importlib.import_module("coin_cl.engine.ops.project")
     ops_raster = importlib.import_module("coin_cl.engine.ops.rasterize")
+    pt.patch(ops_raster._Rasterize, "forward", "rasterize fwd")
+    pt.patch(ops_raster._Rasterize, "backward", "rasterize bwd")
+    pt.patch(ops_project._Project, "forward", "project fwd")
+    pt.patch(ops_project._Project, "backward", "project bwd")
+    pt.patch(ops_raster, "bin_tiles", "bin")
+    pt.patch(gs_terms, "photometric_map", "loss fwd")
+
+
+def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: str) -> dict:
+    """Train `kind` for warmup + `steps` steps on `fused` or the unfused path; per-part medians,
+    steps/s over the timed steps, held-out PSNR at the end."""
+
+    from coin_cl.engine import rendering
+    from coin_cl.engine.runtime import resolve_device
+
     tr_idx, te_idx = split_indices(scene, 8)
     # A 3000-step schedule, so densification is active as in a real run.
     # A checkout older than the fused path has no `fused` switch: its one path is the unfused one.
@@ -181,12 +194,7 @@ def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: s
     m = tr.model
     rt = resolve_device(None)
     pt = PartTimer()
-    pt.patch(ops_raster._Rasterize, "forward", "rasterize fwd")
-    pt.patch(ops_raster._Rasterize, "backward", "rasterize bwd")
-    pt.patch(ops_project._Project, "forward", "project fwd")
-    pt.patch(ops_project._Project, "backward", "project bwd")
-    pt.patch(ops_raster, "bin_tiles", "bin")
-    pt.patch(gs_terms, "photometric_map", "loss fwd")
+    patch_engine_parts(pt)
     pt.patch(rendering, "finite_rows", "finite check")
     pt.patch(m.optimizer, "step", "optimizer")
     pt.patch(tr.strategy, "step_pre_backward", "densification")
