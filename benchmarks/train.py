@@ -179,7 +179,6 @@ def patch_engine_parts(pt: PartTimer) -> None:
 def speed_run(scene, kind: str, fused: bool, steps: int, warmup: int, backend: str) -> dict:
     """Train `kind` for warmup + `steps` steps on `fused` or the unfused path; per-part medians,
     steps/s over the timed steps, held-out PSNR at the end."""
-
     from coin_cl.engine import rendering
     from coin_cl.engine.runtime import resolve_device
 
