@@ -166,7 +166,8 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
 
 def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
     """`base` with the resolution, step counts (`schedule.run_steps`: TE-D's as the run re-planned
-    them) and scene prior seconds of the run folder `run`, given explicitly."""
+    them), Ref-GS's schedule span (`CoInConfig.refgs_schedule_iters`, from its training log) and
+    scene prior seconds of the run folder `run`, given explicitly: the run's training again."""
     from coin_cl.pipeline.budget import PLAN_FILE
     from coin_cl.pipeline.schedule import run_steps
 
@@ -177,7 +178,12 @@ def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
     plan = json.loads((run / PLAN_FILE).read_text())
     print(f"schedule from {run}: {st}, scene prior {plan['prior_seconds']:.0f} s, "
           f"resolution {plan['key']['resolution']}", file=sys.stderr, flush=True)  # fmt: skip
+    span = None
+    refgs_log = run / "2_refgs" / "gs" / "log.json"
+    if refgs_log.is_file():
+        span = json.loads(refgs_log.read_text()).get("refgs", {}).get("schedule_iters")
     return replace(base, resolution=plan["key"]["resolution"], iters_refgs=st["refgs"],
+                   refgs_schedule_iters=span,
                    iters_ted_finetune=st["ted_finetune"], iters_ted_adversarial=st["ted_adversarial"],
                    prior_seconds=plan["prior_seconds"])  # fmt: skip
 

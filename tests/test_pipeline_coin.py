@@ -424,6 +424,20 @@ def test_removal_lays_one_learning_rate_schedule_over_ref_gs_and_te_d(first_run)
     assert refgs["schedule_iters"] == TINY.iters_refgs + TINY.iters_ted_finetune
 
 
+def test_an_explicit_schedule_span_replaces_the_plans_rule(room, first_run, tmp_path):
+    """CoInConfig.refgs_schedule_iters: Ref-GS lays its schedules over the span given (how a row
+    repeats a default run whose counts were planned again after the span was laid out), and the
+    stage's key follows it, so a changed span trains again."""
+    from coin_cl.pipeline.runner import share_stages
+
+    out = tmp_path / "span"
+    share_stages(first_run[0], out, ("0_scene", "1_inpaint"))
+    inpaint(room, out, config=replace(TINY, refgs_schedule_iters=40, skip=("clg", "ted")))
+    log = json.loads((out / "2_refgs" / "gs" / "log.json").read_text())["refgs"]
+    assert log["schedule_iters"] == 40 and log["iters"] == TINY.iters_refgs
+    assert json.loads((out / "2_refgs" / "manifest.json").read_text())["settings"]["schedule_iters"] == 40
+
+
 def test_observed_captures_leaves_the_observed_part_out_of_the_loss(room, tmp_path, monkeypatch):
     """CoInConfig.observed "captures": Ref-GS and TE-D train with the observed part of every refined
     mask (0_refine/observed) left out of view n's loss; "target" leaves nothing out."""

@@ -32,6 +32,9 @@ from coin_cl.pipeline.ted import TEDConfig
         ({"prior_seconds": float("nan")}, "prior_seconds"),
         ({"iters_refgs": 0}, "iters_refgs"),
         ({"iters_ted_finetune": -1}, "iters_ted_finetune"),
+        ({"iters_refgs": 50, "refgs_schedule_iters": 49}, "refgs_schedule_iters"),
+        ({"refgs_schedule_iters": 0}, "refgs_schedule_iters"),
+        ({"refgs_schedule_iters": True}, "refgs_schedule_iters"),
         ({"refgs": RefGSConfig(ref=2)}, "CoInConfig.refgs.ref"),
         (
             {"inpaint2d": Inpaint2DConfig(prior=ScenePriorConfig(train_seconds=60.0))},

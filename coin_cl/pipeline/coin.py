@@ -430,8 +430,8 @@ def coin_stages(run: RunInputs) -> list[Stage[RunInputs]]:
     def refgs_key() -> dict[str, Any]:
         n = steps("2_refgs")["refgs"]
         return {"cfg": jsonable(run.refgs_cfg), "ref": ref, "iters": n,
-                "schedule_iters": refgs_schedule_span(plan, n, "ted" not in cfg.skip
-                                                      and cfg.ted.rates == "continue"),
+                "schedule_iters": cfg.refgs_schedule_iters or refgs_schedule_span(
+                    plan, n, "ted" not in cfg.skip and cfg.ted.rates == "continue"),
                 "seed": cfg.seed,
                 "carve": jsonable(cfg.carve_cfg) if carves(cfg, edited) else None,
                 "seed_background": seeds_background(cfg, edited),

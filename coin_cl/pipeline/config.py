@@ -94,6 +94,12 @@ class CoInConfig:
     # TE-D adversarial steps (0..MAX_STEPS; also `ted.iters_adversarial`, which must agree). None
     # (default): the budget plan's figure.
     iters_ted_adversarial: int | None = None
+    # Steps Ref-GS lays its learning-rate decay and anchor growth out over, its own included
+    # (>= its steps, <= MAX_STEPS). None (default): the plan's rule (`schedule.refgs_schedule_span`:
+    # its steps plus the plan's TE-D fine-tune steps where TE-D continues the decay). A row that
+    # repeats a default run at its counts gives the span that run used (its 2_refgs/gs/log.json),
+    # since Ref-GS and TE-D plan their counts again from measured rates after the span is laid out.
+    refgs_schedule_iters: int | None = None
     # Seconds of scene-prior training (>= 0; the prior's own `train_seconds` is this). None
     # (default): the budget's share (`budget.prior_seconds`), recorded in plan.json.
     prior_seconds: float | None = None
@@ -159,6 +165,12 @@ class CoInConfig:
             n, low = getattr(self, name), 1 if name == "iters_refgs" else 0
             if n is not None and not (isinstance(n, int | np.integer) and low <= n <= MAX_STEPS):
                 raise ValueError(f"--iters / {name} is {n!r}: give a step count in {low}..{MAX_STEPS}")
+        span = self.refgs_schedule_iters
+        if span is not None and not (isinstance(span, int | np.integer) and not isinstance(span, bool)
+                                     and max(1, self.iters_refgs or 1) <= span <= MAX_STEPS):  # fmt: skip
+            raise ValueError(f"CoInConfig.refgs_schedule_iters is {span!r}: give a step count from "
+                             f"Ref-GS's steps ({self.iters_refgs or 1}) to {MAX_STEPS}, or None (the "
+                             "plan's rule)")  # fmt: skip
         _choice("mask_kind", self.mask_kind, MASK_KINDS)
         _choice("inpaint_region", self.inpaint_region, REGIONS)
         _choice("observed", self.observed, OBSERVED)
