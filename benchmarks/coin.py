@@ -166,8 +166,11 @@ def run_default(data: Path, out: Path, budget: float) -> dict[str, dict]:
 
 def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
     """`base` with the resolution, step counts (`schedule.run_steps`: TE-D's as the run re-planned
-    them), Ref-GS's schedule span (`CoInConfig.refgs_schedule_iters`, from its training log) and
-    scene prior seconds of the run folder `run`, given explicitly: the run's training again."""
+    them), Ref-GS's schedule span (`CoInConfig.refgs_schedule_iters`, from its training log), the
+    steps of the auxiliary GS behind its depth prior (`RefGSConfig.depth_prior_iters`, where the run
+    trained one and `base` leaves it None: the default derives it from Ref-GS's count before that is
+    planned again) and scene prior seconds of the run folder `run`, given explicitly: the run's
+    training again."""
     from coin_cl.pipeline.budget import PLAN_FILE
     from coin_cl.pipeline.schedule import run_steps
 
@@ -182,8 +185,13 @@ def steps_from(run: Path, base: CoInConfig) -> CoInConfig:
     refgs_log = run / "2_refgs" / "gs" / "log.json"
     if refgs_log.is_file():
         span = json.loads(refgs_log.read_text()).get("refgs", {}).get("schedule_iters")
+    refgs = base.refgs
+    aux_log = run / "2_refgs" / "aux_gs" / "log.json"
+    if aux_log.is_file() and (refgs is None or refgs.depth_prior_iters is None):
+        aux = json.loads(aux_log.read_text()).get("config", {}).get("iters")
+        refgs = replace(refgs or RefGSConfig(), depth_prior_iters=aux)
     return replace(base, resolution=plan["key"]["resolution"], iters_refgs=st["refgs"],
-                   refgs_schedule_iters=span,
+                   refgs_schedule_iters=span, refgs=refgs,
                    iters_ted_finetune=st["ted_finetune"], iters_ted_adversarial=st["ted_adversarial"],
                    prior_seconds=plan["prior_seconds"])  # fmt: skip
 
