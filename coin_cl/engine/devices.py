@@ -20,7 +20,6 @@ import logging
 import os
 import warnings
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 
 from coin_cl.engine import kernel_cache
@@ -59,16 +58,15 @@ def kernel_dir() -> Path:
         if not (Path(env) / "common.h").is_file():
             raise FileNotFoundError(f"COIN_CL_KERNEL_DIR={env} holds no common.h")
         return Path(env)
-    try:
-        p = Path(str(resources.files("coin_cl.kernels")))
+    # kernels/ holds no __init__.py: as a regular package on sys.path (a checkout's root is, under
+    # `python -m pytest`) it would shadow the top-level `kernels` distribution transformers imports.
+    # Installed, its files sit in coin_cl/kernels; in a checkout or an editable install, in ./kernels.
+    here = Path(__file__).resolve().parents[1]
+    for p in (here / "kernels", here.parent / "kernels"):
         if (p / "common.h").is_file():
             return p
-    except ModuleNotFoundError:
-        pass
-    p = Path(__file__).resolve().parents[2] / "kernels"
-    if (p / "common.h").is_file():
-        return p
-    raise FileNotFoundError(f"OpenCL kernel sources not found (looked in {p}); reinstall coin-cl")
+    raise FileNotFoundError(f"OpenCL kernel sources not found (looked in {here / 'kernels'} and "
+                            f"{here.parent / 'kernels'}); reinstall coin-cl")  # fmt: skip
 
 
 def list_devices() -> list[tuple[str, str, str]]:
