@@ -427,7 +427,7 @@ def test_removal_lays_one_learning_rate_schedule_over_ref_gs_and_te_d(first_run)
 def test_an_explicit_schedule_span_replaces_the_plans_rule(room, first_run, tmp_path):
     """CoInConfig.refgs_schedule_iters: Ref-GS lays its schedules over the span given (how a row
     repeats a default run whose counts were planned again after the span was laid out), and the
-    stage's key follows it, so a changed span trains again."""
+    stage's key records it."""
     from coin_cl.pipeline.runner import share_stages
 
     out = tmp_path / "span"

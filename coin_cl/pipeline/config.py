@@ -167,7 +167,7 @@ class CoInConfig:
                 raise ValueError(f"--iters / {name} is {n!r}: give a step count in {low}..{MAX_STEPS}")
         span = self.refgs_schedule_iters
         if span is not None and not (isinstance(span, int | np.integer) and not isinstance(span, bool)
-                                     and max(1, self.iters_refgs or 1) <= span <= MAX_STEPS):  # fmt: skip
+                                     and (self.iters_refgs or 1) <= span <= MAX_STEPS):  # fmt: skip
             raise ValueError(f"CoInConfig.refgs_schedule_iters is {span!r}: give a step count from "
                              f"Ref-GS's steps ({self.iters_refgs or 1}) to {MAX_STEPS}, or None (the "
                              "plan's rule)")  # fmt: skip
