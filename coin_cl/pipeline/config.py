@@ -95,7 +95,8 @@ class CoInConfig:
     # (default): the budget plan's figure.
     iters_ted_adversarial: int | None = None
     # Steps Ref-GS lays its learning-rate decay and anchor growth out over, its own included
-    # (>= its steps, <= MAX_STEPS). None (default): the plan's rule (`schedule.refgs_schedule_span`:
+    # (>= its steps, <= MAX_STEPS; a span below the count the plan gives Ref-GS counts as that
+    # count). None (default): the plan's rule (`schedule.refgs_schedule_span`:
     # its steps plus the plan's TE-D fine-tune steps where TE-D continues the decay). A row that
     # repeats a default run at its counts gives the span that run used (its 2_refgs/gs/log.json),
     # since Ref-GS and TE-D plan their counts again from measured rates after the span is laid out.
