@@ -166,6 +166,7 @@ def methods(lama_path: str | None) -> dict:
         "harmonic (Laplace)": lambda c: smooth_fill(c["truth"], c["mask"], "harmonic"),
         "embedded (exemplar, default)": ex(ExemplarConfig()),
         "exemplar, FSR structure": ex(ExemplarConfig(structure="fsr_fast")),
+        "exemplar, FSR surfaces structure": ex(ExemplarConfig(structure="fsr_surfaces")),
         "exemplar + grain": ex(ExemplarConfig(grain=DirectionalConfig())),
         "exemplar + grain on harmonic": ex(
             ExemplarConfig(grain=DirectionalConfig(), grain_structure="harmonic")

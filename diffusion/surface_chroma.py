@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .inpaint2d import check_image_mask
+
 
 @dataclass(frozen=True)
 class SurfaceChromaConfig:
@@ -133,9 +135,10 @@ def surface_chroma(
     """`fsr` (the image with FSR's fill of `hole`) with the hole's chroma made harmonic per surface
     (module docstring). image, fsr (H, W, 3) float [0, 1]; hole (H, W) bool. Returns (H, W, 3)
     float32 in [0, 1], equal to `image` outside the hole. Each connected part of the hole has its own
-    ring, clusters and solve."""
+    ring, clusters and solve. Raises ValueError on shapes that disagree or NaN/Inf in `image` or `fsr`."""
     cfg = cfg or SurfaceChromaConfig()
-    hole = np.asarray(hole, bool)
+    image, hole = check_image_mask(image, hole)
+    fsr, _ = check_image_mask(fsr, hole)
     out = np.asarray(fsr, np.float32).copy()
     out[~hole] = np.asarray(image, np.float32)[~hole]
     if not hole.any() or hole.all():

@@ -68,6 +68,12 @@ def test_pixels_outside_the_hole_are_the_image_and_edge_cases_are_finite():
     assert np.array_equal(surface_chroma(img, np.zeros_like(hole), img), img)  # empty hole
     full = np.ones_like(hole)  # no ring: FSR's own answer, untouched
     assert np.array_equal(surface_chroma(img, full, img), img)
+    bad = img.copy()
+    bad[0, 0, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN/Inf"):
+        surface_chroma(bad, hole, img)
+    with pytest.raises(ValueError, match="NaN/Inf"):
+        surface_chroma(img, hole, bad)
 
 
 def test_one_cluster_when_the_ring_is_one_colour_or_the_second_is_too_small():
