@@ -50,7 +50,7 @@ class SurfaceChromaConfig:
     min_sep: float = 0.03
     # ... and the smaller cluster must hold at least this share of the ring's pixels.
     min_share: float = 0.15
-    # Gaussian sigma (pixels) of FSR's chroma before hole pixels are assigned to a cluster.
+    # Gaussian sigma (pixels) of FSR's colour before hole pixels are assigned to a cluster.
     label_sigma: float = 2.0
     # Weight of the pull towards FSR's chroma, against the Laplacian's 4 per pixel: small against the
     # coupling across a 200 px hole (~1/200^2), so it decides only where no boundary value reaches.
@@ -89,8 +89,9 @@ def ring_clusters(colour: np.ndarray, ring: np.ndarray, cfg: SurfaceChromaConfig
     return x.mean(0, keepdims=True)
 
 
-def _nearest(chroma: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    return np.argmin(((chroma[..., None, :] - centres) ** 2).sum(-1), -1)
+def _nearest(colour: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(H, W) index of the centre (K, C) nearest to each pixel of colour (H, W, C)."""
+    return np.argmin(((colour[..., None, :] - centres) ** 2).sum(-1), -1)
 
 
 def _solve(chroma: np.ndarray, hole: np.ndarray, label: np.ndarray, screen: float) -> np.ndarray:
