@@ -15,7 +15,8 @@ surroundings, is not carried into the result, so the result is the guide's textu
 follow the surroundings. The tiny screening term eps (`EPS`) keeps the system solvable for a region with no
 pixel outside it (a full mask, or a component cut off by the image's border on every side): there
 the result is the guide itself, shifted by nothing. scipy's sparse LU solves the system once for the
-three channels.
+three channels. `screened_solve` is that solver on its own, also without guidance and with no
+coupling across labels (the per-surface colour of `surface_chroma`).
 
 Images are (H, W, C) float in [0, 1]; the region (H, W) bool. Pixels outside the region are
 bit-identical to `base`.
@@ -47,9 +48,6 @@ def poisson_blend(
     Raises:
         ValueError: shapes that disagree, or non-finite values where they are read.
     """
-    from scipy.sparse import csc_matrix
-    from scipy.sparse.linalg import splu
-
     base = np.asarray(base, np.float64)
     guide = np.asarray(guide, np.float64)
     region = np.asarray(region, bool)
@@ -65,22 +63,60 @@ def poisson_blend(
         return base.astype(np.float32)
     if not np.isfinite(guide[region]).all():
         raise ValueError("poisson_blend: the guide is not finite inside the region")
+    out = screened_solve(base, region, target=guide, guide=guide, labels=labels)
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def screened_solve(
+    base: np.ndarray,
+    region: np.ndarray,
+    target: np.ndarray,
+    guide: np.ndarray | None = None,
+    labels: np.ndarray | None = None,
+    cut: bool = False,
+    screen: float = EPS,
+) -> np.ndarray:
+    """The screened equation of the module docstring, solved inside `region` and returned unclipped.
+
+    Args:
+        base: [H, W, C] the values outside the region (the boundary), kept as they are.
+        region: [H, W] bool, the pixels solved for (not empty).
+        target: [H, W, C] the screening term's target inside the region.
+        guide: [H, W, C] whose gradients are carried between same-label pixels; None: no guidance
+            (a screened Laplace equation: the smoothest surface through the boundary values).
+        labels: [H, W] int; None: one label everywhere.
+        cut: neighbours of different labels are not coupled at all (no flux across a label's edge,
+            the boundary values of another label unread), rather than coupled without guidance.
+        screen: the screening weight, against the Laplacian's 1 per neighbour.
+    Returns:
+        [H, W, C] float64: `base` with the region's solution.
+    Raises:
+        ValueError: base not finite where the solution reads it.
+    """
+    from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import splu
+
+    base = np.asarray(base, np.float64)
     H, W, C = base.shape
+    labels = np.zeros((H, W), np.int64) if labels is None else labels
     idx = -np.ones((H, W), np.int64)
     ys, xs = np.nonzero(region)
     n = len(ys)
     idx[ys, xs] = np.arange(n)
-    diag = np.full(n, EPS)
-    rhs = EPS * guide[ys, xs]  # [n, C]
+    diag = np.full(n, screen)
+    rhs = screen * np.asarray(target, np.float64)[ys, xs]  # [n, C]
     rows, cols = [], []
     for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
         qy, qx = ys + dy, xs + dx
         inside = (qy >= 0) & (qy < H) & (qx >= 0) & (qx < W)  # beyond the border: no term (Neumann)
         p = np.nonzero(inside)[0]
         qy, qx = qy[p], qx[p]
-        diag[p] += 1.0
         same = labels[ys[p], xs[p]] == labels[qy, qx]
-        rhs[p] += np.where(same[:, None], guide[ys[p], xs[p]] - guide[qy, qx], 0.0)
+        if cut:
+            p, qy, qx, same = p[same], qy[same], qx[same], same[same]
+        diag[p] += 1.0
+        if guide is not None:
+            rhs[p] += np.where(same[:, None], guide[ys[p], xs[p]] - guide[qy, qx], 0.0)
         q = idx[qy, qx]
         unknown = q >= 0
         rows.append(p[unknown])
@@ -88,13 +124,12 @@ def poisson_blend(
         fixed = ~unknown  # the neighbour is outside the region: its value is base's (Dirichlet)
         outside = base[qy[fixed], qx[fixed]]
         if not np.isfinite(outside).all():
-            raise ValueError("poisson_blend: base is not finite on the region's boundary")
+            raise ValueError("poisson: base is not finite on the region's boundary")
         rhs[p[fixed]] += outside
     r = np.concatenate(rows + [np.arange(n)])
     c = np.concatenate(cols + [np.arange(n)])
     v = np.concatenate([-np.ones(len(r) - n), diag])
-    A = csc_matrix((v, (r, c)), shape=(n, n))
-    f = splu(A).solve(rhs)
+    f = splu(csc_matrix((v, (r, c)), shape=(n, n))).solve(rhs)
     out = base.copy()
     out[ys, xs] = f
-    return np.clip(out, 0.0, 1.0).astype(np.float32)
+    return out

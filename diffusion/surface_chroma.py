@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from .inpaint2d import check_image_mask
+from .poisson import screened_solve
 
 
 @dataclass(frozen=True)
@@ -94,42 +95,6 @@ def _nearest(colour: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return np.argmin(((colour[..., None, :] - centres) ** 2).sum(-1), -1)
 
 
-def _solve(chroma: np.ndarray, hole: np.ndarray, label: np.ndarray, screen: float) -> np.ndarray:
-    """Chroma (H, W, 2) with the hole's pixels replaced by the per-cluster screened harmonic solution
-    (module docstring, step 3); the hole's own values (FSR's) are the screening target."""
-    from scipy.sparse import csc_matrix
-    from scipy.sparse.linalg import splu
-
-    H, W = hole.shape
-    ys, xs = np.nonzero(hole)
-    n = len(ys)
-    idx = -np.ones((H, W), np.int64)
-    idx[ys, xs] = np.arange(n)
-    diag = np.full(n, screen)
-    rhs = screen * chroma[ys, xs]
-    rows, cols = [], []
-    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        qy, qx = ys + dy, xs + dx
-        inside = (qy >= 0) & (qy < H) & (qx >= 0) & (qx < W)
-        p = np.nonzero(inside)[0]
-        qy, qx = qy[p], qx[p]
-        same = label[ys[p], xs[p]] == label[qy, qx]  # no flux across a surface's edge
-        p, qy, qx = p[same], qy[same], qx[same]
-        diag[p] += 1.0
-        q = idx[qy, qx]
-        unknown = q >= 0
-        rows.append(p[unknown])
-        cols.append(q[unknown])
-        rhs[p[~unknown]] += chroma[qy[~unknown], qx[~unknown]]
-    r = np.concatenate(rows + [np.arange(n)])
-    c = np.concatenate(cols + [np.arange(n)])
-    v = np.concatenate([-np.ones(len(r) - n), diag])
-    f = splu(csc_matrix((v, (r, c)), shape=(n, n))).solve(rhs)
-    out = chroma.astype(np.float64).copy()
-    out[ys, xs] = f
-    return out
-
-
 def surface_chroma(
     image: np.ndarray, hole: np.ndarray, fsr: np.ndarray, cfg: SurfaceChromaConfig | None = None
 ) -> np.ndarray:
@@ -159,7 +124,8 @@ def surface_chroma(
         label = np.full(hole.shape, -1, np.int64)  # -1: coupled to nothing (other parts, far pixels)
         label[ring] = _nearest(colour, centres)[ring]
         label[part] = _nearest(smooth, centres)[part]
-        solved[part] = _solve(chroma, part, label, cfg.screen)[part]
+        fill = screened_solve(chroma, part, target=chroma, labels=label, cut=True, screen=cfg.screen)
+        solved[part] = fill[part]
     ycc[..., 1:][hole] = solved[hole].astype(np.float32)
     rgb = cv2.cvtColor(ycc, cv2.COLOR_YCrCb2RGB)
     out[hole] = np.clip(rgb[hole], 0.0, 1.0)
